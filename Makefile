@@ -1,0 +1,30 @@
+# Both entry points bootstrap .venv from nothing on a fresh machine.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: run test bench lint clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test,plot]'
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(VENV)/bin/usmswitchd --sim
+
+test: $(STAMP)
+	$(PY) -m pytest
+
+# BENCH=predictor runs benchmarks/bench_predictor.py only.
+bench: $(STAMP)
+	$(PY) -m benchmarks $(BENCH)
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+clean:
+	rm -rf $(VENV) build *.egg-info
