@@ -1,0 +1,147 @@
+"""Real-time scheduling for the loop thread: SCHED_FIFO, CPU affinity, locked memory.
+
+Each option is asked for separately and may be refused (no CAP_SYS_NICE, RLIMIT_RTPRIO 0, a CPU
+outside the cpuset, RLIMIT_MEMLOCK too small): a refusal is logged and the daemon carries on with
+what it got. `apply_realtime` reports both, for the log and the status reply.
+
+On Linux the scheduler and affinity calls with pid 0 act on the calling thread only: call
+`apply_realtime` from the loop thread, and `drop_realtime` from helper threads that were started
+by it (they inherit its policy) so the record writer never competes at real-time priority.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import errno
+import os
+import platform
+import resource
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import structlog
+
+log = structlog.get_logger("usmswitch.realtime")
+
+# mlockall flags: asm-generic values, except on the architectures that define their own.
+_MCL = {"ppc": (0x2000, 0x4000), "sparc": (0x2000, 0x4000), "alpha": (8192, 16384)}
+CAP_IPC_LOCK = 14
+
+
+@dataclass(frozen=True, slots=True)
+class RealtimeResult:
+    """What `apply_realtime` got: each option name with a description, or the reason it was refused."""
+
+    applied: dict[str, str] = field(default_factory=dict)
+    refused: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        """True when nothing asked for was refused."""
+        return not self.refused
+
+
+def apply_realtime(
+    sched_fifo_priority: int = 0, cpu_affinity: Sequence[int] = (), mlockall: bool = False
+) -> RealtimeResult:
+    """Ask for SCHED_FIFO, a CPU set and locked memory for the calling thread; carry on if refused."""
+    if isinstance(sched_fifo_priority, bool) or not isinstance(sched_fifo_priority, int):
+        raise ValueError(f"sched_fifo_priority must be an integer 0..99, got {sched_fifo_priority!r}")
+    if not 0 <= sched_fifo_priority <= 99:
+        raise ValueError(f"sched_fifo_priority must be 0 (off) or 1..99, got {sched_fifo_priority}")
+    cpus = list(cpu_affinity)
+    for cpu in cpus:
+        if isinstance(cpu, bool) or not isinstance(cpu, int) or cpu < 0:
+            raise ValueError(f"cpu_affinity entries must be CPU numbers >= 0, got {cpu!r}")
+    applied: dict[str, str] = {}
+    refused: dict[str, str] = {}
+    if cpus:
+        try:
+            os.sched_setaffinity(0, cpus)
+            applied["cpu_affinity"] = ",".join(str(c) for c in sorted(set(cpus)))
+        except OSError as exc:
+            refused["cpu_affinity"] = (
+                f"{_describe(exc)} (cpus {cpus}, allowed {sorted(os.sched_getaffinity(0))})"
+            )
+    if sched_fifo_priority:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(sched_fifo_priority))
+            applied["sched_fifo_priority"] = f"SCHED_FIFO {sched_fifo_priority}"
+        except OSError as exc:
+            rtprio = resource.getrlimit(resource.RLIMIT_RTPRIO)[0]
+            refused["sched_fifo_priority"] = (
+                f"{_describe(exc)} (priority {sched_fifo_priority}, RLIMIT_RTPRIO {_limit(rtprio)}; "
+                "needs CAP_SYS_NICE or LimitRTPRIO)"
+            )
+    if mlockall:
+        reason = _lock_memory()
+        if reason is None:
+            applied["mlockall"] = "MCL_CURRENT|MCL_FUTURE"
+        else:
+            refused["mlockall"] = reason
+    result = RealtimeResult(applied, refused)
+    for name, what in applied.items():
+        log.info("realtime applied", option=name, value=what)
+    for name, why in refused.items():
+        log.warning("realtime refused, carrying on without it", option=name, reason=why)
+    return result
+
+
+def drop_realtime() -> bool:
+    """Put the calling thread back on SCHED_OTHER (helper threads inherit the loop's policy)."""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        return True
+    except OSError:
+        return False
+
+
+def _lock_memory() -> str | None:
+    """mlockall(MCL_CURRENT | MCL_FUTURE), or the reason it was not done."""
+    soft = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
+    if soft != resource.RLIM_INFINITY and not _has_capability(CAP_IPC_LOCK):
+        # With a finite limit, MCL_FUTURE turns every later allocation past the limit into a
+        # failure (a MemoryError in the loop). Refuse rather than arm that trap.
+        return (
+            f"RLIMIT_MEMLOCK is {_limit(soft)} bytes and no CAP_IPC_LOCK: later allocations past the "
+            "limit would fail; set LimitMEMLOCK=infinity or grant CAP_IPC_LOCK"
+        )
+    current, future = _mcl_flags()
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+        rc = libc.mlockall(current | future)
+    except (OSError, AttributeError) as exc:
+        return f"mlockall unavailable: {exc}"
+    if rc != 0:
+        return f"{_describe(OSError(ctypes.get_errno(), os.strerror(ctypes.get_errno())))} from mlockall"
+    return None
+
+
+def _mcl_flags() -> tuple[int, int]:
+    machine = platform.machine().lower()
+    for prefix, flags in _MCL.items():
+        if machine.startswith(prefix):
+            return flags
+    return (1, 2)
+
+
+def _has_capability(cap: int) -> bool:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("CapEff:"):
+                    return bool(int(line.split()[1], 16) >> cap & 1)
+    except OSError:
+        pass
+    return False
+
+
+def _describe(exc: OSError) -> str:
+    name = errno.errorcode.get(exc.errno or 0, "error")
+    return f"{name}: {exc.strerror or exc}"
+
+
+def _limit(value: int) -> str:
+    return "unlimited" if value == resource.RLIM_INFINITY else str(value)

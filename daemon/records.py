@@ -1,0 +1,540 @@
+"""The cycle records: one SQLite (WAL) row per stroke, written off the loop by a background thread.
+
+The loop calls `submit(record)`: a put on a queue.SimpleQueue, no I/O, no lock held for long. The
+writer thread drains the queue and commits a transaction whenever the queue runs dry (or every
+`max_batch` rows under a flood), so a stroke is on disk within about a millisecond of its submit.
+
+Durability: journal_mode=WAL with synchronous=NORMAL. A commit has then been written to the WAL
+file by write(2) before COMMIT returns, so the process dying (kill -9, a crash) loses nothing
+committed, and WAL recovery keeps the file consistent. What NORMAL gives up against FULL is only
+the last transactions on a power cut or kernel crash (the file still opens, consistent): an fsync
+per stroke would cost milliseconds on slow storage and buy little for a record of strokes.
+
+Writer failures (disk full, read-only, locked) are kept in `writer_error`, logged, and retried with
+backoff; the records wait in memory (up to `max_pending`, past which the oldest are dropped and
+counted), so the loop never stalls and nothing is lost silently. Reads use their own read-only
+connection per thread and never wait on the writer. Schema: docs/records.md.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import queue
+import re
+import sqlite3
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+import structlog
+
+from .realtime import drop_realtime
+from .record import FIELDS, UNUSABLE, CycleRecord
+
+log = structlog.get_logger("usmswitch.records")
+
+SCHEMA_VERSION = 1
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (
+    key TEXT PRIMARY KEY,
+    value TEXT NOT NULL
+) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS cycles (
+    cycle INTEGER PRIMARY KEY CHECK (cycle >= 1),
+    direction INTEGER NOT NULL CHECK (direction IN (0, 1)),
+    mode TEXT NOT NULL CHECK (mode IN ('closed', 'open')),
+    target_ns INTEGER NOT NULL,
+    "order" INTEGER NOT NULL,
+    coefficients TEXT NOT NULL,
+    t_hat_ns INTEGER NOT NULL,
+    delay_ns INTEGER NOT NULL CHECK (delay_ns >= 0),
+    t_cmd_ns INTEGER NOT NULL,
+    t_start_ns INTEGER,
+    t_depart_ns INTEGER,
+    t_arrive_ns INTEGER,
+    operating_ns INTEGER,
+    total_ns INTEGER,
+    error_ns INTEGER,
+    dead_ns INTEGER,
+    lateness_ns INTEGER,
+    temperature_c REAL,
+    frequency_hz REAL,
+    flags INTEGER NOT NULL DEFAULT 0,
+    wall_ns INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS cycles_direction ON cycles (direction, cycle);
+CREATE TABLE IF NOT EXISTS events (
+    id INTEGER PRIMARY KEY,
+    wall_ns INTEGER NOT NULL,
+    after_cycle INTEGER,
+    kind TEXT NOT NULL,
+    data TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS events_kind ON events (kind, id);
+"""
+
+_COLUMNS = ", ".join(f'"{f}"' for f in FIELDS)
+_INSERT_CYCLE = f"INSERT INTO cycles ({_COLUMNS}) VALUES ({', '.join('?' * len(FIELDS))})"
+_INSERT_EVENT = "INSERT INTO events (wall_ns, after_cycle, kind, data) VALUES (?, ?, ?, ?)"
+_SELECT_CYCLES = f"SELECT {_COLUMNS} FROM cycles"
+
+_EVENT_KIND = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
+_EVENT_RESERVED = frozenset({"id", "wall_ns", "after_cycle", "kind"})
+
+
+class RecordStoreError(Exception):
+    """The record file cannot be opened or used; the message names the path and the reason."""
+
+
+class _Flush:
+    """A marker in the queue: set once everything queued before it is committed."""
+
+    __slots__ = ("done",)
+
+    def __init__(self) -> None:
+        self.done = threading.Event()
+
+
+_STOP = object()
+
+
+class RecordStore:
+    """The cycle records and events in one SQLite file; `submit` is safe to call from the loop."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        readonly: bool = False,
+        synchronous: str = "NORMAL",
+        max_batch: int = 2000,
+        max_pending: int = 1_000_000,
+        busy_timeout_ns: int = 200_000_000,
+        retry_ns: tuple[int, int] = (50_000_000, 2_000_000_000),
+    ) -> None:
+        self.path = Path(path)
+        self.readonly = readonly
+        if synchronous.upper() not in ("OFF", "NORMAL", "FULL", "EXTRA"):
+            raise ValueError(f"synchronous must be OFF, NORMAL, FULL or EXTRA, got {synchronous!r}")
+        if max_batch < 1 or max_pending < max_batch:
+            raise ValueError(f"need 1 <= max_batch <= max_pending, got {max_batch} and {max_pending}")
+        self._max_batch = max_batch
+        self._max_pending = max_pending
+        self._busy_timeout_ms = max(1, busy_timeout_ns // 1_000_000)
+        self._retry_ns = retry_ns
+        self._local = threading.local()
+        self._readers: list[sqlite3.Connection] = []
+        self._readers_lock = threading.Lock()
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._closed = False
+        self._last_submitted_cycle: int | None = None
+        #: Records handed to `submit`.
+        self.submitted = 0
+        #: Records committed to the file by this store.
+        self.written = 0
+        #: Events committed to the file by this store.
+        self.events_written = 0
+        #: Records the database refused for good (a duplicate cycle number, a violated CHECK).
+        self.rejected = 0
+        #: Records dropped because the writer failed for so long that `max_pending` was reached.
+        self.dropped = 0
+        #: Failed write attempts since the store opened.
+        self.error_count = 0
+        self._writer_error: str | None = None
+        self.last_error: str | None = None
+        self._thread: threading.Thread | None = None
+        if readonly:
+            if not self.path.exists():
+                raise RecordStoreError(f"record file {self.path} does not exist")
+            self._writer = None
+            self._closed = True  # nothing may be submitted to a read-only store
+            self._check_schema(self._reader())
+            return
+        self._writer = self._open_writer(synchronous.upper())
+        row = self._writer.execute("SELECT max(cycle) FROM cycles").fetchone()
+        self._last_submitted_cycle = row[0]
+        self._thread = threading.Thread(target=self._run, name="usmswitch-records", daemon=True)
+        self._thread.start()
+
+    # -- the loop's side ---------------------------------------------------------------------
+    def submit(self, record: CycleRecord) -> None:
+        """Queue one stroke's record for writing; never blocks, never touches the disk."""
+        if self._closed:
+            raise RecordStoreError(f"record store {self.path} is closed (or read-only)")
+        if type(record) is not CycleRecord:
+            raise TypeError(f"submit takes a CycleRecord, got {type(record).__name__}")
+        self.submitted += 1
+        self._last_submitted_cycle = record.cycle
+        self._queue.put(record)
+
+    def record_event(self, kind: str, **fields: Any) -> None:
+        """Queue an event (target or mode change, fault, reset, estop ...) in order with the records."""
+        if self._closed:
+            raise RecordStoreError(f"record store {self.path} is closed (or read-only)")
+        if not isinstance(kind, str) or not _EVENT_KIND.match(kind):
+            raise ValueError(f"event kind must be a lower-case word like 'target', got {kind!r}")
+        clash = _EVENT_RESERVED.intersection(fields)
+        if clash:
+            raise ValueError(f"event field name(s) {sorted(clash)} are reserved")
+        try:
+            data = json.dumps(fields, allow_nan=False, sort_keys=True)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"event {kind!r} fields {fields!r} are not plain JSON values: {exc}") from None
+        self._queue.put((time.time_ns(), self._last_submitted_cycle, kind, data))
+
+    def flush(self, timeout_ns: int = 5_000_000_000) -> bool:
+        """Wait until everything submitted so far is committed; False if that took over `timeout_ns`."""
+        if self._thread is None or not self._thread.is_alive():
+            return self._queue.empty()
+        marker = _Flush()
+        self._queue.put(marker)
+        return marker.done.wait(timeout_ns / 1e9)
+
+    def close(self, timeout_ns: int = 10_000_000_000) -> bool:
+        """Write everything still queued, stop the writer, close the file; False if records were left."""
+        if self._closed and self._thread is None:
+            self._close_readers()
+            return True
+        self._closed = True
+        left = True
+        if self._thread is not None:
+            self._queue.put(_STOP)
+            self._thread.join(timeout_ns / 1e9)
+            left = not self._thread.is_alive()
+            if not left:
+                log.error("record writer did not finish in time", path=str(self.path), backlog=self.backlog)
+            else:
+                self._thread = None
+        self._close_readers()
+        return left and self.backlog == 0
+
+    def __enter__(self) -> RecordStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def writer_error(self) -> str | None:
+        """The error the writer is failing with now (None when writing works)."""
+        return self._writer_error
+
+    @property
+    def backlog(self) -> int:
+        """Records submitted but not yet committed, rejected or dropped."""
+        return self.submitted - self.written - self.rejected - self.dropped
+
+    def stats(self) -> dict[str, Any]:
+        """Counters for the status reply and the summary log line."""
+        return {
+            "path": str(self.path),
+            "submitted": self.submitted,
+            "written": self.written,
+            "events_written": self.events_written,
+            "backlog": self.backlog,
+            "rejected": self.rejected,
+            "dropped": self.dropped,
+            "error_count": self.error_count,
+            "writer_error": self._writer_error,
+        }
+
+    # -- reads (any thread; each thread gets its own read-only connection) -----------------------
+    def last_cycle(self) -> int:
+        """The highest cycle number in the file (0 when empty): the next stroke is this + 1."""
+        row = self._reader().execute("SELECT max(cycle) FROM cycles").fetchone()
+        return row[0] or 0
+
+    def count(self) -> int:
+        """How many strokes the file holds."""
+        return self._reader().execute("SELECT count(*) FROM cycles").fetchone()[0]
+
+    def last_strokes(self, direction: int, n: int, exclude_flags: int = UNUSABLE) -> list[int]:
+        """The last `n` operating times (ns) of one direction, oldest first: a predictor's warm start."""
+        if direction not in (0, 1):
+            raise ValueError(f"direction must be 0 (on) or 1 (off), got {direction!r}")
+        if n < 0:
+            raise ValueError(f"n must be >= 0, got {n}")
+        rows = (
+            self._reader()
+            .execute(
+                "SELECT operating_ns FROM cycles WHERE direction = ? AND operating_ns IS NOT NULL"
+                " AND (flags & ?) = 0 ORDER BY cycle DESC LIMIT ?",
+                (direction, int(exclude_flags), n),
+            )
+            .fetchall()
+        )
+        return [r[0] for r in reversed(rows)]
+
+    def history(self, n: int, direction: int | None = None) -> list[CycleRecord]:
+        """The last `n` records (of one direction, or both), oldest first."""
+        if n < 0:
+            raise ValueError(f"n must be >= 0, got {n}")
+        if direction is None:
+            sql, args = f"{_SELECT_CYCLES} ORDER BY cycle DESC LIMIT ?", (n,)
+        else:
+            sql, args = f"{_SELECT_CYCLES} WHERE direction = ? ORDER BY cycle DESC LIMIT ?", (direction, n)
+        rows = self._reader().execute(sql, args).fetchall()
+        return [CycleRecord.from_row(r) for r in reversed(rows)]
+
+    def iter_records(
+        self, first: int = 1, last: int | None = None, chunk: int = 1000
+    ) -> Iterator[CycleRecord]:
+        """Every record from cycle `first` to `last` in order, read in chunks (for CSV export).
+
+        Each chunk is its own short read, so a long export never pins the WAL.
+        """
+        after = first - 1
+        stop = last if last is not None else (1 << 63) - 1
+        while True:
+            rows = (
+                self._reader()
+                .execute(
+                    f"{_SELECT_CYCLES} WHERE cycle > ? AND cycle <= ? ORDER BY cycle LIMIT ?",
+                    (after, stop, chunk),
+                )
+                .fetchall()
+            )
+            if not rows:
+                return
+            for r in rows:
+                yield CycleRecord.from_row(r)
+            after = rows[-1]["cycle"]
+
+    def events(self, kind: str | None = None, n: int = 100) -> list[dict[str, Any]]:
+        """The last `n` events (of one kind, or all), oldest first, with their fields merged in."""
+        if kind is None:
+            sql, args = "SELECT * FROM events ORDER BY id DESC LIMIT ?", (n,)
+        else:
+            sql, args = "SELECT * FROM events WHERE kind = ? ORDER BY id DESC LIMIT ?", (kind, n)
+        out = []
+        for r in reversed(self._reader().execute(sql, args).fetchall()):
+            ev = {"id": r["id"], "wall_ns": r["wall_ns"], "after_cycle": r["after_cycle"], "kind": r["kind"]}
+            ev.update(json.loads(r["data"]))
+            out.append(ev)
+        return out
+
+    # -- connections ------------------------------------------------------------------------------
+    def _open_writer(self, synchronous: str) -> sqlite3.Connection:
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+            conn.execute(f"PRAGMA busy_timeout = {self._busy_timeout_ms}")
+            mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+            if mode.lower() != "wal":
+                raise RecordStoreError(f"record file {self.path}: journal_mode is {mode!r}, WAL refused")
+            conn.execute(f"PRAGMA synchronous = {synchronous}")
+            # Keep the WAL file from staying huge after a burst (it is reset at each checkpoint).
+            conn.execute("PRAGMA journal_size_limit = 67108864")
+            self._check_schema(conn)
+            conn.executescript(SCHEMA)
+            conn.execute(
+                "INSERT OR IGNORE INTO meta (key, value)"
+                " VALUES ('schema_version', ?), ('created_wall_ns', ?)",
+                (str(SCHEMA_VERSION), str(time.time_ns())),
+            )
+        except (sqlite3.Error, OSError) as exc:
+            raise RecordStoreError(f"record file {self.path}: {exc}") from exc
+        return conn
+
+    def _check_schema(self, conn: sqlite3.Connection) -> None:
+        try:
+            has_meta = conn.execute(
+                "SELECT 1 FROM sqlite_master WHERE type='table' AND name='meta'"
+            ).fetchone()
+            if not has_meta:
+                if self.readonly:
+                    raise RecordStoreError(f"record file {self.path} has no usmswitch schema")
+                return
+            row = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+        except sqlite3.Error as exc:
+            raise RecordStoreError(f"record file {self.path}: {exc}") from exc
+        if row is not None and row[0] != str(SCHEMA_VERSION):
+            raise RecordStoreError(
+                f"record file {self.path} has schema version {row[0]};"
+                f" this daemon reads version {SCHEMA_VERSION}"
+            )
+
+    def _reader(self) -> sqlite3.Connection:
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            uri = f"file:{quote(str(self.path.resolve()))}?mode=ro"
+            try:
+                conn = sqlite3.connect(uri, uri=True, check_same_thread=False)
+                conn.execute(f"PRAGMA busy_timeout = {self._busy_timeout_ms}")
+            except sqlite3.Error as exc:
+                raise RecordStoreError(f"record file {self.path}: {exc}") from exc
+            conn.row_factory = sqlite3.Row
+            self._local.conn = conn
+            with self._readers_lock:
+                self._readers.append(conn)
+        return conn
+
+    def _close_readers(self) -> None:
+        with self._readers_lock:
+            readers, self._readers = self._readers, []
+        for conn in readers:
+            conn.close()
+        self._local = threading.local()
+
+    # -- the writer thread ----------------------------------------------------------------------
+    def _run(self) -> None:
+        try:
+            self._run_writer()
+        except BaseException as exc:
+            # A bug here must not pass silently: the status shows it and close() reports the backlog.
+            self._writer_error = f"record writer thread died: {type(exc).__name__}: {exc}"
+            log.exception("record writer thread died", path=str(self.path))
+            raise
+
+    def _run_writer(self) -> None:
+        drop_realtime()
+        conn = self._writer
+        assert conn is not None
+        pending: deque[Any] = deque()  # records and events taken off the queue, not yet committed
+        waiters: list[tuple[int, _Flush]] = []  # flush markers and how many items precede them
+        taken = 0  # items ever moved into `pending`
+        done = 0  # items ever committed or rejected
+        stopping = False
+        retry_at = 0
+        backoff = self._retry_ns[0]
+        while True:
+            # Block for work only when nothing is waiting to be written.
+            if not pending and not stopping:
+                item = self._queue.get()
+            elif self._writer_error is not None and not stopping:
+                try:
+                    item = self._queue.get(timeout=max(0, retry_at - time.monotonic_ns()) / 1e9)
+                except queue.Empty:
+                    item = None
+            else:
+                item = None
+            while True:
+                if item is _STOP:
+                    stopping = True
+                elif isinstance(item, _Flush):
+                    waiters.append((taken, item))
+                elif item is not None:
+                    pending.append(item)
+                    taken += 1
+                try:
+                    item = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+            if len(pending) > self._max_pending:
+                excess = len(pending) - self._max_pending
+                lost = 0
+                for _ in range(excess):
+                    if isinstance(pending.popleft(), CycleRecord):
+                        lost += 1
+                self.dropped += lost
+                done += excess
+                log.error(
+                    "record writer backlog full: oldest records dropped", dropped=lost, path=str(self.path)
+                )
+            if pending and (self._writer_error is None or time.monotonic_ns() >= retry_at or stopping):
+                while pending:
+                    batch = [pending.popleft() for _ in range(min(self._max_batch, len(pending)))]
+                    try:
+                        self._write(conn, batch)
+                    except sqlite3.Error as exc:
+                        pending.extendleft(reversed(batch))
+                        self._fail(conn, exc)
+                        retry_at = time.monotonic_ns() + backoff
+                        backoff = min(2 * backoff, self._retry_ns[1])
+                        break
+                    done += len(batch)
+                    if self._writer_error is not None:
+                        log.info("record writer recovered", path=str(self.path), after=self._writer_error)
+                        self._writer_error = None
+                        backoff = self._retry_ns[0]
+            still = []
+            for n, marker in waiters:
+                if n <= done:
+                    marker.done.set()
+                else:
+                    still.append((n, marker))
+            waiters = still
+            if stopping and (not pending or self._writer_error is not None):
+                if pending and self._writer_error is not None:
+                    # close() asked to stop while writing fails: try until close() gives up on us.
+                    time.sleep(max(0, retry_at - time.monotonic_ns()) / 1e9)
+                    continue
+                self._finish(conn)
+                for _, marker in waiters:
+                    marker.done.set()
+                return
+
+    def _write(self, conn: sqlite3.Connection, batch: list[Any]) -> None:
+        cycles = []
+        events = []
+        unconvertible = 0
+        for item in batch:
+            if type(item) is tuple:
+                events.append(item)
+                continue
+            try:
+                cycles.append(item.to_row())
+            except (TypeError, ValueError) as exc:
+                unconvertible += 1
+                self.last_error = f"cycle {item.cycle} rejected: {exc}"
+                log.error(
+                    "cycle record rejected: a field is not a plain value", cycle=item.cycle, reason=str(exc)
+                )
+        self.rejected += unconvertible
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            try:
+                conn.executemany(_INSERT_CYCLE, cycles)
+                rejected = 0
+            except sqlite3.IntegrityError:
+                # One bad row fails the statement: find it row by row so the others still land.
+                rejected = self._insert_one_by_one(conn, cycles)
+            if events:
+                conn.executemany(_INSERT_EVENT, events)
+            conn.execute("COMMIT")
+        except BaseException:
+            if conn.in_transaction:
+                conn.execute("ROLLBACK")
+            raise
+        self.written += len(cycles) - rejected
+        self.rejected += rejected
+        self.events_written += len(events)
+
+    def _insert_one_by_one(self, conn: sqlite3.Connection, rows: list[tuple[Any, ...]]) -> int:
+        rejected = 0
+        for row in rows:
+            try:
+                conn.execute(_INSERT_CYCLE, row)
+            except sqlite3.IntegrityError as exc:
+                rejected += 1
+                self.last_error = f"cycle {row[0]} rejected: {exc}"
+                log.error("cycle record rejected by the database", cycle=row[0], reason=str(exc))
+        return rejected
+
+    def _fail(self, conn: sqlite3.Connection, exc: sqlite3.Error) -> None:
+        message = f"{type(exc).__name__}: {exc}"
+        self.error_count += 1
+        self.last_error = message
+        if conn.in_transaction:
+            with contextlib.suppress(sqlite3.Error):
+                conn.execute("ROLLBACK")
+        if message != self._writer_error:
+            log.error(
+                "record writer failing, records kept in memory and retried",
+                path=str(self.path),
+                error=message,
+            )
+        self._writer_error = message
+
+    def _finish(self, conn: sqlite3.Connection) -> None:
+        try:
+            conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        except sqlite3.Error as exc:
+            log.warning("record file checkpoint at close failed", path=str(self.path), error=str(exc))
+        conn.close()

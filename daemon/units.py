@@ -1,0 +1,94 @@
+"""Human durations in and out: "12ms", "10500us", "0.012s" <-> integer nanoseconds.
+
+Config files, command-line flags and the socket client all take durations from people; this is
+the one place that turns them into the integer nanoseconds every API uses, exactly (Decimal, never
+float), and back into a readable form.
+"""
+
+from __future__ import annotations
+
+import re
+from decimal import Decimal, InvalidOperation
+
+# Nanoseconds per unit. "µ" (micro sign) and "μ" (Greek mu) both appear in copied text.
+UNITS_NS: dict[str, int] = {
+    "ns": 1,
+    "us": 1_000,
+    "µs": 1_000,
+    "μs": 1_000,
+    "ms": 1_000_000,
+    "s": 1_000_000_000,
+}
+
+# SQLite stores signed 64-bit integers: about 292 years of nanoseconds.
+MAX_NS = 2**63 - 1
+
+_DURATION = re.compile(
+    r"""^\s*
+    (?P<sign>[+-]?)
+    (?P<number>(?:\d[\d_]*(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?)
+    \s*
+    (?P<unit>[^\s\d.+-][^\s]*)?
+    \s*$""",
+    re.VERBOSE,
+)
+
+
+def parse_duration_ns(value: str | int) -> int:
+    """Turn a human duration ("12ms", "10500us", "0.012s", "250ns") or integer ns into exact ns."""
+    if isinstance(value, bool):
+        raise ValueError(f"duration {value!r}: a boolean is not a duration")
+    if isinstance(value, int):
+        if value < 0:
+            raise ValueError(f"duration {value!r}: negative")
+        if value > MAX_NS:
+            raise ValueError(f"duration {value!r}: longer than {MAX_NS} ns")
+        return value
+    if not isinstance(value, str):
+        raise ValueError(
+            f"duration {value!r}: expected text with a unit (e.g. '12ms') or integer nanoseconds, "
+            f"got {type(value).__name__}"
+        )
+    m = _DURATION.match(value)
+    if m is None:
+        raise ValueError(f"duration {value!r}: not a number with a unit (ns, us, ms, s), e.g. '12ms'")
+    unit = m["unit"]
+    try:
+        number = Decimal(m["number"].replace("_", ""))
+    except InvalidOperation:  # pragma: no cover - the pattern admits only valid numbers
+        raise ValueError(f"duration {value!r}: {m['number']!r} is not a number") from None
+    if unit is None:
+        # A bare number is ambiguous ("12" meant as ms would be a 12 ns target): only 0 is safe.
+        if number == 0:
+            return 0
+        raise ValueError(f"duration {value!r}: needs a unit (ns, us, ms, s), e.g. '{m['number']}ms'")
+    scale = UNITS_NS.get(unit)
+    if scale is None:
+        raise ValueError(f"duration {value!r}: unknown unit {unit!r} (use ns, us, ms or s)")
+    ns = number * scale
+    if m["sign"] == "-" and ns != 0:
+        raise ValueError(f"duration {value!r}: negative")
+    if ns != ns.to_integral_value():
+        raise ValueError(f"duration {value!r}: finer than 1 ns")
+    if ns > MAX_NS:
+        raise ValueError(f"duration {value!r}: longer than {MAX_NS} ns")
+    return int(ns)
+
+
+def format_ns(ns: int) -> str:
+    """Render integer nanoseconds for people, in the unit that fits: "12.000 ms", "95.3 us", "250 ns"."""
+    if isinstance(ns, bool) or not isinstance(ns, int):
+        raise ValueError(f"format_ns needs integer nanoseconds, got {ns!r}")
+    sign = "-" if ns < 0 else ""
+    mag = abs(ns)
+    if mag < 1_000:
+        return f"{sign}{mag} ns"
+    # Pick the unit after rounding, so 999_999 ns reads "1.000 ms", not "1000.0 us".
+    for exponent, step, unit in _FORMAT_STEPS:
+        shown = Decimal(mag).scaleb(exponent).quantize(step)
+        if shown < 1000:
+            return f"{sign}{shown} {unit}"
+    return f"{sign}{Decimal(mag).scaleb(-9).quantize(Decimal('0.000001'))} s"
+
+
+_FORMAT_STEPS = ((-3, Decimal("0.1"), "us"), (-6, Decimal("0.001"), "ms"))
