@@ -1,0 +1,792 @@
+"""The host side of the MCU protocol, shared by the serial and USB drivers.
+
+`McuDaq` is a hardware-timed `Daq` over any byte `Transport`. A link thread owns the reading: it
+decodes frames off the timing path, answers nothing itself, sends heartbeats, keeps the clock
+mapping, detects lost frames by sequence number, rebuilds a stroke from the device's STROKE report
+when frames went missing, and on a dead link treats the drive as stopped, reports FAULT DISCONNECT
+and reconnects with backoff and a fresh handshake. Callers' arm/command/stop write directly.
+
+The driver's clock is the device's timeline mapped onto the host: device stamps (32-bit us,
+unwrapped) become `base_ns + (us - base_us) * 1000`, where the base is fixed at each handshake so
+the timeline starts near `time.monotonic_ns()` and never goes back across reconnects; `now_ns()` is
+`time.monotonic_ns() + offset_ns`, the offset re-estimated from each heartbeat round trip (the
+sample with the smallest round trip of the last eight), which tracks the crystals' drift.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections import deque
+from dataclasses import dataclass, field
+
+from .clock import DEFAULT_SPIN_MARGIN_NS, Clock
+from .daq import DEFAULT_DEBOUNCE_NS, Daq, DaqDisconnected, DaqError, check_ns
+from .events import Channel, Direction, Event, EventKind, FaultCode
+from .mcu_protocol import (
+    PROTOCOL_MAJOR,
+    PROTOCOL_MINOR,
+    REQUIRED_CAPS,
+    U16_MOD,
+    U32_MOD,
+    Ack,
+    Arm,
+    Caps,
+    Command,
+    DeviceFault,
+    Edge,
+    Fault,
+    FrameDecoder,
+    Hello,
+    HelloAck,
+    Message,
+    MsgType,
+    Ping,
+    Pong,
+    SeqTracker,
+    Start,
+    Status,
+    Stop,
+    Stopped,
+    StopReason,
+    Stroke,
+    StrokeFlags,
+    Unwrapper,
+    encode_frame,
+)
+
+log = logging.getLogger(__name__)
+
+DEFAULT_HEARTBEAT_NS = 100_000_000
+DEFAULT_LINK_TIMEOUT_NS = 400_000_000
+DEFAULT_WATCHDOG_MS = 500
+DEFAULT_REPLY_TIMEOUT_NS = 25_000_000
+DEFAULT_RETRIES = 3
+DEFAULT_STROKE_TIMEOUT_NS = 100_000_000
+DEFAULT_RECONNECT_MIN_NS = 50_000_000
+DEFAULT_RECONNECT_MAX_NS = 2_000_000_000
+# A stroke whose frames went missing waits this long for its STROKE report before it is given up.
+REPORT_WAIT_NS = 150_000_000
+_READ_SLICE_NS = 10_000_000
+_OFFSET_WINDOW = 8
+
+
+class TransportLost(DaqDisconnected):
+    """The byte transport failed: unplugged, port closed, device gone."""
+
+
+class Transport(ABC):
+    """A bidirectional byte pipe to the MCU: a serial port, a pair of USB bulk endpoints."""
+
+    @abstractmethod
+    def open(self) -> None:
+        """Open the device; raises TransportLost (absent, busy) with the reason."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release the device; safe to call twice and after a loss."""
+
+    @abstractmethod
+    def write(self, data: bytes) -> None:
+        """Send all of `data`; raises TransportLost if the device went away."""
+
+    @abstractmethod
+    def read(self, timeout_ns: int) -> bytes:
+        """Whatever bytes arrive within `timeout_ns` (b"" if none); raises TransportLost."""
+
+    @abstractmethod
+    def describe(self) -> str:
+        """Where the device is, for logs and errors."""
+
+
+class DeviceClock(Clock):
+    """The device's timeline on the host: `time.monotonic_ns() + offset_ns`, the offset kept by heartbeats."""
+
+    virtual = False
+
+    def __init__(self, spin_margin_ns: int = DEFAULT_SPIN_MARGIN_NS) -> None:
+        self.spin_margin_ns = check_ns("spin_margin_ns", spin_margin_ns)
+        #: Device timeline minus host monotonic time, in ns (written by the link thread only).
+        self.offset_ns = 0
+
+    def now_ns(self) -> int:
+        return time.monotonic_ns() + self.offset_ns
+
+    def sleep_until(self, t_ns: int) -> int:
+        now = self.now_ns()
+        ahead = t_ns - now - self.spin_margin_ns
+        if ahead > 0:
+            time.sleep(ahead / 1e9)
+        now = self.now_ns()
+        while now < t_ns:
+            now = self.now_ns()
+        return now
+
+    def wait_until(self, t_ns: int) -> int:
+        now = self.now_ns()
+        while now < t_ns:
+            time.sleep((t_ns - now) / 1e9)
+            now = self.now_ns()
+        return now
+
+
+@dataclass
+class _Waiter:
+    """A request waiting for its ACK; any of its retransmissions' ACKs completes it."""
+
+    mtype: MsgType
+    seqs: list[int] = field(default_factory=list)
+    done: threading.Event = field(default_factory=threading.Event)
+    ack: Ack | None = None
+    lost: str = ""
+
+
+@dataclass
+class _StrokeCtx:
+    """What the host has delivered of the stroke in progress, to rebuild it if frames go missing."""
+
+    stroke: int
+    direction: Direction
+    started: bool = False
+    departed: bool = False
+    arrived: bool = False
+    stopped: bool = False
+    reported: bool = False
+    gap: bool = False
+    hold_until_ns: int = 0
+    held: list[Event] = field(default_factory=list)
+
+
+@dataclass
+class LinkStats:
+    """Counters of everything that went wrong on the link and what was done about it."""
+
+    framing_errors: int = 0
+    crc_errors: int = 0
+    format_errors: int = 0
+    lost_frames: int = 0
+    seq_resets: int = 0
+    retransmits: int = 0
+    reply_timeouts: int = 0
+    silences: int = 0
+    disconnects: int = 0
+    reconnects: int = 0
+    handshake_failures: int = 0
+    recovered_strokes: int = 0
+    unrecovered_strokes: int = 0
+    device_rx_errors: int = 0
+    device_rx_lost: int = 0
+    wraps: int = 0
+    max_rtt_ns: int = 0
+    last_rtt_ns: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        """Plain dict for status replies and logs."""
+        return dict(self.__dict__)
+
+
+class McuDaq(Daq):
+    """A hardware-timed DAQ: the rig's microcontroller over a byte transport (docs/mcu-protocol.md)."""
+
+    hardware_timed = True
+    name = "mcu"
+
+    def __init__(
+        self,
+        transport: Transport,
+        *,
+        debounce_ns: int = DEFAULT_DEBOUNCE_NS,
+        stroke_timeout_ns: int = DEFAULT_STROKE_TIMEOUT_NS,
+        heartbeat_ns: int = DEFAULT_HEARTBEAT_NS,
+        link_timeout_ns: int = DEFAULT_LINK_TIMEOUT_NS,
+        watchdog_ms: int = DEFAULT_WATCHDOG_MS,
+        reply_timeout_ns: int = DEFAULT_REPLY_TIMEOUT_NS,
+        retries: int = DEFAULT_RETRIES,
+        reconnect_min_ns: int = DEFAULT_RECONNECT_MIN_NS,
+        reconnect_max_ns: int = DEFAULT_RECONNECT_MAX_NS,
+    ) -> None:
+        super().__init__(clock=DeviceClock(), debounce_ns=debounce_ns)
+        self.clock: DeviceClock
+        self.transport = transport
+        self.stroke_timeout_ns = check_ns("stroke_timeout_ns", stroke_timeout_ns, minimum=1_000_000)
+        self.heartbeat_ns = check_ns("heartbeat_ns", heartbeat_ns, minimum=1_000_000)
+        self.link_timeout_ns = check_ns("link_timeout_ns", link_timeout_ns, minimum=2 * self.heartbeat_ns)
+        if (
+            isinstance(watchdog_ms, bool)
+            or not isinstance(watchdog_ms, int)
+            or not 10 <= watchdog_ms < U16_MOD
+        ):
+            raise ValueError(f"watchdog_ms must be an integer in 10..65535, got {watchdog_ms!r}")
+        if watchdog_ms * 1_000_000 <= self.heartbeat_ns:
+            raise ValueError(
+                f"watchdog_ms={watchdog_ms} must exceed the heartbeat period ({heartbeat_ns} ns)"
+            )
+        self.watchdog_ms = watchdog_ms
+        self.reply_timeout_ns = check_ns("reply_timeout_ns", reply_timeout_ns, minimum=100_000)
+        if isinstance(retries, bool) or not isinstance(retries, int) or retries < 1:
+            raise ValueError(f"retries must be an integer >= 1, got {retries!r}")
+        self.retries = retries
+        self.reconnect_min_ns = check_ns("reconnect_min_ns", reconnect_min_ns, minimum=1_000_000)
+        self.reconnect_max_ns = check_ns("reconnect_max_ns", reconnect_max_ns, minimum=self.reconnect_min_ns)
+
+        self.stats = LinkStats()
+        #: What the device announced at the last handshake.
+        self.device: HelloAck | None = None
+        #: How late the device fired the last start against its scheduled instant (START late_us).
+        self.last_start_late_ns: int | None = None
+
+        self._wlock = threading.Lock()  # frames go out whole, in sequence order
+        self._state = threading.Condition()  # guards everything below; link thread <-> callers
+        self._events: deque[Event] = deque()
+        self._waiters: dict[int, _Waiter] = {}
+        self._connected = False
+        self._closing = False
+        self._thread: threading.Thread | None = None
+        self._tx_seq = 0
+        self._rx_seq = SeqTracker()
+        self._decoder = FrameDecoder()
+        self._unwrap = Unwrapper()
+        self._base_us = 0
+        self._base_ns = 0
+        self._last_stamp_ns = 0
+        self._stroke_id = 0
+        self._armed_msg: Arm | None = None
+        self._ctx: _StrokeCtx | None = None
+        self._pings: dict[int, int] = {}
+        self._ping_token = 0
+        self._offsets: deque[tuple[int, int]] = deque(maxlen=_OFFSET_WINDOW)
+        self._last_rx_ns = 0
+        self._next_ping_ns = 0
+        self._dev_errors_base: tuple[int, int] | None = None
+        # Counters of past sessions (each handshake starts a fresh decoder, tracker and unwrapper).
+        self._decoder_totals = (0, 0, 0)
+        self._lost_total = 0
+        self._resets_total = 0
+        self._wraps_total = 0
+
+    # -- lifecycle ---------------------------------------------------------------------------
+    def _open(self) -> None:
+        self._closing = False
+        try:
+            self.transport.open()
+            self._handshake()
+        except DaqError:
+            self.transport.close()
+            raise
+        self._thread = threading.Thread(target=self._run, name=f"{self.name}-link", daemon=True)
+        self._thread.start()
+
+    def _close(self) -> None:
+        with self._state:
+            self._closing = True
+            self._state.notify_all()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5)
+        self._thread = None
+        self._mark_lost("driver closed", report=False)
+        self.transport.close()
+
+    def ping(self) -> bool:
+        """True when the link is up and the device spoke within the link timeout."""
+        with self._state:
+            return (
+                self.is_open
+                and self._connected
+                and time.monotonic_ns() - self._last_rx_ns < self.link_timeout_ns
+            )
+
+    @property
+    def connected(self) -> bool:
+        """True between a good handshake and the next loss of the link."""
+        return self._connected
+
+    def link_stats(self) -> dict[str, int]:
+        """The link's counters (errors, losses, recoveries, round trip)."""
+        with self._state:
+            s = self.stats
+            s.framing_errors = self._decoder_totals[0] + self._decoder.framing_errors
+            s.crc_errors = self._decoder_totals[1] + self._decoder.crc_errors
+            s.format_errors = self._decoder_totals[2] + self._decoder.format_errors
+            s.lost_frames = self._lost_total + self._rx_seq.lost
+            s.seq_resets = self._resets_total + self._rx_seq.resets
+            s.wraps = self._unwrap.wraps + self._wraps_total
+            return s.as_dict()
+
+    # -- the clock ---------------------------------------------------------------------------
+    def _dev_ns(self, raw_us: int) -> int:
+        return self._base_ns + (self._unwrap.unwrap(raw_us) - self._base_us) * 1000
+
+    def _to_raw_us(self, t_ns: int) -> int:
+        return (self._base_us + (t_ns - self._base_ns) // 1000) % U32_MOD
+
+    def _anchor(self, raw_us: int, host_mid_ns: int) -> None:
+        """Start a device session's timeline at `host_mid_ns` on the driver clock, never going back."""
+        self._wraps_total += self._unwrap.wraps
+        self._unwrap = Unwrapper()
+        self._base_us = self._unwrap.unwrap(raw_us)
+        self._base_ns = max(host_mid_ns + self.clock.offset_ns, self._last_stamp_ns + 1)
+        self.clock.offset_ns = self._base_ns - host_mid_ns
+        self._offsets.clear()
+
+    def _clock_sample(self, raw_us: int, t_send_ns: int, t_recv_ns: int) -> None:
+        rtt = t_recv_ns - t_send_ns
+        self.stats.last_rtt_ns = rtt
+        self.stats.max_rtt_ns = max(self.stats.max_rtt_ns, rtt)
+        self._offsets.append((rtt, self._dev_ns(raw_us) - (t_send_ns + t_recv_ns) // 2))
+        self.clock.offset_ns = min(self._offsets)[1]
+
+    # -- sending -----------------------------------------------------------------------------
+    def _send(self, msg: Message, waiter: _Waiter | None = None) -> int:
+        with self._wlock:
+            seq = self._tx_seq
+            self._tx_seq = (seq + 1) % U16_MOD
+            if waiter is not None:
+                with self._state:
+                    waiter.seqs.append(seq)
+                    self._waiters[seq] = waiter
+            self.transport.write(encode_frame(msg, seq))
+        return seq
+
+    def _request(self, msg: Message, what: str) -> Ack:
+        """Send `msg` and wait for its ACK, retransmitting on silence; DaqError if none comes."""
+        waiter = _Waiter(msg.TYPE)
+        try:
+            for attempt in range(self.retries):
+                if not self._connected:
+                    raise DaqDisconnected(f"{self.name}: {what}: link down ({self.transport.describe()})")
+                if attempt:
+                    self.stats.retransmits += 1
+                try:
+                    self._send(msg, waiter)
+                except TransportLost as exc:
+                    self._link_failed(f"write failed: {exc}")
+                    raise
+                if waiter.done.wait(self.reply_timeout_ns / 1e9):
+                    break
+                self.stats.reply_timeouts += 1
+            else:
+                raise DaqError(
+                    f"{self.name}: no ACK to {what} after {self.retries} tries of "
+                    f"{self.reply_timeout_ns // 1_000_000} ms ({self.transport.describe()})"
+                )
+        finally:
+            with self._state:
+                for s in waiter.seqs:
+                    self._waiters.pop(s, None)
+        if waiter.ack is None:
+            raise DaqDisconnected(f"{self.name}: {what}: {waiter.lost}")
+        return waiter.ack
+
+    # -- the mechanism -----------------------------------------------------------------------
+    def _arm(self, direction: Direction, delay_ns: int) -> None:
+        if not self._connected:
+            raise DaqDisconnected(f"{self.name}: arm: link down ({self.transport.describe()})")
+        delay_us = (delay_ns + 500) // 1000
+        dev = self.device
+        if dev is not None and delay_us > dev.max_delay_us:
+            raise ValueError(f"delay_ns={delay_ns} exceeds the device's maximum of {dev.max_delay_us} us")
+        self._stroke_id = (self._stroke_id + 1) % U16_MOD
+        msg = Arm(self._stroke_id, int(direction), delay_us, self.stroke_timeout_ns // 1000)
+        self._armed_msg = msg
+        # No wait: the ACK is checked by the COMMAND, which re-arms if this frame was lost.
+        try:
+            self._send(msg)
+        except TransportLost as exc:
+            self._link_failed(f"write failed: {exc}")
+            raise
+
+    def _command(self, t_cmd_ns: int | None) -> int:
+        arm = self._armed_msg
+        if arm is None:
+            raise DaqError(f"{self.name}: command without an armed stroke")
+        if t_cmd_ns is None:
+            cmd = Command(arm.stroke, 0, 0)
+        else:
+            check_ns("t_cmd_ns", t_cmd_ns)
+            cmd = Command(arm.stroke, self._to_raw_us(t_cmd_ns), 1)
+        with self._state:
+            self._ctx_new(arm.stroke, Direction(arm.direction))
+        ack = self._request(cmd, f"COMMAND stroke {arm.stroke}")
+        if ack.status == Status.NOT_ARMED:
+            # The ARM frame was lost or refused silently: arm again and repeat the command.
+            self._request(arm, f"ARM stroke {arm.stroke}")
+            ack = self._request(cmd, f"COMMAND stroke {arm.stroke}")
+        if ack.status != Status.OK:
+            with self._state:
+                self._ctx = None
+            raise DaqError(
+                f"{self.name}: device refused COMMAND stroke {arm.stroke}: {_status_name(ack.status)}"
+            )
+        self._armed_msg = None
+        with self._state:
+            return self._dev_ns(ack.t_us)
+
+    def _stop(self) -> None:
+        self._armed_msg = None
+        if not self._connected:
+            return  # no link: the device's watchdog has stopped or will stop the drive
+        try:
+            ack = self._request(Stop(int(StopReason.HOST)), "STOP")
+        except DaqError as exc:
+            log.warning("%s: stop not acknowledged: %s", self.name, exc)
+            return
+        if ack.status != Status.OK:
+            log.warning("%s: device refused STOP: %s", self.name, _status_name(ack.status))
+
+    def _recv_internal(self, deadline_ns: int | None) -> Event | None:
+        with self._state:
+            while not self._events:
+                if self._closing or not self.is_open:
+                    return None
+                if deadline_ns is None:
+                    self._state.wait(0.1)
+                    continue
+                left = deadline_ns - self.clock.now_ns()
+                if left <= 0:
+                    return None
+                self._state.wait(left / 1e9)
+            return self._events.popleft()
+
+    # -- handshake ---------------------------------------------------------------------------
+    def _handshake(self) -> None:
+        """HELLO until HELLO_ACK: version and capability check, sequence reset, clock anchor."""
+        self._keep_decoder_totals()
+        with self._wlock:
+            self._tx_seq = 0
+        last = "no reply"
+        for _ in range(self.retries):
+            t_send = time.monotonic_ns()
+            try:
+                self.transport.write(b"\x00")  # ends any partial frame the device holds
+                self._send(Hello(PROTOCOL_MAJOR, PROTOCOL_MINOR, self.watchdog_ms))
+            except TransportLost:
+                self.stats.handshake_failures += 1
+                raise
+            deadline = t_send + 4 * self.reply_timeout_ns
+            while (now := time.monotonic_ns()) < deadline:
+                data = self.transport.read(deadline - now)
+                for seq, msg in self._decoder.feed(data):
+                    if not isinstance(msg, HelloAck):
+                        continue  # stale frames of the previous session
+                    t_recv = time.monotonic_ns()
+                    self._accept_hello(seq, msg, t_send, t_recv)
+                    return
+            last = f"no HELLO_ACK within {4 * self.reply_timeout_ns // 1_000_000} ms"
+        self.stats.handshake_failures += 1
+        raise TransportLost(f"{self.name}: handshake with {self.transport.describe()} failed: {last}")
+
+    def _accept_hello(self, seq: int, msg: HelloAck, t_send: int, t_recv: int) -> None:
+        if msg.major != PROTOCOL_MAJOR:
+            self.stats.handshake_failures += 1
+            raise DaqError(
+                f"{self.name}: {self.transport.describe()} speaks protocol {msg.major}.{msg.minor}, "
+                f"this host speaks {PROTOCOL_MAJOR}.{PROTOCOL_MINOR}: update the firmware or the daemon"
+            )
+        missing = REQUIRED_CAPS & ~Caps(msg.caps)
+        if missing:
+            self.stats.handshake_failures += 1
+            raise DaqError(f"{self.name}: device lacks required capabilities: {missing!r}")
+        with self._state:
+            self.device = msg
+            self._keep_seq_totals()
+            self._rx_seq = SeqTracker()
+            self._rx_seq.reset((seq + 1) % U16_MOD)
+            self._anchor(msg.t_us, (t_send + t_recv) // 2)
+            self._last_rx_ns = t_recv
+            self._next_ping_ns = t_recv
+            self._dev_errors_base = None
+            self._pings.clear()
+            self._connected = True
+        log.info(
+            "%s: handshake with %s: protocol %d.%d, firmware 0x%04X, caps %s",
+            self.name,
+            self.transport.describe(),
+            msg.major,
+            msg.minor,
+            msg.fw_version,
+            Caps(msg.caps),
+        )
+
+    def _keep_decoder_totals(self) -> None:
+        d = self._decoder
+        a, b, c = self._decoder_totals
+        self._decoder_totals = (a + d.framing_errors, b + d.crc_errors, c + d.format_errors)
+        self._decoder = FrameDecoder()
+
+    def _keep_seq_totals(self) -> None:
+        self._lost_total += self._rx_seq.lost
+        self._resets_total += self._rx_seq.resets
+
+    # -- the link thread ---------------------------------------------------------------------
+    def _run(self) -> None:
+        backoff = self.reconnect_min_ns
+        while not self._closing:
+            if not self._connected:
+                if self._reconnect_once():
+                    backoff = self.reconnect_min_ns
+                    continue
+                self._sleep(backoff)
+                backoff = min(2 * backoff, self.reconnect_max_ns)
+                continue
+            try:
+                self._service()
+            except TransportLost as exc:
+                self._link_failed(str(exc))
+            except Exception as exc:  # a bug must not kill the link silently: log, drop the link, reconnect
+                log.exception("%s: link thread error", self.name)
+                self._link_failed(f"link thread error: {exc!r}")
+
+    def _sleep(self, dt_ns: int) -> None:
+        with self._state:
+            if not self._closing:
+                self._state.wait(dt_ns / 1e9)
+
+    def _service(self) -> None:
+        now = time.monotonic_ns()
+        timeout = max(0, min(self._next_ping_ns - now, _READ_SLICE_NS))
+        data = self.transport.read(timeout)
+        now = time.monotonic_ns()
+        if data:
+            frames = self._decoder.feed(data)
+            if frames:
+                self._last_rx_ns = now
+            with self._state:
+                for seq, msg in frames:
+                    self._handle(seq, msg, now)
+        if now >= self._next_ping_ns:
+            self._next_ping_ns = now + self.heartbeat_ns
+            self._ping_token = (self._ping_token + 1) % U32_MOD
+            with self._state:
+                self._pings[self._ping_token] = now
+                if len(self._pings) > 16:
+                    self._pings.pop(next(iter(self._pings)))
+            self._send(Ping(self._ping_token))
+        with self._state:
+            ctx = self._ctx
+            if ctx is not None and ctx.gap and not ctx.reported and now >= ctx.hold_until_ns:
+                self._give_up(ctx, "no STROKE report")
+        if now - self._last_rx_ns > self.link_timeout_ns:
+            self.stats.silences += 1
+            self._link_failed(f"device silent for {(now - self._last_rx_ns) // 1_000_000} ms")
+
+    def _reconnect_once(self) -> bool:
+        try:
+            self.transport.close()
+            self.transport.open()
+            self._handshake()
+        except DaqError as exc:
+            self.transport.close()
+            log.debug("%s: reconnect to %s failed: %s", self.name, self.transport.describe(), exc)
+            return False
+        self.stats.reconnects += 1
+        log.warning("%s: reconnected to %s", self.name, self.transport.describe())
+        arm = self._armed_msg
+        if arm is not None:
+            try:
+                self._send(arm)  # the device forgot it at the HELLO
+            except TransportLost as exc:
+                self._link_failed(f"write failed: {exc}")
+        return True
+
+    def _link_failed(self, why: str) -> None:
+        if self._mark_lost(why, report=True):
+            self.stats.disconnects += 1
+            log.warning("%s: link to %s lost: %s", self.name, self.transport.describe(), why)
+
+    def _mark_lost(self, why: str, *, report: bool) -> bool:
+        """Drop the link: wake waiters, close the stroke as stopped, report DISCONNECT once."""
+        with self._state:
+            was = self._connected
+            self._connected = False
+            for w in self._waiters.values():
+                w.lost = f"link lost: {why}"
+                w.done.set()
+            self._waiters.clear()
+            if was and report:
+                ctx = self._ctx
+                if ctx is not None:
+                    self._flush(ctx)
+                    if not ctx.stopped:
+                        self._deliver(Event.stop(self._host_stamp(), ctx.direction, detail="disconnect"))
+                self._ctx = None
+                self._deliver(
+                    Event.fault_event(
+                        self._host_stamp(), FaultCode.DISCONNECT, f"{self.transport.describe()}: {why}"
+                    )
+                )
+            self._state.notify_all()
+        if was:
+            self.transport.close()
+        return was
+
+    # -- incoming frames (link thread, under self._state) --------------------------------------
+    def _handle(self, seq: int, msg: Message, now: int) -> None:
+        gap = self._rx_seq.check(seq)
+        if gap:
+            ctx = self._ctx
+            if ctx is not None and not ctx.reported and not ctx.gap:
+                ctx.gap = True
+                ctx.hold_until_ns = now + REPORT_WAIT_NS
+            log.info("%s: %d frame(s) lost before seq %d", self.name, gap, seq)
+        if isinstance(msg, Ack):
+            w = self._waiters.get(msg.acked_seq)
+            if w is not None and w.mtype == msg.acked_type and w.ack is None:
+                w.ack = msg
+                w.done.set()
+        elif isinstance(msg, Pong):
+            t_send = self._pings.pop(msg.token, None)
+            if t_send is not None:
+                self._clock_sample(msg.t_us, t_send, now)
+            if self._dev_errors_base is None:
+                self._dev_errors_base = (
+                    msg.rx_errors - self.stats.device_rx_errors,
+                    msg.rx_lost - self.stats.device_rx_lost,
+                )
+            self.stats.device_rx_errors = (msg.rx_errors - self._dev_errors_base[0]) % U16_MOD
+            self.stats.device_rx_lost = (msg.rx_lost - self._dev_errors_base[1]) % U16_MOD
+        elif isinstance(msg, Edge):
+            self._on_edge(msg)
+        elif isinstance(msg, Start):
+            self._on_start(msg)
+        elif isinstance(msg, Stopped):
+            self._on_stopped(msg)
+        elif isinstance(msg, Stroke):
+            self._on_stroke(msg)
+        elif isinstance(msg, Fault):
+            self._on_fault(msg)
+        # HELLO_ACK outside a handshake and host-bound types from a confused peer are ignored.
+
+    def _on_edge(self, msg: Edge) -> None:
+        if msg.channel > 1 or msg.level > 1:
+            log.warning("%s: EDGE with channel %d level %d ignored", self.name, msg.channel, msg.level)
+            return
+        ev = Event.edge(self._dev_ns(msg.t_us), Channel(msg.channel), msg.level)
+        ctx = self._ctx
+        if ctx is not None and not ctx.reported:
+            if ev.channel is ctx.direction.source and ev.level == 0:
+                ctx.departed = True
+            elif ev.channel is ctx.direction.dest and ev.level == 1:
+                ctx.arrived = True
+            if ctx.gap:
+                ctx.held.append(ev)
+                return
+        self._deliver(ev)
+
+    def _on_start(self, msg: Start) -> None:
+        t = self._dev_ns(msg.t_us)
+        self.last_start_late_ns = msg.late_us * 1000
+        direction = Direction(msg.direction) if msg.direction <= 1 else None
+        if direction is None:
+            log.warning("%s: START with direction %d ignored", self.name, msg.direction)
+            return
+        detail = f"late {msg.late_us} us" if msg.late_us else ""
+        ev = Event(EventKind.START, t, direction=direction, detail=detail)
+        ctx = self._ctx
+        if ctx is None or ctx.stroke != msg.stroke:
+            if ctx is not None:
+                self._give_up(ctx, f"START of stroke {msg.stroke} came first")
+            ctx = self._ctx = _StrokeCtx(msg.stroke, direction)
+        ctx.started = True
+        if ctx.gap:
+            ctx.held.append(ev)
+        else:
+            self._deliver(ev)
+
+    def _on_stopped(self, msg: Stopped) -> None:
+        ctx = self._ctx
+        direction = None
+        if ctx is not None and ctx.stroke == msg.stroke:
+            ctx.stopped = True
+            direction = ctx.direction
+        if msg.reason == StopReason.HOST:
+            return  # Daq.stop() already reported it, stamped when it was asked
+        name = (
+            StopReason(msg.reason).name.lower() if msg.reason in StopReason._value2member_map_ else "unknown"
+        )
+        ev = Event.stop(self._dev_ns(msg.t_us), direction, detail=name)
+        if ctx is not None and ctx.gap and not ctx.reported:
+            ctx.held.append(ev)
+        else:
+            self._deliver(ev)
+
+    def _on_stroke(self, msg: Stroke) -> None:
+        ctx = self._ctx
+        if ctx is None or ctx.stroke != msg.stroke:
+            return  # a report of a stroke this host session did not command
+        ctx.reported = True
+        flags = StrokeFlags(msg.flags)
+        rebuilt: list[Event] = []
+        if not ctx.started:
+            rebuilt.append(Event.start(self._dev_ns(msg.t_start_us), ctx.direction))
+            ctx.started = True
+        if StrokeFlags.DEPARTED in flags and not ctx.departed:
+            rebuilt.append(Event.edge(self._dev_ns(msg.t_depart_us), ctx.direction.source, 0))
+            ctx.departed = True
+        if StrokeFlags.ARRIVED in flags and not ctx.arrived:
+            rebuilt.append(Event.edge(self._dev_ns(msg.t_arrive_us), ctx.direction.dest, 1))
+            ctx.arrived = True
+        if rebuilt:
+            self.stats.recovered_strokes += 1
+            log.info(
+                "%s: stroke %d rebuilt from its report: %d event(s)", self.name, msg.stroke, len(rebuilt)
+            )
+        ctx.held.extend(rebuilt)
+        self._flush(ctx)
+
+    def _on_fault(self, msg: Fault) -> None:
+        t = self._dev_ns(msg.t_us)
+        code = {
+            DeviceFault.STALL: FaultCode.STALL,
+            DeviceFault.HOST_SILENT: FaultCode.DISCONNECT,
+            DeviceFault.SENSORS: FaultCode.SEQUENCE,
+            DeviceFault.DRIVE: FaultCode.DRIVE,
+        }.get(msg.code, FaultCode.DRIVE)
+        what = (
+            DeviceFault(msg.code).name if msg.code in DeviceFault._value2member_map_ else f"code {msg.code}"
+        )
+        ev = Event.fault_event(t, code, f"device: {what} (detail {msg.detail})")
+        ctx = self._ctx
+        if ctx is not None and ctx.gap and not ctx.reported:
+            ctx.held.append(ev)
+        else:
+            self._deliver(ev)
+
+    # -- stroke bookkeeping (under self._state) ------------------------------------------------
+    def _ctx_new(self, stroke: int, direction: Direction) -> None:
+        old = self._ctx
+        if old is not None and old.gap and not old.reported:
+            self._give_up(old, f"stroke {stroke} commanded")
+        self._ctx = _StrokeCtx(stroke, direction)
+
+    def _give_up(self, ctx: _StrokeCtx, why: str) -> None:
+        """Frames of `ctx` were lost and its report never came: deliver what there is, flag it."""
+        ctx.reported = True
+        self._flush(ctx)
+        if not ctx.arrived:
+            self.stats.unrecovered_strokes += 1
+            self._deliver(
+                Event.fault_event(
+                    self._host_stamp(), FaultCode.WIRE, f"stroke {ctx.stroke}: frames lost and {why}"
+                )
+            )
+
+    def _flush(self, ctx: _StrokeCtx) -> None:
+        held = sorted(ctx.held, key=lambda e: e.t_ns)
+        ctx.held = []
+        ctx.gap = False
+        for ev in held:
+            self._deliver(ev)
+
+    def _host_stamp(self) -> int:
+        return max(self.clock.now_ns(), self._last_stamp_ns)
+
+    def _deliver(self, ev: Event) -> None:
+        self._last_stamp_ns = max(self._last_stamp_ns, ev.t_ns)
+        self._events.append(ev)
+        self._state.notify_all()
+
+
+def _status_name(status: int) -> str:
+    return Status(status).name if status in Status._value2member_map_ else f"status {status}"
