@@ -1,1 +1,27 @@
-"""usmswitch.predictor"""
+"""usmswitch.predictor: the paper's fixed-memory AR(m) predictor of a stroke's operating time.
+
+`ARPredictor` is the online predictor (Eq. 2-6) the daemon runs per direction; `select_order` and
+`aic_table` apply the AIC order selection of Eq. 8-9. Pure Python integers and floats; it imports
+nothing else of ours. See docs/predictor.md.
+"""
+
+from .aic import CRITERIA, SIGMA2_FLOOR_NS2, AicTable, aic_table, min_samples, select_order
+from .ar import STATE_FORMAT, ARPredictor
+from .checks import MAX_ORDER, MAX_T_NS, MODELS, check_stroke_ns
+from .exact import ExactSolution
+
+__all__ = [
+    "CRITERIA",
+    "MAX_ORDER",
+    "MAX_T_NS",
+    "MODELS",
+    "SIGMA2_FLOOR_NS2",
+    "STATE_FORMAT",
+    "ARPredictor",
+    "AicTable",
+    "ExactSolution",
+    "aic_table",
+    "check_stroke_ns",
+    "min_samples",
+    "select_order",
+]

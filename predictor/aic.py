@@ -1,0 +1,147 @@
+"""AIC order selection (paper Eq. 8-9): AIC(m) = N ln(sigma^2) + 2k.
+
+Two readings of sigma^2, both over one common set of N strokes so that the orders are compared fairly:
+
+- `criterion="fit"` (the default, and what `ARPredictor(order="auto")` uses): sigma^2 = RSS_m / N, the
+  maximum-likelihood residual variance of the least-squares AR(m) fit over the last N = n - max_order
+  strokes of the n samples (the first max_order strokes are held back as lags for every order), and
+  k = m (+1 for the centered model's intercept). This is statsmodels' convention with
+  `AutoReg(samples, lags=m, trend="n", hold_back=max_order)`: its `aic` equals
+  ours + N (1 + ln 2 pi) + 2, the same for every m, so both pick the same order.
+- `criterion="rolling"`: sigma^2 is the mean square of the one-step prediction errors
+  gamma_{n+1} = t_{n+1} - t_hat_{n+1} (Eq. 9) of a limited-memory predictor with the given `window`,
+  over the strokes at which every order is past its cold start. This is Eq. 9 read literally, and it is
+  the only reading under which AIC can grow with m as fast as the paper's Table 2 does (for the
+  in-sample fit on common rows, RSS cannot grow with m, so AIC(m+1) - AIC(m) <= 2).
+
+sigma^2 is in ns^2 (the paper's Table 2 is in us^2: its values are ours - N ln 10^6), floored at
+1/12 ns^2, the variance of rounding to whole nanoseconds, so that an exact fit gives a finite AIC.
+Ties go to the lower order.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+from .checks import MAX_ORDER, check_int, check_model, check_stroke_ns
+from .exact import gram_from_columns, nested_rss
+
+CRITERIA = ("fit", "rolling")
+#: Variance of rounding a time to a whole nanosecond; the floor of sigma^2.
+SIGMA2_FLOOR_NS2 = 1.0 / 12.0
+
+
+@dataclass(frozen=True, slots=True)
+class AicTable:
+    """AIC(m) for m = 1..max_order over N strokes, in the form of the paper's Table 2."""
+
+    orders: tuple[int, ...]
+    values: tuple[float, ...]
+    sigma2_ns2: tuple[float, ...]
+    n_rows: int  # N of Eq. 8
+    model: str
+    criterion: str
+
+    @property
+    def best(self) -> int:
+        """The order with the smallest AIC (the lower one on a tie)."""
+        return self.orders[min(range(len(self.values)), key=self.values.__getitem__)]
+
+    def format(self, decimals: int = 1) -> str:
+        """The two-row table of the paper's Table 2 (m / AIC(m))."""
+        head = ["m", *[str(m) for m in self.orders]]
+        body = ["AIC (m)", *[f"{v:.{decimals}f}" for v in self.values]]
+        widths = [max(len(a), len(b)) for a, b in zip(head, body, strict=True)]
+        return "\n".join("  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in (head, body))
+
+    def __str__(self) -> str:
+        return self.format()
+
+
+def _aic(n_rows: int, sigma2: float, k: int) -> float:
+    return n_rows * math.log(max(sigma2, SIGMA2_FLOOR_NS2)) + 2 * k
+
+
+def min_samples(max_order: int, model: str) -> int:
+    """Fewest samples the "fit" criterion needs: N = n - max_order must exceed the parameters by 2."""
+    return 2 * max_order + 2 + (model == "centered")
+
+
+def aic_table(
+    samples: Iterable[int],
+    max_order: int = MAX_ORDER,
+    model: str = "paper",
+    criterion: str = "fit",
+    window: int | None = None,
+) -> AicTable:
+    """Eq. 8 for every order 1..max_order over `samples` (stroke times in ns, oldest first)."""
+    check_model(model)
+    check_int("max_order", max_order, 1, MAX_ORDER)
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
+    values = [check_stroke_ns(v) for v in samples]
+    c = 1 if model == "centered" else 0
+    if criterion == "rolling":
+        return _rolling_table(values, max_order, model, window)
+    if window is not None:
+        raise ValueError(f"window applies to criterion='rolling' only, got window={window!r}")
+    need = min_samples(max_order, model)
+    if len(values) < need:
+        raise ValueError(
+            f"AIC up to order {max_order} ({model}) needs at least {need} strokes, got {len(values)}"
+        )
+    n = len(values)
+    n_rows = n - max_order
+    # Common rows i = max_order..n-1: column 0 the target, column j its lag j.
+    columns = [values[max_order - j : n - j] for j in range(max_order + 1)]
+    gram = gram_from_columns(columns)
+    if c:
+        sums = [sum(col) for col in columns]
+        gram = [[n_rows * gram[i][j] - sums[i] * sums[j] for j in range(len(gram))] for i in range(len(gram))]
+    scale = n_rows * (n_rows if c else 1)
+    sigma2 = [num / (den * scale) for num, den in nested_rss(gram)]
+    orders = tuple(range(1, max_order + 1))
+    aics = tuple(_aic(n_rows, s2, m + c) for m, s2 in zip(orders, sigma2, strict=True))
+    return AicTable(orders, aics, tuple(sigma2), n_rows, model, criterion)
+
+
+def _rolling_table(values: list[int], max_order: int, model: str, window: int | None) -> AicTable:
+    # Imported here: ar.py uses this module for its own online selection.
+    from .ar import ARPredictor
+
+    if window is None:
+        raise ValueError("criterion='rolling' needs the predictor's window, got window=None")
+    check_int("window", window, max_order + 2)
+    predictors = [ARPredictor(order=m, window=window, model=model) for m in range(1, max_order + 1)]
+    start = max(p.min_ready for p in predictors)
+    n_rows = len(values) - start
+    if n_rows < max_order + 2:
+        raise ValueError(
+            f"rolling AIC up to order {max_order} with window {window} needs at least "
+            f"{start + max_order + 2} strokes, got {len(values)}"
+        )
+    sq: list[list[float]] = [[] for _ in predictors]
+    for i, t in enumerate(values):
+        for p, acc in zip(predictors, sq, strict=True):
+            if i >= start:
+                acc.append((t - p.predict()) ** 2)
+            p.update(t)
+    c = 1 if model == "centered" else 0
+    sigma2 = [math.fsum(acc) / n_rows for acc in sq]
+    orders = tuple(range(1, max_order + 1))
+    aics = tuple(_aic(n_rows, s2, m + c) for m, s2 in zip(orders, sigma2, strict=True))
+    return AicTable(orders, aics, tuple(sigma2), n_rows, model, "rolling")
+
+
+def select_order(
+    samples: Iterable[int],
+    max_order: int = MAX_ORDER,
+    model: str = "paper",
+    criterion: str = "fit",
+    window: int | None = None,
+) -> tuple[int, AicTable]:
+    """Pick the AR order by Eq. 8: (the order with the smallest AIC, the whole AIC table)."""
+    table = aic_table(samples, max_order, model, criterion, window)
+    return table.best, table
