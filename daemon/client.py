@@ -69,62 +69,71 @@ class ConnectionClosed(ConnectionError):
 
 
 class Targets(TypedDict):
-    on_ns: int
-    off_ns: int
-    from_cycle: int
+    target_on_ns: int
+    target_off_ns: int
+    from_cycle: int  # the first stroke armed with these targets
 
 
 class Status(TypedDict):
-    state: str
-    mode: str
-    fault: str | None
+    state: str  # "idle", "cycling", "fault", "stopped"
+    mode: str  # "closed" or "open"
+    fault: str  # why FAULT is latched; "" when not
     driver: str
     protocol_version: int
     version: str
     uptime_ns: int
-    cycle: int
-    on_ns: int
-    off_ns: int
-    cycling: dict[str, int] | None
+    cycle: int  # the number the next stroke will get
+    target_on_ns: int
+    target_off_ns: int
 
 
-class DirectionStats(TypedDict):
-    count: int
-    target_ns: int
-    operating_mean_ns: int
-    operating_std_ns: int
-    total_mean_ns: int
-    total_std_ns: int
-    error_mean_ns: int
-    error_std_ns: int
-    abs_error_max_ns: int
-    abs_error_max_pct: float
-    abs_error_p50_ns: int
-    abs_error_p95_ns: int
-    abs_error_p99_ns: int
+class DirectionStats(TypedDict, total=False):
+    count: int  # completed strokes
+    strokes: int  # completed + stalled
+    operating_mean_ns: float
+    operating_std_ns: float
+    operating_max_abs_ns: int
+    total_mean_ns: float
+    total_std_ns: float
+    total_max_abs_ns: int
+    error_mean_ns: float
+    error_std_ns: float
+    error_max_abs_ns: int
+    max_abs_error_pct: float
+    abs_error_p50_ns: int | None
+    abs_error_p95_ns: int | None
+    abs_error_p99_ns: int | None
+    lateness_p50_ns: int | None
+    lateness_p99_ns: int | None
+    lateness_p99_9_ns: int | None
+    lateness_max_ns: int | None
     late: int
-    stall: int
-    bounce: int
-    lateness_mean_ns: int
-    lateness_p99_ns: int
-    lateness_max_ns: int
-    order: int
+    stalls: int
+    bounces: int
+    faults: int
+    order: int  # "on" and "off" only
     coefficients: list[float]
+    ready: bool
 
 
 class Stats(TypedDict):
-    since_cycle: int
-    count: int
-    late: int
-    stall: int
-    bounce: int
+    state: str
+    mode: str
+    fault: str
+    cycle: int
+    target_on_ns: int
+    target_off_ns: int
+    spurious_edges: int
+    overruns: int
+    driver_bounces: int
+    all: DirectionStats
     on: DirectionStats
     off: DirectionStats
 
 
 class CycleRecord(TypedDict):
     cycle: int
-    direction: str
+    direction: int  # 0 = on (A -> B), 1 = off (B -> A)
     mode: str
     target_ns: int
     order: int
@@ -132,17 +141,17 @@ class CycleRecord(TypedDict):
     t_hat_ns: int
     delay_ns: int
     t_cmd_ns: int
-    t_start_ns: int
+    t_start_ns: int | None
     t_depart_ns: int | None
     t_arrive_ns: int | None
     operating_ns: int | None
     total_ns: int | None
     error_ns: int | None
     dead_ns: int | None
-    lateness_ns: int
+    lateness_ns: int | None
     temperature_c: float | None
     frequency_hz: float | None
-    flags: list[str]
+    flags: int  # usmswitch.daemon.record.Flag bits
     wall_ns: int
 
 
@@ -398,7 +407,7 @@ class Client:
         return self.call("set_target", target_ns, direction)
 
     def stats(self) -> Stats:
-        """Running statistics of the strokes since the last target or mode change."""
+        """Running statistics per direction and combined, as of the last finished stroke."""
         return self.call("stats")
 
     def history(self, n: int = 20) -> list[CycleRecord]:

@@ -309,7 +309,7 @@ class _Hub:
         self.handlers = frozenset(cfg["handlers"])
         self.snapshot_methods = frozenset(cfg["snapshot_methods"])
         self.topics = tuple(cfg["topics"])
-        self.known = sorted(set(BUILTIN_METHODS) | self.handlers | self.snapshot_methods)
+        self.known = frozenset(BUILTIN_METHODS) | self.handlers | self.snapshot_methods
         self.snaps: dict[str, bytes] = {}
         self.subs: dict[str, set[_Conn]] = {t: set() for t in self.topics}
         self.conns: set[_Conn] = set()
@@ -499,6 +499,11 @@ class _Conn(asyncio.Protocol):
             self.fatal(ErrorCode.UNAUTHORIZED, "this TCP connection must send auth [token] first", msgid)
             return None
         try:
+            if method not in self.hub.known:
+                raise RpcError(
+                    ErrorCode.UNKNOWN_METHOD,
+                    f"unknown method {_show(method)}; known: {', '.join(sorted(self.hub.known))}",
+                )
             if method in PARAMS:
                 params = check_params(method, params)
             if method == "ping":
@@ -514,14 +519,9 @@ class _Conn(asyncio.Protocol):
                 return self._subscribe(msgid, params[0], False)
             if method in self.hub.handlers:
                 return self.hub.forward(self, msgid, method, params)
-            if method in self.hub.snapshot_methods:
-                if params:
-                    raise RpcError(ErrorCode.INVALID_PARAMS, f"{method} takes no params, got {len(params)}")
-                raise RpcError(ErrorCode.UNAVAILABLE, f"{method}: nothing published yet")
-            raise RpcError(
-                ErrorCode.UNKNOWN_METHOD,
-                f"unknown method {_show(method)}; known: {', '.join(self.hub.known)}",
-            )
+            if params:
+                raise RpcError(ErrorCode.INVALID_PARAMS, f"{method} takes no params, got {len(params)}")
+            raise RpcError(ErrorCode.UNAVAILABLE, f"{method}: nothing published yet")
         except RpcError as exc:
             return _err(msgid, exc.code, exc.message)
         except Exception as exc:  # a bug here must cost one request, not the server
