@@ -173,7 +173,7 @@ class RecordStore:
         self._last_submitted_cycle = record.cycle
         self._queue.put(record)
 
-    def record_event(self, kind: str, **fields: Any) -> None:
+    def record_event(self, kind: str, /, **fields: Any) -> None:
         """Queue an event (target or mode change, fault, reset, estop ...) in order with the records."""
         if self._closed:
             raise RecordStoreError(f"record store {self.path} is closed (or read-only)")
@@ -489,12 +489,16 @@ class RecordStore:
         self.rejected += unconvertible
         conn.execute("BEGIN IMMEDIATE")
         try:
+            conn.execute("SAVEPOINT batch")
             try:
                 conn.executemany(_INSERT_CYCLE, cycles)
                 rejected = 0
             except sqlite3.IntegrityError:
-                # One bad row fails the statement: find it row by row so the others still land.
+                # One bad row fails the statement after the rows before it went in: undo them
+                # and go row by row, so the good rows land and only the bad one is rejected.
+                conn.execute("ROLLBACK TO batch")
                 rejected = self._insert_one_by_one(conn, cycles)
+            conn.execute("RELEASE batch")
             if events:
                 conn.executemany(_INSERT_EVENT, events)
             conn.execute("COMMIT")
