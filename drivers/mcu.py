@@ -613,7 +613,7 @@ class McuDaq(Daq):
                 self._ctx = None
                 self._deliver(
                     Event.fault_event(
-                        self._host_stamp(), FaultCode.DISCONNECT, f"{self.transport.describe()}: {why}"
+                        self._host_stamp(), FaultCode.DISCONNECT, _with_where(self.transport.describe(), why)
                     )
                 )
             self._state.notify_all()
@@ -790,3 +790,7 @@ class McuDaq(Daq):
 
 def _status_name(status: int) -> str:
     return Status(status).name if status in Status._value2member_map_ else f"status {status}"
+
+
+def _with_where(where: str, why: str) -> str:
+    return why if where in why else f"{where}: {why}"
