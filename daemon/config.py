@@ -544,7 +544,10 @@ def parse_modbus_url(url: str) -> tuple[str, str, int]:
     if not sep or kind not in ("tcp", "rtu"):
         raise ValueError(f"{url!r} is not 'tcp:host:port' or 'rtu:/dev/ttyX:baudrate'")
     if kind == "tcp":
-        host, port = parse_host_port(rest)
+        try:
+            host, port = parse_host_port(rest)
+        except ValueError as exc:
+            raise ValueError(f"{url!r}: {exc}") from None
         if port == 0:
             raise ValueError(f"{url!r}: port 0 is not a Modbus server's port")
         return kind, host, port
