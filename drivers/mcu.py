@@ -259,7 +259,7 @@ class McuDaq(Daq):
         self._offsets: deque[tuple[int, int]] = deque(maxlen=_OFFSET_WINDOW)
         self._last_rx_ns = 0
         self._next_ping_ns = 0
-        self._dev_errors_base: tuple[int, int] | None = None
+        self._dev_errors_base = (0, 0)
         # Counters of past sessions (each handshake starts a fresh decoder, tracker and unwrapper).
         self._decoder_totals = (0, 0, 0)
         self._lost_total = 0
@@ -496,7 +496,7 @@ class McuDaq(Daq):
             self._anchor(msg.t_us, (t_send + t_recv) // 2)
             self._last_rx_ns = t_recv
             self._next_ping_ns = t_recv
-            self._dev_errors_base = None
+            self._dev_errors_base = (self.stats.device_rx_errors, self.stats.device_rx_lost)
             self._pings.clear()
             self._connected = True
         log.info(
@@ -639,13 +639,9 @@ class McuDaq(Daq):
             t_send = self._pings.pop(msg.token, None)
             if t_send is not None:
                 self._clock_sample(msg.t_us, t_send, now)
-            if self._dev_errors_base is None:
-                self._dev_errors_base = (
-                    msg.rx_errors - self.stats.device_rx_errors,
-                    msg.rx_lost - self.stats.device_rx_lost,
-                )
-            self.stats.device_rx_errors = (msg.rx_errors - self._dev_errors_base[0]) % U16_MOD
-            self.stats.device_rx_lost = (msg.rx_lost - self._dev_errors_base[1]) % U16_MOD
+            # The device counts since the HELLO: add the sessions before this one.
+            self.stats.device_rx_errors = self._dev_errors_base[0] + msg.rx_errors
+            self.stats.device_rx_lost = self._dev_errors_base[1] + msg.rx_lost
         elif isinstance(msg, Edge):
             self._on_edge(msg)
         elif isinstance(msg, Start):

@@ -1,0 +1,256 @@
+"""The serial MCU driver over a real pty pair to the firmware emulator: strokes, clock, every wire fault."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import pytest
+from mcu_rig import FAST, run_stroke, wait_for
+
+from usmswitch.drivers import Channel, DaqDisconnected, DaqError, Direction, EventKind, FaultCode
+from usmswitch.drivers.mcu_protocol import MsgType
+from usmswitch.drivers.serial_mcu import SerialMcuDaq, parse_serial_spec
+from usmswitch.sim.mcu_emulator import McuEmulator, PtyLink
+
+
+@pytest.fixture
+def rig(tmp_path):
+    emu = McuEmulator(seed=3, clock_start_us=(1 << 32) - 40_000, drift_ppm=40).start()
+    link = PtyLink(emu, tmp_path / "usmswitch").plug()
+    daq = SerialMcuDaq.from_spec(f"serial:{tmp_path / 'usmswitch'}", **FAST)
+    daq.open()
+    yield emu, link, daq
+    daq.close()
+    link.close()
+    emu.stop()
+
+
+def _check_stroke(seen, direction: Direction, delay_ns: int, emu_stroke) -> None:
+    start = seen.start
+    dep = seen.edge(direction.source, 0)
+    arr = seen.edge(direction.dest, 1)
+    assert start.direction is direction
+    assert seen.t_cmd_ns < start.t_ns < dep.t_ns < arr.t_ns
+    # The device fired the start exactly `delay` after the command, on its own clock (1 us ticks).
+    assert abs(start.t_ns - seen.t_cmd_ns - delay_ns) <= 1_000
+    # The operating time equals the rig model's, to the device clock's resolution and drift.
+    true_op = emu_stroke.t_arrive_ns - emu_stroke.t_start_ns
+    assert abs((arr.t_ns - start.t_ns) - true_op) <= 2_000
+    stop = seen.events[-1]
+    assert stop.kind is EventKind.STOP and stop.detail == "arrived" and stop.t_ns == arr.t_ns
+
+
+def test_strokes_across_the_clock_wrap(rig) -> None:
+    emu, _, daq = rig
+    assert daq.ping() and daq.device is not None and daq.device.major == 1
+    d = Direction.ON
+    last = 0
+    for i in range(8):
+        seen = run_stroke(daq, d, delay_ns=500_000 + 100_000 * i)
+        _check_stroke(seen, d, 500_000 + 100_000 * i, emu.log[-1])
+        assert seen.events[0].t_ns > last  # the timeline runs on through the wrap
+        last = seen.events[-1].t_ns
+        d = d.opposite
+    stats = daq.link_stats()
+    assert stats["wraps"] == 1, "the device clock wrapped during the run"
+    assert stats["lost_frames"] == 0 and stats["crc_errors"] == 0 and stats["reconnects"] == 0
+    # now_ns() is the device clock mapped to the host: within a fraction of a millisecond.
+    dev_now = emu.device_us()
+    drv_now_us = daq._to_raw_us(daq.now_ns())
+    assert min((dev_now - drv_now_us) % (1 << 32), (drv_now_us - dev_now) % (1 << 32)) < 1_000
+
+
+def test_port_is_exclusive_and_spec_is_checked(rig, tmp_path) -> None:
+    other = SerialMcuDaq(str(tmp_path / "usmswitch"))
+    with pytest.raises(DaqError, match=r"lock|exclusive|Resource"):
+        other.open()
+    assert parse_serial_spec("serial:/dev/ttyACM0?baud=115200") == ("/dev/ttyACM0", 115200)
+    for bad, match in [
+        ("serial:", "no device path"),
+        ("tty:/dev/x", "serial:"),
+        ("serial:/x?baud=7", "baud 7"),
+    ]:
+        with pytest.raises(ValueError, match=match):
+            parse_serial_spec(bad)
+
+
+@pytest.mark.parametrize(("kind", "inject"), [("corrupt", "inject_corrupt"), ("drop", "inject_drop")])
+def test_lost_arrival_edge_is_rebuilt_from_the_report(rig, kind: str, inject: str) -> None:
+    emu, _, daq = rig
+    run_stroke(daq, Direction.ON)  # warm: the mover at B
+    # Lose the next EDGE frames: the depart edge of the next stroke; the report rebuilds it.
+    if kind == "drop":
+        emu.inject_drop(1, only=MsgType.EDGE)
+    else:
+        daq.arm(Direction.OFF, 1_000_000)
+        cmd = daq.command(daq.now_ns() + 2_000_000)
+        time.sleep(0.0025)  # START is out; corrupt the depart edge frame next
+        emu.inject_corrupt(1)
+        events = []
+        while not events or events[-1].kind is not EventKind.STOP:
+            ev = daq.recv(300_000_000)
+            assert ev is not None
+            events.append(ev)
+        kinds = [(e.kind, e.channel, e.level) for e in events]
+        assert kinds[:3] == [
+            (EventKind.START, None, None),
+            (EventKind.EDGE, Channel.B, 0),
+            (EventKind.EDGE, Channel.A, 1),
+        ]
+        assert [e.t_ns for e in events] == sorted(e.t_ns for e in events)
+        assert daq.link_stats()["crc_errors"] + daq.link_stats()["framing_errors"] >= 1
+        assert daq.link_stats()["recovered_strokes"] == 1
+        assert events[0].t_ns - cmd.t_cmd_ns == pytest.approx(1_000_000, abs=1_000)
+        return
+    seen = run_stroke(daq, Direction.OFF)
+    _check_stroke(seen, Direction.OFF, 1_000_000, emu.log[-1])
+    st = daq.link_stats()
+    assert st["lost_frames"] == 1 and st["recovered_strokes"] == 1 and emu.injected.dropped == 1
+
+
+def test_lost_edges_and_report_is_a_wire_fault(rig) -> None:
+    emu, _, daq = rig
+    emu.inject_drop(3, only=MsgType.EDGE)  # depart, arrive ...
+    daq.arm(Direction.ON, 1_000_000)
+    daq.command(daq.now_ns() + 1_000_000)
+    time.sleep(0.004)
+    emu.inject_drop(1, only=MsgType.STROKE)  # ... and the report
+    emu._drop_only = None  # the pending EDGE drops apply to any frame type now: keep the count exact
+    events = []
+    while True:
+        ev = daq.recv(500_000_000)
+        assert ev is not None
+        events.append(ev)
+        if ev.kind is EventKind.FAULT:
+            break
+    assert events[-1].fault is FaultCode.WIRE and "no STROKE report" in events[-1].detail
+    assert daq.link_stats()["unrecovered_strokes"] == 1
+    # The link itself is fine: the next stroke runs.
+    emu._drop_next = 0
+    seen = run_stroke(daq, Direction.OFF if emu._pos_mm > 2.5 else Direction.ON)
+    assert seen.events[-1].kind is EventKind.STOP
+
+
+def test_delayed_reply_is_retransmitted_once(rig) -> None:
+    emu, _, daq = rig
+    before = emu.strokes_started
+    emu.inject_delay(40_000_000, frames=1)  # the COMMAND's ACK comes after the 25 ms reply timeout
+    seen = run_stroke(daq, Direction.ON, lead_ns=60_000_000)
+    assert len(seen.of(EventKind.START)) == 1 and emu.strokes_started == before + 1
+    st = daq.link_stats()
+    assert st["retransmits"] >= 1 and st["reply_timeouts"] >= 1 and st["disconnects"] == 0
+
+
+def test_lost_arm_is_rearmed_by_the_command(rig) -> None:
+    emu, _, daq = rig
+    emu.inject_rx_drop(1)  # the ARM never reaches the device
+    seen = run_stroke(daq, Direction.ON)
+    _check_stroke(seen, Direction.ON, 1_000_000, emu.log[-1])
+    assert wait_for(lambda: daq.link_stats()["device_rx_lost"] == 1)
+
+
+def test_garbage_and_short_silence_are_absorbed(rig) -> None:
+    emu, _, daq = rig
+    emu.inject_garbage(bytes(range(1, 200)) + b"\x00" + b"\x13\x37")
+    emu.inject_silence(50_000_000)  # shorter than the 120 ms link timeout
+    time.sleep(0.08)
+    seen = run_stroke(daq, Direction.ON)
+    assert seen.events[-1].detail == "arrived"
+    st = daq.link_stats()
+    assert st["framing_errors"] + st["crc_errors"] + st["format_errors"] >= 1
+    assert st["disconnects"] == 0 and daq.ping()
+
+
+def test_long_silence_drops_the_link_and_reconnects(rig) -> None:
+    emu, _, daq = rig
+    emu.inject_silence(250_000_000)
+    ev = daq.recv(1_000_000_000)
+    while ev is not None and ev.kind is not EventKind.FAULT:
+        ev = daq.recv(1_000_000_000)
+    assert ev is not None and ev.fault is FaultCode.DISCONNECT and "silent" in ev.detail
+    with pytest.raises(DaqDisconnected):
+        daq.arm(Direction.ON, 1_000_000)
+    assert wait_for(lambda: daq.connected)
+    st = daq.link_stats()
+    assert st["silences"] == 1 and st["reconnects"] == 1
+    seen = run_stroke(daq, Direction.ON)
+    assert seen.events[-1].detail == "arrived"
+
+
+def test_unplug_mid_stroke_then_replug(rig) -> None:
+    emu, link, daq = rig
+    first = run_stroke(daq, Direction.ON)
+    daq.stroke_timeout_ns = 2_000_000_000  # only the watchdog can stop this one
+    emu.inject_stall()  # the mover jams: the drive stays on
+    daq.arm(Direction.OFF, 1_000_000)
+    daq.command(daq.now_ns() + 1_000_000)
+    time.sleep(0.02)
+    assert emu.drive_on
+    link.unplug()
+    events = []
+    while not events or events[-1].kind is not EventKind.FAULT:
+        ev = daq.recv(1_000_000_000)
+        assert ev is not None
+        events.append(ev)
+    stop = [e for e in events if e.kind is EventKind.STOP]
+    assert stop and stop[-1].detail == "disconnect" and stop[-1].direction is Direction.OFF
+    assert events[-1].fault is FaultCode.DISCONNECT
+    # The firmware's watchdog stops the motor when the host goes quiet.
+    assert wait_for(lambda: not emu.drive_on, 1.0)
+    assert emu.watchdog_trips == 1
+    with pytest.raises(DaqDisconnected):
+        daq.arm(Direction.OFF, 1_000_000)
+    time.sleep(0.1)  # the driver retries with backoff while the device is gone
+    link.replug()  # a new pty behind the same path; the MCU rebooted, its clock restarted
+    assert wait_for(lambda: daq.connected)
+    assert daq.link_stats()["reconnects"] == 1 and emu.boots == 2
+    daq.stroke_timeout_ns = 100_000_000
+    # Where the mover stopped is unknown to the host: run toward A, then on as usual.
+    again = run_stroke(daq, Direction.OFF)
+    assert again.events[-1].kind is EventKind.STOP
+    assert again.start.t_ns > events[-1].t_ns > first.events[-1].t_ns  # monotonic across the reboot
+    nxt = run_stroke(daq, Direction.ON)
+    assert nxt.events[-1].detail == "arrived"
+
+
+def test_stall_and_bounce(rig) -> None:
+    emu, _, daq = rig
+    daq_bounces = daq.bounces
+    emu.inject_bounce()
+    seen = run_stroke(daq, Direction.ON)
+    assert seen.events[-1].detail == "arrived"
+    assert wait_for(lambda: daq.recv(0) is None or True)
+    assert daq.bounces - daq_bounces in (0, 2)  # the bounce edges come after the STOP
+    while daq.recv(20_000_000) is not None:
+        pass
+    assert daq.bounces - daq_bounces == 2
+    emu.inject_stall()
+    seen = run_stroke(daq, Direction.OFF)
+    fault = seen.events[-1]
+    assert fault.kind is EventKind.FAULT and fault.fault is FaultCode.STALL
+    assert fault.t_ns - seen.start.t_ns == pytest.approx(daq.stroke_timeout_ns, abs=2_000)
+    assert not emu.drive_on
+
+
+def test_version_and_capability_checks(tmp_path) -> None:
+    from usmswitch.drivers.mcu_protocol import Caps
+
+    for kwargs, match in [
+        ({"major": 2}, "protocol 2.0"),
+        ({"caps": Caps.HW_DELAY | Caps.EDGE_STAMP}, "capabilit"),
+    ]:
+        emu = McuEmulator(seed=1, **kwargs).start()
+        path = tmp_path / f"dev{len(os.listdir(tmp_path))}"
+        link = PtyLink(emu, path).plug()
+        try:
+            with pytest.raises(DaqError, match=match):
+                SerialMcuDaq(str(path), **FAST).open()
+        finally:
+            link.close()
+            emu.stop()
+
+
+def test_absent_port_is_a_clear_error(tmp_path) -> None:
+    with pytest.raises(DaqDisconnected, match="cannot open"):
+        SerialMcuDaq(str(tmp_path / "nothing")).open()
