@@ -204,9 +204,15 @@ class Config:
             return self.cycle.autostart
         return self.driver.kind == "sim"
 
-    def to_dict(self) -> dict[str, Any]:
-        """The configuration as a TOML-shaped dict of plain values (durations in ns): loads back as is."""
-        return _section_to_dict(self)
+    def to_dict(self, *, redact: bool = False) -> dict[str, Any]:
+        """The configuration as a TOML-shaped dict of plain values (durations in ns): loads back as is.
+
+        `redact=True` hides the TCP token, for logs and the status reply.
+        """
+        out = _section_to_dict(self)
+        if redact and out["socket"]["tcp_token"]:
+            out["socket"]["tcp_token"] = "<redacted>"
+        return out
 
 
 # -- loading ---------------------------------------------------------------------------------------

@@ -473,7 +473,7 @@ class RecordStore:
     def _write(self, conn: sqlite3.Connection, batch: list[Any]) -> None:
         cycles = []
         events = []
-        unconvertible = 0
+        unconvertible: list[tuple[int, str]] = []
         for item in batch:
             if type(item) is tuple:
                 events.append(item)
@@ -481,21 +481,17 @@ class RecordStore:
             try:
                 cycles.append(item.to_row())
             except (TypeError, ValueError) as exc:
-                unconvertible += 1
-                self.last_error = f"cycle {item.cycle} rejected: {exc}"
-                log.error(
-                    "cycle record rejected: a field is not a plain value", cycle=item.cycle, reason=str(exc)
-                )
-        self.rejected += unconvertible
+                unconvertible.append((item.cycle, str(exc)))
         conn.execute("BEGIN IMMEDIATE")
         try:
             conn.execute("SAVEPOINT batch")
             try:
                 conn.executemany(_INSERT_CYCLE, cycles)
                 rejected = 0
-            except sqlite3.IntegrityError:
-                # One bad row fails the statement after the rows before it went in: undo them
-                # and go row by row, so the good rows land and only the bad one is rejected.
+            except (sqlite3.IntegrityError, OverflowError):
+                # One bad row (a duplicate cycle, a CHECK, an int past 64 bits) fails the statement
+                # after the rows before it went in: undo them and go row by row, so the good rows
+                # land and only the bad one is rejected.
                 conn.execute("ROLLBACK TO batch")
                 rejected = self._insert_one_by_one(conn, cycles)
             conn.execute("RELEASE batch")
@@ -506,8 +502,12 @@ class RecordStore:
             if conn.in_transaction:
                 conn.execute("ROLLBACK")
             raise
+        # Counted once the batch is in: a failed commit retries the whole batch.
+        for cycle, reason in unconvertible:
+            self.last_error = f"cycle {cycle} rejected: {reason}"
+            log.error("cycle record rejected: a field is not a plain value", cycle=cycle, reason=reason)
         self.written += len(cycles) - rejected
-        self.rejected += rejected
+        self.rejected += rejected + len(unconvertible)
         self.events_written += len(events)
 
     def _insert_one_by_one(self, conn: sqlite3.Connection, rows: list[tuple[Any, ...]]) -> int:
@@ -515,7 +515,7 @@ class RecordStore:
         for row in rows:
             try:
                 conn.execute(_INSERT_CYCLE, row)
-            except sqlite3.IntegrityError as exc:
+            except (sqlite3.IntegrityError, OverflowError) as exc:
                 rejected += 1
                 self.last_error = f"cycle {row[0]} rejected: {exc}"
                 log.error("cycle record rejected by the database", cycle=row[0], reason=str(exc))

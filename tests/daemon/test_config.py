@@ -117,6 +117,8 @@ def test_file_values_and_units(tmp_path: Path):
     assert cfg.driver.usb.vid == 0xCAFE and cfg.driver.usb.pid == 0x0001
     assert cfg.realtime.cpu_affinity == (1, 3)
     assert cfg.socket.mode == 0o640
+    assert cfg.to_dict(redact=True)["socket"]["tcp_token"] == "<redacted>"
+    assert cfg.to_dict()["socket"]["tcp_token"] == "0123456789abcdef"
     assert dict(cfg.sim.faults) == {"stall_probability": 0.01, "bounce_every": 50}
 
 

@@ -165,6 +165,18 @@ def test_duplicate_cycle_is_rejected_counted_and_the_rest_lands(tmp_path: Path):
         assert store.count() == 3
         assert (store.written, store.rejected) == (3, 1)
         assert "cycle 1 rejected" in (store.last_error or "")
+        # Past SQLite's 64-bit integers, and a field that is not a number: rejected, named, counted.
+        huge = make_record(4)
+        huge.t_cmd_ns = 2**70
+        store.submit(huge)
+        odd = make_record(5)
+        odd.coefficients = ("a",)  # type: ignore[assignment]
+        store.submit(odd)
+        store.submit(make_record(6))
+        store.flush()
+        assert [r.cycle for r in store.iter_records()] == [1, 2, 3, 6]
+        assert (store.written, store.rejected, store.backlog) == (4, 3, 0)
+        assert "cycle 5 rejected" in (store.last_error or "")
         assert store.writer_error is None
 
 
