@@ -10,6 +10,7 @@ dataclasses they are integer ns with `_ns` in the field name. Reference: docs/co
 
 from __future__ import annotations
 
+import copy
 import grp
 import os
 import re
@@ -21,6 +22,7 @@ from types import MappingProxyType
 from typing import Any
 
 from usmswitch.predictor import MAX_ORDER, MODELS, check_stroke_ns, min_samples
+from usmswitch.sim import FaultPlan
 
 from .units import format_ns, parse_duration_ns
 
@@ -116,8 +118,8 @@ class SimConfig:
 
     clock: str = "real"  # "virtual" runs as fast as the CPU goes (tests, experiments)
     seed: int = 1
-    # [sim.faults]: numbers handed to the sim as they are; the sim owns the key names.
-    faults: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
+    # [sim.faults]: handed to the sim as it is (sim.FaultPlan.from_config checks it at load).
+    faults: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
 
 
 @dataclass(frozen=True)
@@ -379,17 +381,16 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     t.done()
 
     t = top.table("sim")
-    f = t.table("faults")
-    faults = {}
-    for k, v in f.raw.items():
-        f.seen.add(k)
-        if isinstance(v, bool) or not isinstance(v, int | float):
-            raise ConfigError(f.key(k), f"expected a number, got {_show(v)}")
-        faults[k] = v
+    t.seen.add("faults")
+    faults = t.raw.get("faults", {})
+    try:
+        FaultPlan.from_config(faults)  # the sim owns the table's shape: its own check, our key
+    except ValueError as exc:
+        raise ConfigError("sim.faults", str(exc)) from None
     sim = SimConfig(
         clock=t.get("clock", _choice(SIM_CLOCKS), "real"),
         seed=_t_int(t, "seed", 1, 0, 2**64 - 1),
-        faults=MappingProxyType(faults),
+        faults=MappingProxyType(copy.deepcopy(faults)),
     )
     t.done()
 
@@ -682,7 +683,7 @@ def _section_to_dict(obj: Any) -> dict[str, Any]:
         elif isinstance(value, Path):
             out[name] = str(value)
         elif isinstance(value, Mapping):
-            out[name] = dict(value)
+            out[name] = copy.deepcopy(dict(value))
         elif isinstance(value, tuple):
             out[name] = list(value)
         elif value is not None:

@@ -105,9 +105,11 @@ def test_file_values_and_units(tmp_path: Path):
         mode = 0o640
         tcp = "[::1]:7770"
         tcp_token = "0123456789abcdef"
-        [sim.faults]
-        stall_probability = 0.01
-        bounce_every = 50
+        [sim.faults.probability]
+        bounce = 0.01
+        [sim.faults.schedule]
+        12 = ["stall"]
+        40 = "disconnect"
         """,
     )
     cfg = load_config(p, env=ENV)
@@ -119,7 +121,10 @@ def test_file_values_and_units(tmp_path: Path):
     assert cfg.socket.mode == 0o640
     assert cfg.to_dict(redact=True)["socket"]["tcp_token"] == "<redacted>"
     assert cfg.to_dict()["socket"]["tcp_token"] == "0123456789abcdef"
-    assert dict(cfg.sim.faults) == {"stall_probability": 0.01, "bounce_every": 50}
+    assert dict(cfg.sim.faults) == {
+        "probability": {"bounce": 0.01},
+        "schedule": {"12": ["stall"], "40": "disconnect"},
+    }
 
 
 @pytest.mark.parametrize(
@@ -151,7 +156,11 @@ def test_file_values_and_units(tmp_path: Path):
         ("[driver.usb]\npid = 70000", "driver.usb.pid: 70000 is outside the allowed range (in 0..65535)"),
         ('[driver.serial]\nport = ""', "driver.serial.port: must not be empty"),
         ('[sim]\nclock = "fast"', "sim.clock: 'fast' is not one of 'real', 'virtual'"),
-        ('[sim.faults]\nstall = "often"', "sim.faults.stall: expected a number, got 'often' (str)"),
+        (
+            '[sim.faults.probability]\nstall = "often"',
+            "sim.faults: faults.probability.stall must be a number",
+        ),
+        ("[sim.faults]\nrain = 1", "sim.faults: faults: unknown key(s) ['rain']"),
         ('[cycle]\nperiod = "10ms"', "cycle.period: 10.000 ms is not longer than the target 12.000 ms"),
         ("[cycle]\ncount = -1", "cycle.count: -1 is outside the allowed range (>= 0)"),
         ('[socket]\ntcp = "127.0.0.1:7770"', "socket.tcp_token: required when socket.tcp is set"),
