@@ -1,0 +1,79 @@
+"""SimDaq on the wall clock: events at their instants, and stop() from another thread."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+
+from usmswitch.drivers import Direction, EventKind, MonotonicClock
+from usmswitch.sim import SimDaq
+
+pytestmark = pytest.mark.realtime
+
+
+def test_events_arrive_at_their_wall_clock_instants():
+    daq = SimDaq(realtime=True, seed=4)
+    daq.open()
+    assert isinstance(daq.clock, MonotonicClock)
+    late_ns = []
+    direction = Direction.ON
+    cpu0, wall0 = time.process_time_ns(), time.monotonic_ns()
+    for _ in range(8):  # ~100 ms of strokes
+        daq.arm(direction, 500_000)
+        cmd = daq.command()
+        assert cmd.t_start_ns >= cmd.t_cmd_ns + 500_000
+        while True:
+            ev = daq.recv(50_000_000)
+            got = time.monotonic_ns()
+            assert ev is not None
+            late_ns.append(got - ev.t_ns)
+            if ev.kind is EventKind.EDGE and ev.level == 1:
+                break
+        direction = direction.opposite
+    cpu_ns, wall_ns = time.process_time_ns() - cpu0, time.monotonic_ns() - wall0
+    daq.close()
+    # recv waits without spinning (only command()'s last ~0.3 ms before each start spins).
+    assert cpu_ns < 0.5 * wall_ns, (cpu_ns, wall_ns)
+    late_ns.sort()
+    assert late_ns[0] >= -1_000  # never early (clock read granularity aside)
+    # Within 1 ms on an idle machine; a shared box may preempt the odd wake-up.
+    assert late_ns[int(0.9 * len(late_ns))] < 1_000_000, late_ns
+    assert late_ns[-1] < 20_000_000, late_ns
+
+
+def test_recv_times_out_in_real_time():
+    daq = SimDaq(realtime=True)
+    daq.open()
+    t0 = time.monotonic_ns()
+    assert daq.recv(20_000_000) is None
+    assert 20_000_000 <= time.monotonic_ns() - t0 < 200_000_000
+    assert daq.recv(None) is None  # nothing scheduled, no drive on: nothing can come
+
+
+def test_stop_from_another_thread_wakes_a_waiting_recv():
+    daq = SimDaq(realtime=True, seed=6)
+    daq.open()
+    daq.inject("stall")
+    daq.arm(Direction.ON, 0)
+    daq.command()
+    assert daq.recv(0).kind is EventKind.START
+    assert daq.recv(None).kind is EventKind.EDGE  # departed; it will never arrive
+    stopped_at = []
+
+    def estop() -> None:
+        stopped_at.append(time.monotonic_ns())
+        daq.stop("estop")
+
+    timer = threading.Timer(0.05, estop)
+    timer.start()
+    try:
+        ev = daq.recv(None)  # blocks: a held drive can only end by stop()
+        woke = time.monotonic_ns()
+    finally:
+        timer.cancel()
+    assert ev.kind is EventKind.STOP and ev.detail == "estop"
+    assert woke - stopped_at[0] < 20_000_000
+    assert daq.levels() == (0, 0)
+    daq.close()
