@@ -1,14 +1,82 @@
-"""usmswitchd: the control daemon's command line."""
+"""usmswitchd: the control daemon's command line (a thin shell over daemon.service)."""
 
 from __future__ import annotations
 
+import argparse
+import json
 import sys
+
+from .config import ConfigError, load_config
+
+EXIT_CONFIG = 2  # a bad config or flag: nothing was started
+EXIT_START = 3  # a part could not start (driver missing, socket in use, state dir unwritable)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The flags; each overrides the config file key named in its help."""
+    p = argparse.ArgumentParser(
+        prog="usmswitchd",
+        description="USM switch controller: delays each motor start by T - t_hat so every stroke "
+        "ends T after its command. With no config it runs the simulated rig.",
+    )
+    p.add_argument("--config", help="TOML config file (docs/config.md)")
+    p.add_argument("--sim", action="store_true", default=None, help="run on the simulated rig (driver.kind)")
+    p.add_argument("--driver", choices=("sim", "serial", "usb"), help="driver.kind")
+    p.add_argument("--port", help="driver.serial.port, e.g. /dev/usmswitch")
+    p.add_argument("--socket", help="socket.path (Unix socket for lab scripts)")
+    p.add_argument("--tcp", help="socket.tcp, e.g. 127.0.0.1:7770 (needs socket.tcp_token in the file)")
+    p.add_argument("--state-dir", help="daemon.state_dir (records.sqlite lives there)")
+    p.add_argument("--log-format", choices=("json", "console", "auto"), help="daemon.log_format")
+    p.add_argument("--log-level", choices=("debug", "info", "warning", "error"), help="daemon.log_level")
+    p.add_argument("--target", help="control.target for both directions, e.g. 12ms")
+    p.add_argument("--mode", choices=("closed", "open"), help="control.mode")
+    p.add_argument("--model", choices=("paper", "centered"), help="control.model")
+    p.add_argument("--order", help="control.order: 1..8 or auto")
+    p.add_argument("--window", type=int, help="control.window (strokes)")
+    p.add_argument("--period", help="cycle.period, e.g. 50ms")
+    p.add_argument("--count", type=int, help="cycle.count (0 = until stopped)")
+    auto = p.add_mutually_exclusive_group()
+    auto.add_argument(
+        "--autostart", dest="autostart", action="store_true", default=None, help="cycle at start"
+    )
+    auto.add_argument("--no-autostart", dest="autostart", action="store_false", help="start idle")
+    p.add_argument("--seed", type=int, help="sim.seed")
+    p.add_argument("--sim-clock", choices=("real", "virtual"), help="sim.clock")
+    p.add_argument("--priority", type=int, help="realtime.sched_fifo_priority (0 = off)")
+    p.add_argument(
+        "--check-config", action="store_true", help="validate, print the merged config as JSON, exit"
+    )
+    return p
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of `usmswitchd`."""
-    print("usmswitchd: not yet: the control loop lands with the daemon issue", file=sys.stderr)
-    return 0
+    args = build_parser().parse_args(argv)
+    overrides = {k: v for k, v in vars(args).items() if k not in ("config", "check_config")}
+    if overrides.get("order") not in (None, "auto"):
+        try:
+            overrides["order"] = int(overrides["order"])
+        except ValueError:
+            print(f"usmswitchd: --order: expected 1..8 or auto, got {overrides['order']!r}", file=sys.stderr)
+            return EXIT_CONFIG
+    try:
+        config = load_config(args.config, overrides)
+    except ConfigError as exc:
+        print(f"usmswitchd: config error: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+    if args.check_config:
+        print(json.dumps(config.to_dict(redact=True), indent=2, default=str))
+        return 0
+    from .service import Daemon
+
+    daemon = Daemon(config)
+    try:
+        daemon.start()
+    except Exception as exc:
+        daemon.log.error("start-up failed", error=f"{type(exc).__name__}: {exc}")
+        daemon.stop()
+        return EXIT_START
+    return daemon.run()
 
 
 if __name__ == "__main__":

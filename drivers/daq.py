@@ -12,7 +12,7 @@ from abc import ABC, abstractmethod
 from collections import deque
 
 from .clock import Clock
-from .events import Channel, Commanded, Conditions, Direction, Event, EventKind, FaultCode
+from .events import Commanded, Conditions, Direction, Event, EventKind, FaultCode
 
 DEFAULT_DEBOUNCE_NS = 100_000
 
@@ -34,6 +34,19 @@ def check_ns(name: str, value: object, *, minimum: int = 0) -> int:
     return value
 
 
+class _Hold:
+    """An edge waiting for its sensor to settle, and the events that came in behind it."""
+
+    __slots__ = ("behind", "changes", "edge", "level", "until_ns")
+
+    def __init__(self, edge: Event, until_ns: int) -> None:
+        self.edge = edge
+        self.level = edge.level
+        self.changes = 0
+        self.until_ns = until_ns
+        self.behind: list[Event] = []
+
+
 class Daq(ABC):
     """A limit-sensor timestamper and motor-start trigger.
 
@@ -52,12 +65,15 @@ class Daq(ABC):
         self.debounce_ns = check_ns("debounce_ns", debounce_ns)
         self._armed: tuple[Direction, int] | None = None
         self._pending: deque[Event] = deque()
-        self._last_edge_ns: list[int | None] = [None, None]
+        self._hold: _Hold | None = None
+        self._ready: deque[Event] = deque()
         self._last_t_ns: int | None = None
         self._lock = threading.RLock()  # stop() may come from another thread
         self.is_open = False
-        #: Edges dropped by the debouncer.
+        #: Edges delivered after chatter (the chatter itself is dropped).
         self.bounces = 0
+        #: Pulses shorter than debounce_ns that returned to the old level (dropped).
+        self.glitches = 0
         #: Events whose stamp went backwards (dropped, reported as a SEQUENCE fault).
         self.out_of_order = 0
 
@@ -98,6 +114,10 @@ class Daq(ABC):
 
     def conditions(self) -> Conditions | None:
         """Drive conditions now (temperature, frequency), when this driver knows them."""
+        return None
+
+    def levels(self) -> tuple[int, int] | None:
+        """Limit-sensor levels (A, B) now, when this driver knows them: where the mover rests."""
         return None
 
     def arm(self, direction: Direction, delay_ns: int) -> None:
@@ -152,14 +172,30 @@ class Daq(ABC):
 
         None as the timeout waits for as long as events may still come (a virtual clock with
         nothing scheduled answers None at once rather than wait forever).
+
+        Debouncing: an edge is held until its sensor has kept the new level for `debounce_ns`
+        (measured from the last change). It is then delivered with the stamp of its FIRST
+        transition, so chatter costs latency of delivery, never accuracy of the stamp. Chatter that
+        settles on the new level counts in `bounces`; a pulse that returns to the old level is a
+        glitch, dropped and counted in `glitches`. Events that arrive while an edge is held are
+        delivered after it, in stamp order.
         """
         deadline = None if timeout_ns is None else self.clock.now_ns() + check_ns("timeout_ns", timeout_ns)
         while True:
+            if self._ready:
+                return self._ready.popleft()
             with self._lock:
                 ev = self._pending.popleft() if self._pending else None
+            hold = self._hold
             if ev is None:
-                ev = self._recv_internal(deadline)
+                wait_to = deadline
+                if hold is not None:
+                    wait_to = hold.until_ns if deadline is None else min(deadline, hold.until_ns)
+                ev = self._recv_internal(wait_to)
                 if ev is None:
+                    if hold is not None and self.clock.now_ns() >= hold.until_ns:
+                        self._settle()
+                        continue
                     return None
             if self._last_t_ns is not None and ev.t_ns < self._last_t_ns:
                 self.out_of_order += 1
@@ -168,19 +204,40 @@ class Daq(ABC):
                     FaultCode.SEQUENCE,
                     f"{ev.kind.name} stamped {ev.t_ns} ns, before the previous event at {self._last_t_ns} ns",
                 )
-            if ev.kind is EventKind.EDGE and self._is_bounce(ev):
-                self.bounces += 1
-                continue
             self._last_t_ns = ev.t_ns
+            if hold is not None:
+                if ev.t_ns >= hold.until_ns:
+                    self._settle()
+                    if ev.kind is EventKind.EDGE:
+                        with self._lock:  # it may start a hold of its own: back to the input's head
+                            self._pending.appendleft(ev)
+                    else:
+                        self._ready.append(ev)
+                    continue
+                if ev.kind is EventKind.EDGE and ev.channel == hold.edge.channel:
+                    hold.level = ev.level
+                    hold.changes += 1
+                    hold.until_ns = ev.t_ns + self.debounce_ns
+                else:
+                    hold.behind.append(ev)
+                continue
+            if ev.kind is EventKind.EDGE and self.debounce_ns > 0:
+                self._hold = _Hold(ev, ev.t_ns + self.debounce_ns)
+                continue
             return ev
 
-    def _is_bounce(self, ev: Event) -> bool:
-        ch = Channel(ev.channel)
-        last = self._last_edge_ns[ch]
-        if last is not None and ev.t_ns - last < self.debounce_ns:
-            return True
-        self._last_edge_ns[ch] = ev.t_ns
-        return False
+    def _settle(self) -> None:
+        """The held edge's sensor has been stable for debounce_ns: deliver it or drop a glitch."""
+        hold = self._hold
+        assert hold is not None
+        self._hold = None
+        if hold.level == hold.edge.level:
+            self._ready.append(hold.edge)
+            if hold.changes:
+                self.bounces += 1
+        else:
+            self.glitches += 1
+        self._ready.extend(hold.behind)
 
     def _push(self, ev: Event) -> None:
         """Queue an event the driver produced outside `_recv_internal` (e.g. a fault on write)."""

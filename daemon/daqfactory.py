@@ -1,0 +1,40 @@
+"""Pick and build the DAQ driver a configuration names (sim, serial MCU, USB MCU)."""
+
+from __future__ import annotations
+
+from usmswitch.drivers import Daq
+
+from .config import Config, ConfigError
+
+DRIVER_KINDS = ("sim", "serial", "usb")
+
+
+def make_daq(config: Config) -> Daq:
+    """The driver of `config.driver.kind`, not yet opened."""
+    kind = config.driver.kind
+    debounce = config.driver.debounce_ns
+    if kind == "sim":
+        from usmswitch.sim import SimDaq
+
+        return SimDaq(
+            realtime=config.sim.clock == "real",
+            seed=config.sim.seed,
+            faults=dict(config.sim.faults),
+            debounce_ns=debounce,
+        )
+    if kind == "serial":
+        from usmswitch.drivers.serial_mcu import SerialMcuDaq
+
+        s = config.driver.serial
+        return SerialMcuDaq(
+            s.port, s.baudrate, debounce_ns=debounce, stroke_timeout_ns=config.control.stroke_timeout_ns
+        )
+    if kind == "usb":
+        from usmswitch.drivers.usb_mcu import UsbMcuDaq
+
+        u = config.driver.usb
+        spec = f"{u.vid:04x}:{u.pid:04x}" + (f":{u.serial}" if u.serial else "")
+        return UsbMcuDaq.from_spec(
+            spec, debounce_ns=debounce, stroke_timeout_ns=config.control.stroke_timeout_ns
+        )
+    raise ConfigError("driver.kind", f"unknown driver {kind!r}; known: {', '.join(DRIVER_KINDS)}")

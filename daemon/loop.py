@@ -1,0 +1,470 @@
+"""The control loop of the paper's Fig. 10: predict, delay, start, stamp, record.
+
+One thread owns the driver and the predictors. Everything else (socket, signals, summary) talks to
+it through `call()` (a queue drained in the loop's slack) or `estop()` (immediate). The timing path
+runs from an arrival stamp to the next stroke being armed, and from a command to its start: on it
+there is no logging, no disk I/O, no socket work and no garbage collection.
+"""
+
+from __future__ import annotations
+
+import gc
+import queue
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Any
+
+from usmswitch.drivers import Daq, DaqError, Direction, EventKind, FaultCode, check_ns
+
+from .record import CycleRecord, Flag
+from .stats import DirectionStats, combine
+
+# Events are polled in slices so an emergency stop or shutdown is seen within this bound.
+RECV_SLICE_NS = 2_000_000
+# In real time the loop stops waiting on its command queue this long before a command instant and
+# leaves the rest to the driver's sleep-then-spin.
+COMMAND_LEAD_NS = 2_000_000
+
+
+class Mode(StrEnum):
+    CLOSED = "closed"  # T_d = T - t_hat (Eq. 7)
+    OPEN = "open"  # a fixed delay, for characterisation
+
+
+class State(StrEnum):
+    IDLE = "idle"
+    CYCLING = "cycling"
+    FAULT = "fault"  # latched by a stall, a disconnect or an emergency stop until reset_fault
+    STOPPED = "stopped"  # shut down
+
+
+class LoopError(Exception):
+    """A request the loop refuses in its present state; the message says why."""
+
+
+@dataclass(slots=True)
+class Plan:
+    """The armed next stroke: what the predictor said and the delay that follows from it."""
+
+    direction: Direction
+    target_ns: int
+    mode: Mode
+    t_hat_ns: int
+    delay_ns: int
+    late: bool
+    order: int
+    coefficients: tuple[float, ...]
+    flags: Flag  # LATE|CLAMPED when T < t_hat, WARMUP while the predictor gives its nominal
+
+
+def flags_for_failure(plan: Plan) -> Flag:
+    """Flags of a stroke whose command never reached the drive."""
+    return plan.flags | Flag.FAULT
+
+
+class ControlLoop:
+    """Runs strokes on a `Daq` with one predictor per direction and hands each record to a sink."""
+
+    def __init__(
+        self,
+        daq: Daq,
+        predictors: Sequence[Any],
+        *,
+        target_ns: int | Sequence[int],
+        mode: Mode | str = Mode.CLOSED,
+        open_delay_ns: int = 0,
+        stroke_timeout_ns: int = 50_000_000,
+        late_margin_ns: int = 50_000,
+        sink: Callable[[CycleRecord], None] | None = None,
+        first_cycle: int = 1,
+        next_direction: Direction = Direction.ON,
+        conditions_every: int = 1,
+    ) -> None:
+        if len(predictors) != 2:
+            raise ValueError(f"one predictor per direction (on, off) is needed, got {len(predictors)}")
+        self.daq = daq
+        self.clock = daq.clock
+        self.predictors = list(predictors)
+        targets = [target_ns, target_ns] if isinstance(target_ns, int) else list(target_ns)
+        self.targets = [check_ns("target_ns", t, minimum=1) for t in targets]
+        self.mode = Mode(mode)
+        self.open_delay_ns = check_ns("open_delay_ns", open_delay_ns)
+        self.stroke_timeout_ns = check_ns("stroke_timeout_ns", stroke_timeout_ns, minimum=1)
+        self.late_margin_ns = check_ns("late_margin_ns", late_margin_ns)
+        self.sink = sink
+        self.cycle = first_cycle
+        self.state = State.IDLE
+        self.fault_reason = ""
+        self.stats = [DirectionStats(), DirectionStats()]
+        self.spurious_edges = 0
+        self.overruns = 0
+        self.listeners: list[Callable[[CycleRecord], None]] = []
+        self.slack_hooks: list[Callable[[], None]] = []
+        self._conditions_every = max(1, conditions_every)
+        self._conditions = daq.conditions()
+        self._next_dir = Direction(next_direction)
+        self._plan: Plan | None = None
+        self._requests: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]] = queue.SimpleQueue()
+        self._estop = threading.Event()
+        self._shutdown = threading.Event()
+        self._cycling_left: int | None = None  # strokes still to run; -1 forever; None not cycling
+        self._period_ns = 0
+        self._next_tick_ns = 0
+
+    # -- requests from other threads ------------------------------------------------------------
+    def call(self, fn: Callable[[], Any]) -> Future[Any]:
+        """Run `fn` on the loop thread in its slack; the future carries its result or exception."""
+        fut: Future[Any] = Future()
+        self._requests.put((fn, fut))
+        return fut
+
+    def estop(self, reason: str = "emergency stop") -> None:
+        """Drive off now, from any thread; the loop latches FAULT and stops cycling."""
+        self._estop.set()
+        self.daq.stop(detail=reason)
+        self.call(lambda: self._latch_fault(reason))
+
+    def shutdown(self) -> None:
+        """Ask `run()` to return after switching the drive off (signal handlers call this)."""
+        self._shutdown.set()
+        self.daq.stop(detail="shutdown")
+        self._requests.put((lambda: None, Future()))  # wake a blocked queue wait
+
+    # -- operations (loop thread) -----------------------------------------------------------------
+    def set_target(self, target_ns: int, direction: Direction | None = None) -> None:
+        """New target T for one direction or both; it applies from the next armed stroke."""
+        check_ns("target_ns", target_ns, minimum=1)
+        for d in (Direction.ON, Direction.OFF) if direction is None else (Direction(direction),):
+            self.targets[d] = target_ns
+        self._rearm()
+
+    def set_mode(self, mode: Mode | str, open_delay_ns: int | None = None) -> None:
+        """Closed loop (Eq. 7) or open loop with a fixed delay; applies from the next armed stroke."""
+        self.mode = Mode(mode)
+        if open_delay_ns is not None:
+            self.open_delay_ns = check_ns("open_delay_ns", open_delay_ns)
+        self._rearm()
+
+    def reset_fault(self) -> None:
+        """Clear a latched FAULT; the drive stays off until the next command."""
+        self._estop.clear()
+        if self.state is State.FAULT:
+            self.state = State.IDLE
+            self.fault_reason = ""
+
+    def start_cycling(self, period_ns: int, count: int = 0) -> None:
+        """Command a stroke every `period_ns`, alternately on and off, `count` strokes (0: until stopped)."""
+        check_ns("period_ns", period_ns, minimum=1)
+        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+            raise ValueError(f"count must be an integer >= 0, got {count!r}")
+        self._require_no_fault()
+        self._period_ns = period_ns
+        self._cycling_left = count if count else -1
+        self._next_tick_ns = self.clock.now_ns() + COMMAND_LEAD_NS
+        self.state = State.CYCLING
+
+    def stop_cycling(self) -> None:
+        """Finish the stroke in progress (if any) and command no more."""
+        self._cycling_left = None
+        if self.state is State.CYCLING:
+            self.state = State.IDLE
+
+    def switch(self, direction: Direction) -> CycleRecord:
+        """One stroke in `direction`, commanded now; returns its record."""
+        if self.state is State.CYCLING:
+            raise LoopError("busy: cycling; stop_cycling first")
+        self._require_no_fault()
+        self._next_dir = Direction(direction)
+        return self._stroke(None)
+
+    def run_cycles(self, period_ns: int, count: int) -> None:
+        """Cycle `count` strokes in the calling thread (tests, benchmarks); stops early on a fault."""
+        self.start_cycling(period_ns, count)
+        while self._cycling_left is not None and self.state is State.CYCLING:
+            self._cycle_once()
+
+    def run(self) -> None:
+        """The service's main loop: serve requests, cycle when asked, until `shutdown()`."""
+        self._enter_realtime_gc()
+        try:
+            while not self._shutdown.is_set():
+                if self.state is State.CYCLING:
+                    self._cycle_once()
+                else:
+                    self._serve_requests(block_ns=50_000_000)
+                    self._slack()
+        finally:
+            self.daq.stop(detail="shutdown")
+            self._cycling_left = None
+            self.state = State.STOPPED
+            gc.enable()
+
+    # -- statistics ---------------------------------------------------------------------------------
+    def snapshot(self) -> dict[str, Any]:
+        """Statistics per direction and combined, plus the models, as plain types."""
+        on, off = self.stats
+        out: dict[str, Any] = {
+            "state": str(self.state),
+            "mode": str(self.mode),
+            "fault": self.fault_reason,
+            "cycle": self.cycle,
+            "target_on_ns": self.targets[Direction.ON],
+            "target_off_ns": self.targets[Direction.OFF],
+            "spurious_edges": self.spurious_edges,
+            "overruns": self.overruns,
+            "driver_bounces": self.daq.bounces,
+            "all": combine(on, off).snapshot(),
+        }
+        for d, name in ((Direction.ON, "on"), (Direction.OFF, "off")):
+            s = self.stats[d].snapshot()
+            p = self.predictors[d]
+            s["order"] = p.order
+            s["coefficients"] = list(p.coefficients)
+            s["ready"] = p.ready
+            out[name] = s
+        return out
+
+    # -- internals ----------------------------------------------------------------------------------
+    def _require_no_fault(self) -> None:
+        if self.state is State.FAULT:
+            raise LoopError(f"FAULT latched ({self.fault_reason}): reset_fault first")
+
+    def _latch_fault(self, reason: str) -> None:
+        self.state = State.FAULT
+        self.fault_reason = reason
+        self._cycling_left = None
+        self._plan = None
+
+    def _plan_for(self, direction: Direction) -> Plan:
+        """Eq. 6-7: t_hat from this direction's predictor, T_d = T - t_hat clamped at 0 (late)."""
+        p = self.predictors[direction]
+        target = self.targets[direction]
+        t_hat = round(p.predict())
+        if self.mode is Mode.CLOSED:
+            delay = target - t_hat
+            late = delay < 0
+            if late:
+                delay = 0
+        else:
+            delay = self.open_delay_ns
+            late = False
+        flags = Flag.LATE | Flag.CLAMPED if late else Flag(0)
+        if not p.ready:
+            flags |= Flag.WARMUP
+        return Plan(direction, target, self.mode, t_hat, delay, late, p.order, tuple(p.coefficients), flags)
+
+    def _arm(self, direction: Direction) -> None:
+        plan = self._plan_for(direction)
+        self.daq.arm(direction, plan.delay_ns)
+        self._plan = plan
+
+    def _rearm(self) -> None:
+        if self._plan is not None:
+            self._arm(self._plan.direction)
+
+    def _cycle_once(self) -> None:
+        t_cmd = self._next_tick_ns
+        self._slack_until(t_cmd)
+        if self.state is not State.CYCLING or self._shutdown.is_set():
+            return
+        now = self.clock.now_ns()
+        if now > t_cmd + self._period_ns // 2:
+            # Behind schedule (a long stroke, a stalled machine): count it, restart the grid from now.
+            self.overruns += 1
+            t_cmd = now
+        self._stroke(t_cmd)
+        self._next_tick_ns = t_cmd + self._period_ns
+        if self._cycling_left is not None and self._cycling_left > 0:
+            self._cycling_left -= 1
+            if self._cycling_left == 0:
+                self.stop_cycling()
+
+    def _stroke(self, t_cmd_ns: int | None) -> CycleRecord:
+        """Command the armed stroke, stamp it, update the predictor, arm the next one, record."""
+        direction = self._next_dir
+        if self._plan is None or self._plan.direction is not direction:
+            self._arm(direction)
+        plan = self._plan
+        assert plan is not None
+        daq = self.daq
+        bounces_before = daq.bounces
+        self._estop.clear()
+        try:
+            cmd = daq.command(t_cmd_ns)
+        except DaqError as exc:
+            # Nothing moved; the attempt is still a cycle and gets its record.
+            t_cmd = self.clock.now_ns() if t_cmd_ns is None else t_cmd_ns
+            self._latch_fault(f"command failed: {exc}")
+            return self._finish(plan, t_cmd, None, None, None, None, None, flags_for_failure(plan))
+        t_start = cmd.t_start_ns
+        deadline = (cmd.t_cmd_ns + cmd.delay_ns if t_start is None else t_start) + self.stroke_timeout_ns
+        t_depart = t_arrive = None
+        fault = ""
+        flags = plan.flags
+        if cmd.lateness_ns is not None and cmd.lateness_ns > self.late_margin_ns:
+            flags |= Flag.LATE  # started past its instant: the stroke cannot meet T
+        src, dst = direction.source, direction.dest
+        while True:
+            now = self.clock.now_ns()
+            if now >= deadline:
+                break
+            try:
+                ev = daq.recv(min(RECV_SLICE_NS, deadline - now))
+            except DaqError as exc:
+                fault = f"driver: {exc}"
+                break
+            if ev is None:
+                if self._estop.is_set():
+                    break
+                continue
+            kind = ev.kind
+            if kind is EventKind.EDGE:
+                if t_start is None or ev.t_ns < t_start:
+                    self.spurious_edges += 1
+                elif ev.channel is dst and ev.level == 1:
+                    t_arrive = ev.t_ns
+                    break
+                elif ev.channel is src and ev.level == 0 and t_depart is None:
+                    t_depart = ev.t_ns
+                else:
+                    self.spurious_edges += 1
+            elif kind is EventKind.START:
+                if t_start is None:
+                    t_start = ev.t_ns
+                    deadline = t_start + self.stroke_timeout_ns
+            elif kind is EventKind.FAULT and ev.fault in (
+                FaultCode.DISCONNECT,
+                FaultCode.STALL,
+                FaultCode.DRIVE,
+            ):
+                fault = f"{ev.fault.name.lower()}: {ev.detail}" if ev.detail else ev.fault.name.lower()
+                break
+        if t_arrive is not None and t_start is not None:
+            operating = t_arrive - t_start
+            self.predictors[direction].update(operating)
+            self._next_dir = direction.opposite
+            self._arm(self._next_dir)  # arm ahead: the timing path ends here
+        else:
+            operating = None
+            daq.stop(detail=fault or "stall")
+            if self._estop.is_set():
+                flags |= Flag.ESTOP
+                fault = fault or "emergency stop"
+            elif not fault:
+                flags |= Flag.STALL
+                fault = f"stall: no arrival within {self.stroke_timeout_ns} ns of the start"
+            flags |= Flag.FAULT
+            self._latch_fault(fault)
+        if daq.bounces != bounces_before:
+            flags |= Flag.BOUNCE
+        return self._finish(
+            plan, cmd.t_cmd_ns, t_start, t_depart, t_arrive, operating, cmd.lateness_ns, flags
+        )
+
+    def _finish(
+        self,
+        plan: Plan,
+        t_cmd: int,
+        t_start: int | None,
+        t_depart: int | None,
+        t_arrive: int | None,
+        operating: int | None,
+        lateness: int | None,
+        flags: Flag,
+    ) -> CycleRecord:
+        """Slack work after a stroke: the record, statistics, the sink and the listeners."""
+        if self.cycle % self._conditions_every == 0:
+            self._conditions = self.daq.conditions()
+        cond = self._conditions
+        total = None if t_arrive is None else t_arrive - t_cmd
+        error = None if total is None else total - plan.target_ns
+        rec = CycleRecord(
+            cycle=self.cycle,
+            direction=int(plan.direction),
+            mode=str(plan.mode),
+            target_ns=plan.target_ns,
+            order=plan.order,
+            coefficients=plan.coefficients,
+            t_hat_ns=plan.t_hat_ns,
+            delay_ns=plan.delay_ns,
+            t_cmd_ns=t_cmd,
+            t_start_ns=t_start,
+            t_depart_ns=t_depart,
+            t_arrive_ns=t_arrive,
+            operating_ns=operating,
+            total_ns=total,
+            error_ns=error,
+            dead_ns=None if t_depart is None or t_start is None else t_depart - t_start,
+            lateness_ns=lateness,
+            temperature_c=None if cond is None else cond.temperature_c,
+            frequency_hz=None if cond is None else cond.frequency_hz,
+            flags=int(flags),
+            wall_ns=time.time_ns(),
+        )
+        self.cycle += 1
+        self.stats[plan.direction].add(
+            operating_ns=operating,
+            total_ns=total,
+            error_ns=error,
+            target_ns=plan.target_ns,
+            lateness_ns=lateness,
+            late=bool(flags & Flag.LATE),
+            stall=bool(flags & Flag.STALL),
+            bounce=bool(flags & Flag.BOUNCE),
+            fault=bool(flags & Flag.FAULT),
+        )
+        if self.sink is not None:
+            self.sink(rec)
+        for listener in self.listeners:
+            listener(rec)
+        return rec
+
+    def _serve_requests(self, block_ns: int = 0) -> None:
+        """Run queued requests; in real time wait up to `block_ns` for the first one."""
+        try:
+            if block_ns > 0 and not self.clock.virtual:
+                item = self._requests.get(timeout=block_ns / 1e9)
+            else:
+                item = self._requests.get_nowait()
+        except queue.Empty:
+            return
+        while True:
+            fn, fut = item
+            if fut.set_running_or_notify_cancel():
+                try:
+                    fut.set_result(fn())
+                except BaseException as exc:  # the caller gets every failure, the loop carries on
+                    fut.set_exception(exc)
+            try:
+                item = self._requests.get_nowait()
+            except queue.Empty:
+                return
+
+    def _slack_until(self, t_ns: int) -> None:
+        """Serve requests and housekeeping until shortly before `t_ns` (not in virtual time)."""
+        self._slack()
+        self._serve_requests()
+        if self.clock.virtual:
+            return
+        while not self._shutdown.is_set() and self.state is State.CYCLING:
+            left = t_ns - COMMAND_LEAD_NS - self.clock.now_ns()
+            if left <= 0:
+                return
+            self._serve_requests(block_ns=left)
+
+    def _slack(self) -> None:
+        # GC runs here, where the automatic collector would have run, but never mid-stroke.
+        if gc.get_count()[0] > 700:
+            gc.collect(0 if self.cycle % 64 else 1)
+        for hook in self.slack_hooks:
+            hook()
+
+    @staticmethod
+    def _enter_realtime_gc() -> None:
+        gc.collect()
+        gc.freeze()  # start-up objects never get scanned again
+        gc.disable()

@@ -1,0 +1,241 @@
+"""usmswitchd put together: config -> logs -> records -> driver -> predictors -> loop -> socket.
+
+The loop runs in the main thread (signals arrive there); the record writer and the socket bridge
+are threads off the timing path, the socket server a process of its own.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+import structlog
+
+from usmswitch.drivers import Daq, DaqError, Direction
+from usmswitch.predictor import ARPredictor
+
+from .config import Config
+from .daqfactory import make_daq
+from .logsetup import configure_logging
+from .loop import ControlLoop, State
+from .realtime import apply_realtime
+from .record import CycleRecord, Flag
+from .records import RecordStore
+from .sdnotify import Notifier
+from .units import format_ns
+
+RECORDS_FILE = "records.sqlite"
+# The live line in a terminal is redrawn at most this often.
+LIVE_LINE_NS = 250_000_000
+
+
+def make_predictor(config: Config) -> ARPredictor:
+    """One direction's predictor as [control] configures it."""
+    c = config.control
+    return ARPredictor(
+        order=c.order, window=c.window, model=c.model, nominal_ns=c.nominal_ns, max_order=c.max_order
+    )
+
+
+def first_direction(daq: Daq, last: CycleRecord | None) -> Direction:
+    """Where the next stroke goes: away from the sensor the mover rests on, else after the last record."""
+    levels = daq.levels()
+    if levels is not None:
+        a, b = levels
+        if a and not b:
+            return Direction.ON
+        if b and not a:
+            return Direction.OFF
+    if last is not None and last.t_arrive_ns is not None:
+        return Direction(last.direction).opposite
+    return Direction.ON
+
+
+class Daemon:
+    """The service: owns every part and their order of start and stop."""
+
+    def __init__(self, config: Config, *, stream: TextIO | None = None) -> None:
+        self.config = config
+        self.stream = sys.stderr if stream is None else stream
+        self.log_format = configure_logging(config.daemon.log_format, config.daemon.log_level, self.stream)
+        self.log = structlog.get_logger("usmswitch.daemon").bind()
+        self.notifier = Notifier()
+        self.started_ns = time.monotonic_ns()
+        self.store: RecordStore | None = None
+        self.daq: Daq | None = None
+        self.loop: ControlLoop | None = None
+        self.rpc: Any = None
+        self._next_summary_ns = 0
+        self._next_live_ns = 0
+        self._live = self.log_format == "console" and self.stream.isatty()
+
+    # -- start-up --------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Open everything in dependency order; raises with a clear message if a part cannot start."""
+        cfg = self.config
+        state_dir = Path(cfg.daemon.state_dir)
+        state_dir.mkdir(parents=True, exist_ok=True)
+        self.store = RecordStore(state_dir / RECORDS_FILE)
+        predictors = [make_predictor(cfg), make_predictor(cfg)]
+        for d in (Direction.ON, Direction.OFF):
+            samples = self.store.last_strokes(int(d), cfg.control.warm_start)
+            predictors[d].extend(samples)
+            self.log.info(
+                "warm start", direction=d.name.lower(), strokes=len(samples), ready=predictors[d].ready
+            )
+        self.daq = make_daq(cfg)
+        self.daq.open()
+        last = self.store.history(1)
+        last_rec = last[-1] if last else None
+        self.loop = ControlLoop(
+            self.daq,
+            predictors,
+            target_ns=[cfg.control.target_on_ns, cfg.control.target_off_ns],
+            mode=cfg.control.mode,
+            open_delay_ns=cfg.control.open_delay_ns,
+            stroke_timeout_ns=cfg.control.stroke_timeout_ns,
+            late_margin_ns=cfg.control.late_margin_ns,
+            sink=self.store.submit,
+            first_cycle=self.store.last_cycle() + 1,
+            next_direction=first_direction(self.daq, last_rec),
+        )
+        self.loop.slack_hooks.append(self._housekeeping)
+        self.loop.listeners.append(self._on_record)
+        self._start_socket()
+        self.store.record_event(
+            "start", driver=self.daq.name, pid=os.getpid(), config=cfg.to_dict(redact=True)
+        )
+        self.log.info(
+            "started",
+            driver=self.daq.name,
+            state_dir=str(state_dir),
+            socket=str(cfg.socket.path),
+            target_on=format_ns(cfg.control.target_on_ns),
+            target_off=format_ns(cfg.control.target_off_ns),
+            mode=cfg.control.mode,
+            model=cfg.control.model,
+            order=cfg.control.order,
+            first_cycle=self.loop.cycle,
+        )
+
+    def _start_socket(self) -> None:
+        """The msgpack-RPC front; wired in methods.py (absent until the socket layer is present)."""
+        from .methods import start_rpc
+
+        assert self.loop is not None and self.store is not None
+        self.rpc = start_rpc(self)
+
+    # -- running -----------------------------------------------------------------------------------
+    def run(self) -> int:
+        """Serve until SIGTERM/SIGINT; returns the exit status (0 on a clean stop)."""
+        assert self.loop is not None
+        cfg = self.config
+        rt = cfg.realtime
+        apply_realtime(rt.sched_fifo_priority, rt.cpu_affinity, rt.mlockall)
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, self._on_signal)
+        if cfg.autostart:
+            self.loop.start_cycling(cfg.cycle.period_ns, cfg.cycle.count)
+            self.log.info(
+                "cycling", period=format_ns(cfg.cycle.period_ns), count=cfg.cycle.count or "forever"
+            )
+        self.notifier.ready(status=self._status_line())
+        try:
+            self.loop.run()
+        finally:
+            self.stop()
+        return 0
+
+    def _on_signal(self, signum: int, frame: object) -> None:
+        # Drive off at once; the loop returns at its next check and stop() flushes the records.
+        assert self.loop is not None
+        self.loop.shutdown()
+
+    def stop(self) -> None:
+        """Drive off, socket closed, every record flushed, the driver released. Safe to call twice."""
+        self.notifier.stopping(status="stopping: drive off, flushing records")
+        if self.daq is not None:
+            try:
+                self.daq.stop(detail="shutdown")
+            except DaqError as exc:
+                self.log.warning("drive stop at shutdown failed", error=str(exc))
+        if self.rpc is not None:
+            self.rpc.stop()
+            self.rpc = None
+        if self.daq is not None:
+            self.daq.close()
+        if self.store is not None:
+            if self.loop is not None:
+                self.store.record_event("stop", cycle=self.loop.cycle - 1)
+            flushed = self.store.close()
+            self.log.info(
+                "stopped", records=self.store.count(), flushed=flushed, writer_error=self.store.last_error
+            )
+            self.store = None
+        self._summary(final=True)
+
+    # -- slack work (on the loop thread, never mid-stroke) --------------------------------------------
+    def _on_record(self, rec: CycleRecord) -> None:
+        if rec.flags & (Flag.STALL | Flag.FAULT | Flag.ESTOP):
+            self.log.warning(
+                "stroke fault", cycle=rec.cycle, flags=str(Flag(rec.flags)), fault=self.loop.fault_reason
+            )
+        else:
+            self.log.debug("stroke", **rec.to_dict())
+
+    def _housekeeping(self) -> None:
+        now = time.monotonic_ns()
+        self.notifier.maybe_watchdog(now)
+        if now >= self._next_summary_ns:
+            self._next_summary_ns = now + self.config.daemon.summary_interval_ns
+            if self._next_summary_ns and self.loop is not None and self.loop.cycle > 1:
+                self._summary()
+        if self._live and now >= self._next_live_ns:
+            self._next_live_ns = now + LIVE_LINE_NS
+            self.stream.write("\r\x1b[K" + self._status_line())
+            self.stream.flush()
+
+    def _status_line(self) -> str:
+        loop = self.loop
+        if loop is None:
+            return "starting"
+        s = loop.stats[0], loop.stats[1]
+        n = s[0].error.count + s[1].error.count
+        if not n:
+            return f"{loop.state} | no strokes yet"
+        err = [x.error for x in s]
+        mean = (err[0].mean * err[0].count + err[1].mean * err[1].count) / n
+        std = max(err[0].std, err[1].std)
+        late = s[0].late + s[1].late
+        stalls = s[0].stalls + s[1].stalls
+        return (
+            f"{loop.state} | strokes {n} | error mean {format_ns(round(mean))}"
+            f" std {format_ns(round(std))} | late {late} stall {stalls}"
+        )
+
+    def _summary(self, final: bool = False) -> None:
+        loop = self.loop
+        if loop is None:
+            return
+        snap = loop.snapshot()["all"]
+        if self._live:
+            self.stream.write("\n" if final else "\r\x1b[K")
+        self.log.info(
+            "summary" if not final else "final summary",
+            state=str(loop.state),
+            count=snap["count"],
+            error_mean_ns=snap["error_mean_ns"],
+            error_std_ns=snap["error_std_ns"],
+            max_abs_error_pct=snap["max_abs_error_pct"],
+            late=snap["late"],
+            stalls=snap["stalls"],
+            fault=loop.fault_reason or None,
+        )
+        if loop.state is State.FAULT:
+            self.notifier.status(f"FAULT: {loop.fault_reason}")
+        else:
+            self.notifier.status(self._status_line())
