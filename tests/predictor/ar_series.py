@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import numpy as np
 
 NOMINAL_NS = 10_000_000  # ~10 ms strokes, like the rig
@@ -70,3 +72,43 @@ def lstsq_forecast(window: list[int] | np.ndarray, order: int, model: str) -> tu
     last = np.asarray(window, dtype=float)[::-1][:order]
     regressors = np.concatenate([[1.0], last]) if model == "centered" else last
     return float(regressors @ coef), coef
+
+
+def exact_least_squares(window: list[int], order: int, model: str) -> tuple[int, Fraction, list[Fraction] | None]:
+    """Rational least squares of Eq. 3 by Gram-Schmidt: (rank, RSS, coefficients if full rank)."""
+    n = len(window)
+    cols = [[Fraction(window[i - j]) for i in range(order, n)] for j in range(1, order + 1)]
+    if model == "centered":
+        cols.insert(0, [Fraction(1)] * (n - order))
+    y = [Fraction(v) for v in window[order:]]
+
+    def dot(a: list[Fraction], b: list[Fraction]) -> Fraction:
+        return sum((p * q for p, q in zip(a, b, strict=True)), Fraction(0))
+
+    basis: list[list[Fraction]] = []
+    for c in cols:
+        r = c[:]
+        for q in basis:
+            f = dot(r, q) / dot(q, q)
+            r = [ri - f * qi for ri, qi in zip(r, q, strict=True)]
+        if any(r):
+            basis.append(r)
+    resid = y[:]
+    for q in basis:
+        f = dot(resid, q) / dot(q, q)
+        resid = [ri - f * qi for ri, qi in zip(resid, q, strict=True)]
+    rss = dot(resid, resid)
+    if len(basis) < len(cols):
+        return len(basis), rss, None
+    # Full rank: the normal equations by Gauss-Jordan.
+    k = len(cols)
+    a = [[dot(cols[i], cols[j]) for j in range(k)] + [dot(cols[i], y)] for i in range(k)]
+    for p in range(k):
+        piv = next(i for i in range(p, k) if a[i][p] != 0)
+        a[p], a[piv] = a[piv], a[p]
+        a[p] = [v / a[p][p] for v in a[p]]
+        for i in range(k):
+            if i != p and a[i][p] != 0:
+                f = a[i][p]
+                a[i] = [vi - f * vp for vi, vp in zip(a[i], a[p], strict=True)]
+    return k, rss, [a[i][k] for i in range(k)]
