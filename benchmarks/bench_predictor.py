@@ -44,7 +44,9 @@ def _time_strokes(step: Callable[[int], float], values: list[int]) -> np.ndarray
     return out / 1000.0
 
 
-def _ours(order: int | str, model: str, values: list[int], keep: list[ARPredictor] | None = None) -> np.ndarray:
+def _ours(
+    order: int | str, model: str, values: list[int], keep: list[ARPredictor] | None = None
+) -> np.ndarray:
     p = ARPredictor(order=order, window=WINDOW, model=model)
     if keep is not None:
         keep.append(p)
@@ -140,8 +142,8 @@ def main() -> int:
     kept: list[ARPredictor] = []
     auto = _ours("auto", "paper", values, kept)
     rows.append(
-        ["ARPredictor paper auto (reselect 100)", f"1..8, now {kept[0].order}", len(auto), f"{np.median(auto):.2f}",
-         f"{np.percentile(auto, 99):.2f}", "", f"max {auto.max():.0f} us (a re-selecting stroke)", ""]
+        ["ARPredictor paper auto (reselect 100)", f"1..8, now {kept[0].order}", len(auto),
+         f"{np.median(auto):.2f}", f"{np.percentile(auto, 99):.2f}", "", f"max {auto.max():.0f} us (a re-selecting stroke)", ""]
     )  # fmt: skip
     print_table(
         ["predictor", "order", "strokes", "median us", "p99 us", "x ours(paper)", "target", ""],
