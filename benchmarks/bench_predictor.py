@@ -143,7 +143,8 @@ def main() -> int:
     auto = _ours("auto", "paper", values, kept)
     rows.append(
         ["ARPredictor paper auto (reselect 100)", f"1..8, now {kept[0].order}", len(auto),
-         f"{np.median(auto):.2f}", f"{np.percentile(auto, 99):.2f}", "", f"max {auto.max():.0f} us (a re-selecting stroke)", ""]
+         f"{np.median(auto):.2f}", f"{np.percentile(auto, 99):.2f}", "",
+         f"max {auto.max():.0f} us (a re-selecting stroke)", ""]
     )  # fmt: skip
     print_table(
         ["predictor", "order", "strokes", "median us", "p99 us", "x ours(paper)", "target", ""],
