@@ -125,13 +125,13 @@ class ControlLoop:
     def estop(self, reason: str = "emergency stop") -> None:
         """Drive off now, from any thread; the loop latches FAULT and stops cycling."""
         self._estop.set()
-        self.daq.stop(detail=reason)
+        self._safe_stop(reason)
         self.call(lambda: self._latch_fault(reason))
 
     def shutdown(self) -> None:
         """Ask `run()` to return after switching the drive off (signal handlers call this)."""
         self._shutdown.set()
-        self.daq.stop(detail="shutdown")
+        self._safe_stop("shutdown")
         self._requests.put((lambda: None, Future()))  # wake a blocked queue wait
 
     # -- operations (loop thread) -----------------------------------------------------------------
@@ -198,7 +198,7 @@ class ControlLoop:
                     self._serve_requests(block_ns=50_000_000)
                     self._slack()
         finally:
-            self.daq.stop(detail="shutdown")
+            self._safe_stop("shutdown")
             self._cycling_left = None
             self.state = State.STOPPED
             gc.enable()
@@ -232,6 +232,13 @@ class ControlLoop:
     def _require_no_fault(self) -> None:
         if self.state is State.FAULT:
             raise LoopError(f"FAULT latched ({self.fault_reason}): reset_fault first")
+
+    def _safe_stop(self, detail: str) -> None:
+        """Drive off; a device that is already gone cannot be driving, so its refusal is not an error."""
+        try:
+            self.daq.stop(detail=detail)
+        except DaqError:
+            pass
 
     def _latch_fault(self, reason: str) -> None:
         self.state = State.FAULT
@@ -350,7 +357,7 @@ class ControlLoop:
             self._arm(self._next_dir)  # arm ahead: the timing path ends here
         else:
             operating = None
-            daq.stop(detail=fault or "stall")
+            self._safe_stop(fault or "stall")
             if self._estop.is_set():
                 flags |= Flag.ESTOP
                 fault = fault or "emergency stop"
@@ -378,7 +385,10 @@ class ControlLoop:
     ) -> CycleRecord:
         """Slack work after a stroke: the record, statistics, the sink and the listeners."""
         if self.cycle % self._conditions_every == 0:
-            self._conditions = self.daq.conditions()
+            try:
+                self._conditions = self.daq.conditions()
+            except DaqError:
+                self._conditions = None  # unknown while the device is away
         cond = self._conditions
         total = None if t_arrive is None else t_arrive - t_cmd
         error = None if total is None else total - plan.target_ns
