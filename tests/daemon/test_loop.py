@@ -6,6 +6,7 @@ import gc
 import statistics
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -171,23 +172,40 @@ def test_disconnect_latches_fault_and_keeps_the_record() -> None:
     assert len(recs) == 5
 
 
-def test_estop_from_another_thread_mid_stroke() -> None:
-    loop, daq, recs = make_loop()
+def test_estop_is_refused_work_until_reset() -> None:
+    loop, _, recs = make_loop()
     loop.run_cycles(40 * MS, 4)
-    hit = threading.Event()
-
-    def estop_at_depart(rec: CycleRecord) -> None:
-        hit.set()
-
-    # In virtual time an estop before the command is the reproducible case: the stroke is refused.
     loop.estop("test")
-    loop._serve_requests()
+    loop._serve_requests()  # the loop thread's slack: the latch lands
     assert loop.state is State.FAULT
     with pytest.raises(LoopError):
         loop.start_cycling(40 * MS, 1)
     loop.reset_fault()
     loop.run_cycles(40 * MS, 2)
     assert len(recs) == 6
+
+
+@pytest.mark.realtime
+def test_estop_from_another_thread_stops_a_stroke_in_motion() -> None:
+    daq = SimDaq(seed=2, realtime=True)
+    daq.open()
+    preds = [ARPredictor(order=1, window=100, nominal_ns=NOMINAL) for _ in range(2)]
+    loop = ControlLoop(daq, preds, target_ns=12 * MS, stroke_timeout_ns=40 * MS)
+    loop.set_mode("open", open_delay_ns=0)
+    out: list[CycleRecord] = []
+    worker = threading.Thread(target=lambda: out.append(loop.switch(Direction.ON)))
+    worker.start()
+    time.sleep(0.004)  # the mover is under way (dead time < 1 ms, stroke ~10 ms)
+    t_estop = daq.now_ns()
+    loop.estop("operator")
+    worker.join(2)
+    rec = out[0]
+    assert rec.t_arrive_ns is None and rec.flags & Flag.ESTOP and rec.flags & Flag.FAULT
+    assert daq.now_ns() - t_estop < 10 * MS  # the loop saw it within its polling slice
+    loop._serve_requests()
+    assert loop.state is State.FAULT
+    assert 0 < daq.position_mm() < daq.model.params.stroke_mm  # stopped mid-way, drive off
+    daq.close()
 
 
 def test_reliability_100k_strokes_all_recorded_memory_flat(tmp_path: Path) -> None:
