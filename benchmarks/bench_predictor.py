@@ -1,9 +1,10 @@
 """Per-stroke cost of update + predict: ARPredictor against refitting the same window, same run.
 
 Peers: a fresh numpy `lstsq` fit of the window on every stroke, and a fresh statsmodels `AutoReg` fit.
-Window 100, orders 1 and 3, both models for ours. Each stroke is timed alone with perf_counter_ns
-(the ~0.05-0.1 us of the timer pair is included, not subtracted). Targets (issue 2): AR(1) median
-<= 1 us and >= 5x faster than the numpy refit and >= 300x faster than statsmodels; order 3 <= 8 us.
+Window 100, orders 1 and 3; ours in both models, the targets binding the default (paper) model.
+Each stroke is timed alone with perf_counter_ns (the timer pair's ~0.05-0.1 us is included, not
+subtracted). Targets (issue 2): AR(1) median <= 1 us, >= 5x faster than the numpy refit and >= 300x
+faster than statsmodels; order 3 median <= 8 us.
 """
 
 from __future__ import annotations
@@ -117,11 +118,18 @@ def main() -> int:
         for model, t in ours.items():
             med = float(np.median(t))
             ok = med <= target_us
-            if not ok:
-                missed.append(f"AR({order}) {model} median {med:.2f} us > {target_us} us")
+            # The targets are the issue's, for the default (paper) model; centered is shown beside it.
+            if model == "paper":
+                target = f"median <= {target_us:g} us"
+                verdict = "ok" if ok else "MISSED"
+                if not ok:
+                    missed.append(f"AR({order}) {model} median {med:.2f} us > {target_us} us")
+            else:
+                target = f"(info; {target_us:g} us)"
+                verdict = "within" if ok else "over"
             rows.append(
                 [f"ARPredictor {model}", order, len(t), f"{med:.2f}", f"{np.percentile(t, 99):.2f}",
-                 f"{med / base:.2f}", f"median <= {target_us:g} us", "ok" if ok else "MISSED"]
+                 f"{med / base:.2f}", target, verdict]
             )  # fmt: skip
         for name, t in peers.items():
             med = float(np.median(t))

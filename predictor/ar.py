@@ -125,16 +125,14 @@ class ARPredictor:
         self._fast1c = m == 1 and bool(self._c)
         self._min_ready = min(self._window, 2 * m + 1 + self._c)
         samples = self.samples()
+        n = len(samples)
+        # Column j holds lag j over the rows i = m..n-1 (column 0 the target); dot products in C.
+        cols = [samples[m - j : n - j] for j in range(m + 1)] if n > m else [[] for _ in range(m + 1)]
         g = [0] * plan.size
-        s = [0] * (m + 1)
-        for i in range(m, len(samples)):
-            row = samples[i - m : i + 1][::-1]  # (t_i, t_{i-1}, ..., t_{i-m})
-            for idx, j, k in plan.pairs:
-                g[idx] += row[j] * row[k]
-            for j in range(m + 1):
-                s[j] += row[j]
+        for idx, j, k in plan.pairs:
+            g[idx] = sum(map(int.__mul__, cols[j], cols[k]))
         self._g = g
-        self._s = s
+        self._s = [sum(c) for c in cols]
         self._dirty = True
         self._coef: tuple[float, ...] = ()
         self._coef_seen = -1

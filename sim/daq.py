@@ -316,6 +316,8 @@ class SimDaq(Daq):
             self._push_at(tg + width, Event.edge(tg + width, ch, level))
         if "disconnect" in faults:
             self._push_at(frng.randint(now + 1, max(end_t, now + 2)), _DISCONNECT)
+        if self.realtime:
+            self._wake.set()  # a recv waiting in another thread must see the new edges
         return now
 
     def _planned_level(self, ch: Channel, t: int) -> int:

@@ -111,9 +111,11 @@ class RigParams:
     #: ... with 2-20 us between transitions (a contact or fork edge, well inside 100 us debounce).
     bounce_gap_min_ns: int = 2_000
     bounce_gap_max_ns: int = 20_000
-    #: assumption: a spurious glitch (EMI on the sensor line) lasts 1-50 us.
+    #: assumption: a spurious pulse (EMI on the sensor line, a reflection in the fork) lasts
+    #: 1-200 us: the shorter half is filtered by a 100 us settle debounce, the longer half gets
+    #: through as a pair of edges a controller must reject.
     glitch_width_min_ns: int = 1_000
-    glitch_width_max_ns: int = 50_000
+    glitch_width_max_ns: int = 200_000
 
     def __post_init__(self) -> None:
         n = len(self.table_frequency_hz)

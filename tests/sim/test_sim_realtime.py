@@ -77,3 +77,28 @@ def test_stop_from_another_thread_wakes_a_waiting_recv():
     assert woke - stopped_at[0] < 20_000_000
     assert daq.levels() == (0, 0)
     daq.close()
+
+
+def test_a_recv_waiting_in_another_thread_sees_a_new_stroke():
+    daq = SimDaq(realtime=True, seed=8)
+    daq.open()
+    got = []
+
+    def consume() -> None:
+        while (ev := daq.recv(200_000_000)) is not None:
+            got.append((ev, time.monotonic_ns()))
+            if ev.kind is EventKind.EDGE and ev.level == 1:
+                return
+
+    reader = threading.Thread(target=consume)
+    reader.start()
+    time.sleep(0.02)  # the reader is now waiting, with nothing scheduled
+    daq.arm(Direction.ON, 0)
+    daq.command()
+    reader.join(1.0)
+    assert not reader.is_alive()
+    kinds = [ev.kind for ev, _ in got]
+    assert kinds == [EventKind.START, EventKind.EDGE, EventKind.EDGE]
+    arrive, seen = got[-1]
+    assert seen - arrive.t_ns < 20_000_000  # delivered at its instant, not at the 200 ms deadline
+    daq.close()
