@@ -8,6 +8,7 @@ there is no logging, no disk I/O, no socket work and no garbage collection.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import queue
 import threading
@@ -21,7 +22,7 @@ from typing import Any
 from usmswitch.drivers import Daq, DaqError, Direction, EventKind, FaultCode, check_ns
 
 from .record import CycleRecord, Flag
-from .stats import DirectionStats, combine
+from .stats import DirectionStats
 
 # Events are polled in slices so an emergency stop or shutdown is seen within this bound.
 RECV_SLICE_NS = 2_000_000
@@ -100,6 +101,7 @@ class ControlLoop:
         self.state = State.IDLE
         self.fault_reason = ""
         self.stats = [DirectionStats(), DirectionStats()]
+        self.stats_all = DirectionStats()  # both directions together
         self.spurious_edges = 0
         self.overruns = 0
         self.listeners: list[Callable[[CycleRecord], None]] = []
@@ -206,7 +208,6 @@ class ControlLoop:
     # -- statistics ---------------------------------------------------------------------------------
     def snapshot(self) -> dict[str, Any]:
         """Statistics per direction and combined, plus the models, as plain types."""
-        on, off = self.stats
         out: dict[str, Any] = {
             "state": str(self.state),
             "mode": str(self.mode),
@@ -217,7 +218,7 @@ class ControlLoop:
             "spurious_edges": self.spurious_edges,
             "overruns": self.overruns,
             "driver_bounces": self.daq.bounces,
-            "all": combine(on, off).snapshot(),
+            "all": self.stats_all.snapshot(),
         }
         for d, name in ((Direction.ON, "on"), (Direction.OFF, "off")):
             s = self.stats[d].snapshot()
@@ -235,10 +236,8 @@ class ControlLoop:
 
     def _safe_stop(self, detail: str) -> None:
         """Drive off; a device that is already gone cannot be driving, so its refusal is not an error."""
-        try:
+        with contextlib.suppress(DaqError):
             self.daq.stop(detail=detail)
-        except DaqError:
-            pass
 
     def _latch_fault(self, reason: str) -> None:
         self.state = State.FAULT
@@ -416,17 +415,18 @@ class ControlLoop:
             wall_ns=time.time_ns(),
         )
         self.cycle += 1
-        self.stats[plan.direction].add(
-            operating_ns=operating,
-            total_ns=total,
-            error_ns=error,
-            target_ns=plan.target_ns,
-            lateness_ns=lateness,
-            late=bool(flags & Flag.LATE),
-            stall=bool(flags & Flag.STALL),
-            bounce=bool(flags & Flag.BOUNCE),
-            fault=bool(flags & Flag.FAULT),
-        )
+        for stats in (self.stats[plan.direction], self.stats_all):
+            stats.add(
+                operating_ns=operating,
+                total_ns=total,
+                error_ns=error,
+                target_ns=plan.target_ns,
+                lateness_ns=lateness,
+                late=bool(flags & Flag.LATE),
+                stall=bool(flags & Flag.STALL),
+                bounce=bool(flags & Flag.BOUNCE),
+                fault=bool(flags & Flag.FAULT),
+            )
         if self.sink is not None:
             self.sink(rec)
         for listener in self.listeners:

@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from array import array
 
+import numpy as np
+
 # |error| and lateness percentiles are taken over the most recent strokes only, in fixed memory.
 PERCENTILE_WINDOW = 4096
 
@@ -58,16 +60,13 @@ class Ring:
         self.buf[self.n % self.size] = x
         self.n += 1
 
-    def values(self) -> list[int]:
-        return sorted(self.buf[: min(self.n, self.size)])
-
-
-def percentile(sorted_values: list[int], q: float) -> int | None:
-    """Nearest-rank percentile (q in 0..100) of an already sorted list; None when empty."""
-    if not sorted_values:
-        return None
-    k = max(0, min(len(sorted_values) - 1, math.ceil(q / 100 * len(sorted_values)) - 1))
-    return sorted_values[k]
+    def percentiles(self, qs: tuple[float, ...]) -> list[int | None]:
+        """Nearest-rank percentiles (q in 0..100) of the values held; None when empty."""
+        n = min(self.n, self.size)
+        if not n:
+            return [None] * len(qs)
+        values = np.frombuffer(self.buf, dtype=np.int64, count=n)
+        return [int(v) for v in np.percentile(values, qs, method="inverted_cdf")]
 
 
 class DirectionStats:
@@ -119,37 +118,14 @@ class DirectionStats:
 
     def snapshot(self) -> dict[str, object]:
         """A plain-typed dict of this direction's figures (integers are ns)."""
-        errs = self.abs_error.values()
-        lates = self.abs_lateness.values()
         out: dict[str, object] = {"count": self.operating.count, "strokes": self.error.count + self.stalls}
         out.update(self.operating.as_dict("operating"))
         out.update(self.total.as_dict("total"))
         out.update(self.error.as_dict("error"))
         out["max_abs_error_pct"] = round(self.max_abs_error_pct, 4)
-        for q in (50, 95, 99):
-            out[f"abs_error_p{q}_ns"] = percentile(errs, q)
-        for q in (50, 99, 99.9):
-            out[f"lateness_p{q:g}_ns".replace(".", "_")] = percentile(lates, q)
-        out["lateness_max_ns"] = lates[-1] if lates else None
+        p50, p95, p99 = self.abs_error.percentiles((50, 95, 99))
+        out.update(abs_error_p50_ns=p50, abs_error_p95_ns=p95, abs_error_p99_ns=p99)
+        l50, l99, l999, lmax = self.abs_lateness.percentiles((50, 99, 99.9, 100))
+        out.update(lateness_p50_ns=l50, lateness_p99_ns=l99, lateness_p99_9_ns=l999, lateness_max_ns=lmax)
         out.update(late=self.late, stalls=self.stalls, bounces=self.bounces, faults=self.faults)
         return out
-
-
-def combine(a: DirectionStats, b: DirectionStats) -> DirectionStats:
-    """Both directions as one (merged moments, merged recent windows)."""
-    out = DirectionStats()
-    for name in ("operating", "total", "error", "lateness"):
-        ra, rb, r = getattr(a, name), getattr(b, name), getattr(out, name)
-        r.count = ra.count + rb.count
-        if r.count:
-            r.mean = (ra.mean * ra.count + rb.mean * rb.count) / r.count
-            r.m2 = ra.m2 + rb.m2 + (rb.mean - ra.mean) ** 2 * ra.count * rb.count / r.count
-        r.max_abs = max(ra.max_abs, rb.max_abs)
-    for ring in ("abs_error", "abs_lateness"):
-        for src in (a, b):
-            for v in getattr(src, ring).buf[: min(getattr(src, ring).n, getattr(src, ring).size)]:
-                getattr(out, ring).add(v)
-    out.max_abs_error_pct = max(a.max_abs_error_pct, b.max_abs_error_pct)
-    for name in ("late", "stalls", "bounces", "faults"):
-        setattr(out, name, getattr(a, name) + getattr(b, name))
-    return out
