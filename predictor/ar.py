@@ -4,10 +4,11 @@ The window holds the last `window` strokes t_1..t_n (oldest first). An AR(m) fit
 t_i on (t_{i-1}, ..., t_{i-m}) for i = m+1..n: n - m rows, exactly the design matrix of Eq. 3 and of a
 fresh `numpy.linalg.lstsq` or statsmodels `AutoReg(window, lags=m)` fit of the same window.
 
-Each update adds the newest row and removes the row that left the window from exact integer sums (the
-augmented Gram matrix [y X]^T [y X], plus the column sums for the "centered" model): O(m^2) integer
-operations, no refit, no growth, and no drift however long it runs, because integers do not round. The
-fit itself is solved exactly (`exact.solve`) and cached until the next update.
+Each update adds the newest row and removes the row that left the window from exact integer sums
+(X^T X and X^T y, plus the column sums for the "centered" model): O(m^2) integer operations, no refit,
+no growth, and no drift however long it runs, because integers do not round. The fit is solved exactly
+(`exact.NormalPlan.solve`, fraction-free) at the first predict() or coefficients after an update and
+cached; t_hat is one correctly rounded integer division. The paper's AR(1) solves inside update().
 """
 
 from __future__ import annotations
@@ -35,9 +36,10 @@ class ARPredictor:
       for "centered"), then every `reselect_every` strokes. The window is kept; only the sums of the
       new order are rebuilt from it.
 
-    Cold start: until the window holds `min(window, 2m + 1)` strokes (one more for "centered": one
-    residual degree of freedom), `ready` is False and `predict()` returns `nominal_ns` (or, without a
-    nominal, the mean of the strokes so far).
+    Cold start: until the window holds `min_ready = min(window, 2m + 1)` strokes (one more for
+    "centered": one residual degree of freedom), `ready` is False, `coefficients` is () and `predict()`
+    returns `nominal_ns` (or, without a nominal, the mean of the strokes so far; with neither, it
+    raises RuntimeError: configure a nominal).
 
     Degenerate windows never give NaN or raise: a lag whose column is a linear combination of lower
     lags over the window (constant series, too few rows) gets coefficient 0 and `degenerate` is True.
