@@ -74,7 +74,9 @@ def lstsq_forecast(window: list[int] | np.ndarray, order: int, model: str) -> tu
     return float(regressors @ coef), coef
 
 
-def exact_least_squares(window: list[int], order: int, model: str) -> tuple[int, Fraction, list[Fraction] | None]:
+def exact_least_squares(
+    window: list[int], order: int, model: str
+) -> tuple[int, Fraction, list[Fraction] | None]:
     """Rational least squares of Eq. 3 by Gram-Schmidt: (rank, RSS, coefficients if full rank)."""
     n = len(window)
     cols = [[Fraction(window[i - j]) for i in range(order, n)] for j in range(1, order + 1)]
