@@ -205,6 +205,11 @@ class ControlLoop:
             self.state = State.STOPPED
             gc.enable()
 
+    @property
+    def next_direction(self) -> Direction:
+        """The direction of the next stroke (away from where the mover rests)."""
+        return self._next_dir
+
     # -- statistics ---------------------------------------------------------------------------------
     def snapshot(self) -> dict[str, Any]:
         """Statistics per direction and combined, plus the models, as plain types."""
@@ -351,9 +356,11 @@ class ControlLoop:
                 break
         if t_arrive is not None and t_start is not None:
             operating = t_arrive - t_start
-            self.predictors[direction].update(operating)
+            # Arm ahead: the next stroke goes the other way, so its predictor is already up to date
+            # and this stroke's update (an AIC re-selection may take a millisecond) comes after it.
             self._next_dir = direction.opposite
-            self._arm(self._next_dir)  # arm ahead: the timing path ends here
+            self._arm(self._next_dir)  # the timing path ends here
+            self.predictors[direction].update(operating)
         else:
             operating = None
             self._safe_stop(fault or "stall")

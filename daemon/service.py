@@ -106,6 +106,7 @@ class Daemon:
         self.loop.slack_hooks.append(self._housekeeping)
         self.loop.listeners.append(self._on_record)
         self._start_socket()
+        self.refresh_snapshot()
         self.store.record_event(
             "start", driver=self.daq.name, pid=os.getpid(), config=cfg.to_dict(redact=True)
         )
@@ -177,6 +178,24 @@ class Daemon:
             )
             self.store = None
         self._summary(final=True)
+
+    def refresh_snapshot(self) -> None:
+        """Hand the server process the statistics as of now (answered without waking the loop)."""
+        if self.rpc is not None and self.loop is not None:
+            self.rpc.snapshot("stats", self.loop.snapshot())
+
+    def set_drive(self, **settings: Any) -> dict[str, Any]:
+        """Excitation frequency / voltage / enable on the drive (the sim's, or the Modbus board's)."""
+        board = getattr(self, "board", None)
+        if board is not None:
+            return board.set_drive(**settings)
+        setter = getattr(self.daq, "set_drive", None)
+        if setter is None:
+            raise DaqError(f"{self.daq.name if self.daq else 'driver'}: no drive board to set")
+        known = {k: v for k, v in settings.items() if k in ("frequency_hz", "voltage_vpp")}
+        setter(**known)
+        cond = self.daq.conditions()
+        return {"frequency_hz": cond.frequency_hz, "voltage_vpp": cond.voltage_vpp}
 
     # -- slack work (on the loop thread, never mid-stroke) --------------------------------------------
     def _on_record(self, rec: CycleRecord) -> None:
