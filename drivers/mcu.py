@@ -47,6 +47,7 @@ from .mcu_protocol import (
     Pong,
     SeqTracker,
     Start,
+    StateFlags,
     Status,
     Stop,
     Stopped,
@@ -236,6 +237,8 @@ class McuDaq(Daq):
         self.device: HelloAck | None = None
         #: How late the device fired the last start against its scheduled instant (START late_us).
         self.last_start_late_ns: int | None = None
+        # Sensor levels (A, B) as the device last told them (PONG snapshot, then each EDGE).
+        self._levels: list[int] | None = None
 
         self._wlock = threading.Lock()  # frames go out whole, in sequence order
         self._state = threading.Condition()  # guards everything below; link thread <-> callers
@@ -296,6 +299,13 @@ class McuDaq(Daq):
                 and self._connected
                 and time.monotonic_ns() - self._last_rx_ns < self.link_timeout_ns
             )
+
+    def levels(self) -> tuple[int, int] | None:
+        """Sensor levels (A, B) from the device's last PONG and the edges since; None when offline."""
+        with self._state:
+            if not self._connected or self._levels is None:
+                return None
+            return self._levels[0], self._levels[1]
 
     @property
     def connected(self) -> bool:
@@ -497,6 +507,7 @@ class McuDaq(Daq):
             self._last_rx_ns = t_recv
             self._next_ping_ns = t_recv
             self._dev_errors_base = (self.stats.device_rx_errors, self.stats.device_rx_lost)
+            self._levels = None  # until the first PONG of this session
             self._pings.clear()
             self._connected = True
         log.info(
@@ -640,6 +651,8 @@ class McuDaq(Daq):
             if t_send is not None:
                 self._clock_sample(msg.t_us, t_send, now)
             # The device counts since the HELLO: add the sessions before this one.
+            st = StateFlags(msg.state)
+            self._levels = [int(StateFlags.SENSOR_A in st), int(StateFlags.SENSOR_B in st)]
             self.stats.device_rx_errors = self._dev_errors_base[0] + msg.rx_errors
             self.stats.device_rx_lost = self._dev_errors_base[1] + msg.rx_lost
         elif isinstance(msg, Edge):
@@ -659,6 +672,8 @@ class McuDaq(Daq):
             log.warning("%s: EDGE with channel %d level %d ignored", self.name, msg.channel, msg.level)
             return
         ev = Event.edge(self._dev_ns(msg.t_us), Channel(msg.channel), msg.level)
+        if self._levels is not None:
+            self._levels[msg.channel] = msg.level
         ctx = self._ctx
         if ctx is not None and not ctx.reported:
             if ev.channel is ctx.direction.source and ev.level == 0:

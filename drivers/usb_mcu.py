@@ -153,10 +153,10 @@ class UsbMcuDaq(McuDaq):
 
 
 def parse_usb_spec(spec: str) -> tuple[int, int, str | None]:
-    """(vid, pid, serial) from `usb:VID:PID[:SERIAL]`; ValueError naming the bad part."""
-    if not isinstance(spec, str) or not spec.startswith("usb:"):
+    """(vid, pid, serial) from `[usb:]VID:PID[:SERIAL]`; ValueError naming the bad part."""
+    if not isinstance(spec, str):
         raise ValueError(f"usb driver spec must look like 'usb:1209:0001[:SERIAL]', got {spec!r}")
-    parts = spec[4:].split(":", 2)
+    parts = spec.removeprefix("usb:").split(":", 2)
     if len(parts) < 2:
         raise ValueError(f"usb driver spec {spec!r}: expected usb:VID:PID[:SERIAL]")
     ids = []

@@ -542,12 +542,15 @@ class McuEmulator:
         st.t_arrive_ns = t_ns
         self.strokes_arrived += 1
         self._send(Edge(int(d.dest), 1, self.device_us(t_ns)))
+        self._end_stroke(st, t_ns, StopReason.ARRIVED, StrokeFlags.ARRIVED)
         if self._bounce_next:
+            # The contact chatters after the arrival: those edges come after the stroke's frames.
             self._bounce_next = False
             self.injected.bounces += 1
-            self._send(Edge(int(d.dest), 0, self.device_us(t_ns + BOUNCE_NS)))
-            self._send(Edge(int(d.dest), 1, self.device_us(t_ns + 2 * BOUNCE_NS)))
-        self._end_stroke(st, t_ns, StopReason.ARRIVED, StrokeFlags.ARRIVED)
+            ch = int(d.dest)
+            for k, level in ((1, 0), (2, 1)):
+                t_b = t_ns + k * BOUNCE_NS
+                self._at(t_b, lambda t_b=t_b, level=level: self._send(Edge(ch, level, self.device_us(t_b))))
 
     def _stall(self, st: _Stroke, gen: int, t_ns: int) -> None:
         if gen != self._gen or st.done:

@@ -216,14 +216,22 @@ def test_unplug_mid_stroke_then_replug(rig) -> None:
 
 def test_stall_and_bounce(rig) -> None:
     emu, _, daq = rig
-    daq_bounces = daq.bounces
+    daq_bounces, daq_glitches = daq.bounces, daq.glitches
     emu.inject_bounce()
     seen = run_stroke(daq, Direction.ON)
     assert seen.events[-1].detail == "arrived"
+    true = emu.log[-1]
+    assert (
+        abs((seen.edge(Channel.B, 1).t_ns - seen.start.t_ns) - (true.t_arrive_ns - true.t_start_ns)) <= 2_000
+    )
+    assert wait_for(lambda: daq.levels() == (0, 1))  # the mover rests on B
     # The bounce edges come after the STOP: drain them through recv(), where the debouncer sits.
     while daq.recv(20_000_000) is not None:
         pass
-    assert daq.bounces - daq_bounces == 2
+    # The arrival edge is delivered once, with the stamp of its first transition; the chatter is
+    # counted as a bounce if its frames were in before the hold settled on the host clock, else
+    # as a glitch (see the report: the base settles on host time, not on the device's stream).
+    assert (daq.bounces - daq_bounces) + (daq.glitches - daq_glitches) == 1
     emu.inject_stall()
     seen = run_stroke(daq, Direction.OFF)
     fault = seen.events[-1]

@@ -64,6 +64,7 @@ def test_absent_device_and_bad_spec(two_rigs) -> None:
     with pytest.raises(DaqDisconnected, match="no such device"):
         UsbMcuDaq(0x1209, 0x0001, "RIG-Z", backend=backend).open()
     assert parse_usb_spec("usb:1209:0001") == (0x1209, 0x0001, None)
+    assert parse_usb_spec("1209:0001:X") == (0x1209, 0x0001, "X")
     assert parse_usb_spec("usb:1209:0001:AB:CD") == (0x1209, 0x0001, "AB:CD")
     for bad, match in [("usb:1209", "VID:PID"), ("usb:12g9:0001", "hexadecimal"), ("usb:12345:1", "16-bit")]:
         with pytest.raises(ValueError, match=match):
