@@ -582,7 +582,9 @@ class _Conn(asyncio.Protocol):
         """Send a notification unless the client is behind; then drop it and count."""
         if self.closed or self.transport is None:
             return
-        if self.paused or self.transport.get_write_buffer_size() >= self.hub.limits.subscriber_buffer_bytes:
+        # Same test as asyncio's pause_writing, so every drop is followed by a resume_writing
+        # that tells the client (even when no further notification comes).
+        if self.paused or self.transport.get_write_buffer_size() > self.hub.limits.subscriber_buffer_bytes:
             self.drop_pending += 1
             self.drop_total += 1
             return

@@ -1,0 +1,227 @@
+"""The synchronous client against a real server: typed calls, errors, subscriptions, reconnects, TCP."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import tempfile
+import threading
+import time
+from collections.abc import Iterator
+from concurrent.futures import Future
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from usmswitch.daemon.client import Client, ConnectionClosed, parse_address
+from usmswitch.daemon.rpc import ErrorCode, Limits, RpcError, RpcServer
+
+TOKEN = "client-test-token-0123"
+METHODS = (
+    "status",
+    "get_target",
+    "set_target",
+    "history",
+    "switch",
+    "start_cycling",
+    "stop_cycling",
+    "set_mode",
+    "reset_fault",
+    "estop",
+    "set_drive",
+)
+
+
+class Recorder:
+    """Handlers that record what they were called with and answer something recognisable."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, list[Any]]] = []
+        self.slow = threading.Event()
+
+    def handlers(self) -> dict[str, Any]:
+        return {name: self._make(name) for name in METHODS}
+
+    def _make(self, name: str) -> Any:
+        def handler(params: list[Any]) -> Any:
+            self.calls.append((name, params))
+            if name == "reset_fault":
+                raise RpcError(ErrorCode.STATE, "no fault latched")
+            if name == "switch":
+                fut: Future[Any] = Future()
+                threading.Timer(0.02, fut.set_result, args=({"cycle": 41, "direction": 0},)).start()
+                return fut
+            if name == "status" and self.slow.is_set():
+                time.sleep(0.5)
+            return {"method": name, "params": params}
+
+        return handler
+
+
+@pytest.fixture
+def rec() -> Recorder:
+    return Recorder()
+
+
+@pytest.fixture
+def server(rec: Recorder) -> Iterator[RpcServer]:
+    d = Path(tempfile.mkdtemp(prefix="usmcli-", dir="/tmp"))
+    srv = RpcServer(
+        rec.handlers(),
+        unix_path=d / "rpc.sock",
+        tcp=("127.0.0.1", 0),
+        tcp_token=TOKEN,
+        snapshot_methods=["stats"],
+        limits=Limits(subscriber_buffer_bytes=8192),
+    )
+    srv.start()
+    srv.snapshot("stats", {"all": {"count": 3}})
+    yield srv
+    srv.stop()
+    d.rmdir()
+
+
+def test_every_typed_method_sends_the_documented_params(server: RpcServer, rec: Recorder) -> None:
+    with Client(server.unix_path) as c:
+        assert c.ping() == "pong"
+        assert c.stats() == {"all": {"count": 3}}
+        c.status()
+        c.get_target()
+        c.set_target(24_000_000)
+        c.set_target(12_000_000, "off")
+        c.history()
+        c.history(5)
+        assert c.switch("on") == {"cycle": 41, "direction": 0}
+        c.start_cycling(50_000_000, 1000)
+        c.start_cycling(period_ns=20_000_000)
+        c.stop_cycling()
+        c.set_mode("open")
+        c.estop()
+        c.set_drive(frequency_hz=40_500.0, enabled=True)
+        c.set_drive()
+        with pytest.raises(RpcError) as info:
+            c.reset_fault()
+        assert info.value.code == ErrorCode.STATE and info.value.message == "no fault latched"
+    assert rec.calls == [
+        ("status", []),
+        ("get_target", []),
+        ("set_target", [24_000_000, "both"]),
+        ("set_target", [12_000_000, "off"]),
+        ("history", [20]),
+        ("history", [5]),
+        ("switch", ["on"]),
+        ("start_cycling", [50_000_000, 1000]),
+        ("start_cycling", [20_000_000, 0]),
+        ("stop_cycling", []),
+        ("set_mode", ["open"]),
+        ("estop", []),
+        ("set_drive", [{"frequency_hz": 40_500.0, "enabled": True}]),
+        ("set_drive", [{}]),
+        ("reset_fault", []),
+    ]
+
+
+def test_server_errors_raise_with_the_code(server: RpcServer) -> None:
+    with Client(server.unix_path) as c:
+        with pytest.raises(RpcError) as info:
+            c.set_target(0)
+        assert info.value.code == ErrorCode.INVALID_PARAMS and "target_ns" in str(info.value)
+        with pytest.raises(RpcError) as info:
+            c.call("no_such_method")
+        assert info.value.code == ErrorCode.UNKNOWN_METHOD
+        results = c.pipeline([("ping", []), ("set_mode", ["sideways"]), ("stats", [])])
+        assert results[0] == "pong" and results[2] == {"all": {"count": 3}}
+        assert isinstance(results[1], RpcError) and results[1].code == ErrorCode.INVALID_PARAMS
+
+
+def test_subscription_iterates_payloads_and_counts_drops(server: RpcServer) -> None:
+    with Client(server.unix_path) as c:
+        sub = c.subscribe(timeout_ns=1_000_000_000)
+        assert sub.topics == ["stroke"]
+        n = 2000
+        for i in range(n):
+            while not server.publish("stroke", {"cycle": i, "pad": "y" * 300}):
+                time.sleep(0.001)
+        server.publish("state", {"state": "idle"})  # not subscribed: never seen
+        seen: list[int] = []
+        strokes = iter(sub)
+        with contextlib.suppress(TimeoutError):  # when the last strokes were dropped
+            while len(seen) + sub.dropped < n:
+                seen.append(next(strokes)["cycle"])
+        assert sub.dropped > 0, "this client never read while 600 kB were published: some must drop"
+        assert len(seen) + sub.dropped == n and seen == sorted(seen)
+        sub.close()
+        assert c.unsubscribe() == []
+
+        both = c.subscribe("stroke", "state", timeout_ns=500_000_000)
+        server.publish("state", {"state": "cycling"})
+        note = next(iter(both))
+        assert (note.topic, note.payload) == ("state", {"state": "cycling"})
+        with pytest.raises(TimeoutError):
+            next(iter(both))
+
+
+def test_tcp_with_token_and_refusals(server: RpcServer) -> None:
+    host, port = server.tcp_address  # type: ignore[misc]
+    with Client(f"tcp://{host}:{port}?token={TOKEN}") as c:
+        assert c.stats() == {"all": {"count": 3}}
+    with Client(f"tcp://{host}:{port}", token=TOKEN) as c:
+        assert c.ping() == "pong"
+    with pytest.raises(RpcError) as info:
+        Client(f"tcp://{host}:{port}", token="not-the-token-at-all")
+    assert info.value.code == ErrorCode.UNAUTHORIZED
+    env = os.environ.pop("USMSWITCH_TOKEN", None)
+    try:
+        with pytest.raises(ValueError, match="needs a token"):
+            Client(f"tcp://{host}:{port}")
+    finally:
+        if env is not None:
+            os.environ["USMSWITCH_TOKEN"] = env
+
+
+def test_timeout_then_the_connection_still_works(server: RpcServer, rec: Recorder) -> None:
+    rec.slow.set()
+    with Client(server.unix_path, timeout_ns=100_000_000) as c:
+        with pytest.raises(TimeoutError):
+            c.status()
+        rec.slow.clear()
+        time.sleep(0.5)  # the late status reply arrives now and must not be taken for the next one
+        assert c.get_target() == {"method": "get_target", "params": []}
+
+
+def test_broken_connection_retries_idempotent_calls_only(server: RpcServer) -> None:
+    with Client(server.unix_path) as c, Client(server.unix_path, retry=False) as strict:
+        assert c.ping() == "pong" and strict.ping() == "pong"
+        pid = server.server_pid
+        assert pid is not None
+        os.kill(pid, signal.SIGKILL)
+        deadline = time.monotonic() + 20
+        while server.server_pid == pid or not server.alive:
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        # stats is idempotent: one transparent retry on a fresh connection.
+        assert c.stats() == {"all": {"count": 3}}
+        with pytest.raises(ConnectionClosed):
+            strict.stats()
+        strict.reconnect()
+        assert strict.stats() == {"all": {"count": 3}}
+        # switch is not: after a break it raises, the caller decides.
+        os.kill(server.server_pid, signal.SIGKILL)  # type: ignore[arg-type]
+        time.sleep(0.1)
+        with pytest.raises(ConnectionError):
+            c.switch()
+
+
+def test_parse_address() -> None:
+    assert parse_address("/run/usmswitch/usmswitchd.sock") == ("unix", "/run/usmswitch/usmswitchd.sock", None)
+    assert parse_address("unix:/tmp/x.sock") == ("unix", "/tmp/x.sock", None)
+    assert parse_address(Path("/tmp/y.sock"))[1] == "/tmp/y.sock"
+    assert parse_address("tcp://127.0.0.1:7770?token=abc") == ("tcp", ("127.0.0.1", 7770), "abc")
+    with pytest.raises(ValueError, match="needs a host and a port"):
+        parse_address("tcp://127.0.0.1")
+    with pytest.raises(ValueError, match="timeout_ns"):
+        Client("/nonexistent.sock", timeout_ns=0)
+    with pytest.raises(FileNotFoundError):
+        Client("/nonexistent-dir/usm.sock")
