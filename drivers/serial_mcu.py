@@ -20,7 +20,8 @@ from .mcu import McuDaq, Transport, TransportLost
 log = logging.getLogger(__name__)
 
 DEFAULT_BAUD = 921_600
-_BAUDS = frozenset(serial.Serial.BAUDRATES) | {230_400, 460_800, 500_000, 921_600, 1_000_000, 2_000_000}
+# Linux sets any rate (BOTHER); the firmware's UART decides which work. USB CDC ignores it.
+BAUD_RANGE = (50, 20_000_000)
 
 
 class SerialTransport(Transport):
@@ -29,8 +30,8 @@ class SerialTransport(Transport):
     def __init__(self, path: str, baud: int = DEFAULT_BAUD) -> None:
         if not isinstance(path, str) or not path:
             raise ValueError(f"serial path must be a non-empty string, got {path!r}")
-        if isinstance(baud, bool) or not isinstance(baud, int) or baud not in _BAUDS:
-            raise ValueError(f"baud must be one of {sorted(_BAUDS)}, got {baud!r}")
+        if isinstance(baud, bool) or not isinstance(baud, int) or not BAUD_RANGE[0] <= baud <= BAUD_RANGE[1]:
+            raise ValueError(f"baud must be an integer in {BAUD_RANGE[0]}..{BAUD_RANGE[1]}, got {baud!r}")
         self.path = path
         self.baud = baud
         self._port: serial.Serial | None = None
@@ -127,6 +128,8 @@ def parse_serial_spec(spec: str) -> tuple[str, int]:
             if not text.isdigit():
                 raise ValueError(f"serial driver spec {spec!r}: baud must be an integer, got {text!r}")
             baud = int(text)
-            if baud not in _BAUDS:
-                raise ValueError(f"serial driver spec {spec!r}: baud {baud} is not one of {sorted(_BAUDS)}")
+            if not BAUD_RANGE[0] <= baud <= BAUD_RANGE[1]:
+                raise ValueError(
+                    f"serial driver spec {spec!r}: baud {baud} is not in {BAUD_RANGE[0]}..{BAUD_RANGE[1]}"
+                )
     return path, baud
