@@ -29,6 +29,7 @@ from .sdnotify import Notifier
 from .units import format_ns
 
 RECORDS_FILE = "records.sqlite"
+SWITCH_INTERVAL_S = 0.0002
 # The live line in a terminal is redrawn at most this often.
 LIVE_LINE_NS = 250_000_000
 
@@ -139,8 +140,13 @@ class Daemon:
         apply_realtime(rt.sched_fifo_priority, rt.cpu_affinity, rt.mlockall)
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self._on_signal)
+        # Other threads (record writer, socket bridge) give the GIL back within this bound when
+        # the loop wants it; at the default 5 ms a busy thread would land in the start lateness.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         if cfg.autostart:
-            self.loop.start_cycling(cfg.cycle.period_ns, cfg.cycle.count)
+            # Queued, so the first tick is laid after run() has set up the collector.
+            loop = self.loop
+            loop.call(lambda: loop.start_cycling(cfg.cycle.period_ns, cfg.cycle.count))
             self.log.info(
                 "cycling", period=format_ns(cfg.cycle.period_ns), count=cfg.cycle.count or "forever"
             )
