@@ -1,0 +1,168 @@
+"""usmswitchd as a real subprocess on the simulated rig: start, cycle, signals, kill -9, warm start."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from usmswitch.daemon.client import Client, RpcError
+
+MS = 1_000_000
+
+
+def spawn(tmp: Path, *extra: str) -> subprocess.Popen[bytes]:
+    cmd = [
+        sys.executable,
+        "-m",
+        "usmswitch.daemon.cli",
+        "--sim",
+        "--state-dir",
+        str(tmp / "state"),
+        "--socket",
+        str(tmp / "usmswitchd.sock"),
+        "--log-format",
+        "json",
+        "--period",
+        "20ms",
+        *extra,
+    ]
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def wait_for_socket(tmp: Path, proc: subprocess.Popen[bytes], timeout: float = 20.0) -> Client:
+    sock = tmp / "usmswitchd.sock"
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if proc.poll() is not None:
+            raise AssertionError(f"daemon exited {proc.returncode}: {proc.stderr.read().decode()[-2000:]}")
+        if sock.exists():
+            try:
+                client = Client(str(sock), timeout_ns=5_000 * MS)
+                client.ping()
+                client.stats()  # the first snapshot reaches the server process a moment after bind
+                return client
+            except (OSError, RpcError):
+                pass
+        time.sleep(0.05)
+    raise AssertionError("daemon socket never answered")
+
+
+def rows(tmp: Path) -> list[tuple[int, int | None]]:
+    con = sqlite3.connect(tmp / "state" / "records.sqlite")
+    try:
+        return list(con.execute("SELECT cycle, operating_ns FROM cycles ORDER BY cycle"))
+    finally:
+        con.close()
+
+
+def log_lines(stderr: bytes) -> list[dict]:
+    out = []
+    for line in stderr.decode().splitlines():
+        if line.startswith("{"):
+            out.append(json.loads(line))
+    return out
+
+
+def test_starts_cycles_and_sigterm_exits_0_with_every_row(tmp_path: Path) -> None:
+    proc = spawn(tmp_path)
+    try:
+        with wait_for_socket(tmp_path, proc) as client:
+            status = client.status()
+            for _ in range(100):  # autostart is queued to the loop: it begins a moment after bind
+                if status["state"] == "cycling":
+                    break
+                time.sleep(0.02)
+                status = client.status()
+            assert status["driver"] == "sim" and status["state"] == "cycling"
+            with client.subscribe("stroke", timeout_ns=5_000 * MS) as sub:
+                seen = [rec for _, rec in zip(range(15), sub, strict=False)]
+            assert [r["cycle"] for r in seen] == list(range(seen[0]["cycle"], seen[0]["cycle"] + 15))
+            stats = client.stats()
+            assert stats["all"]["count"] >= 15
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err.decode()[-2000:]
+    logs = log_lines(err)
+    final = [entry for entry in logs if entry.get("event") == "stopped"]
+    assert final and final[0]["flushed"] is True
+    recorded = rows(tmp_path)
+    assert len(recorded) == final[0]["records"]
+    assert [c for c, _ in recorded] == list(range(1, len(recorded) + 1))
+    assert not (tmp_path / "usmswitchd.sock").exists()
+
+
+def test_bad_config_key_refuses_to_start_naming_it(tmp_path: Path) -> None:
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[control]\nwindow = 2\norder = 1\n")
+    proc = spawn(tmp_path, "--config", str(cfg))
+    _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 2
+    assert "control.window" in err.decode()
+    cfg.write_text("[control]\nwindwo = 100\n")
+    proc = spawn(tmp_path, "--config", str(cfg))
+    _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 2 and "windwo" in err.decode()
+
+
+def test_kill_9_loses_no_completed_stroke_and_restart_warm_starts(tmp_path: Path) -> None:
+    proc = spawn(tmp_path)
+    try:
+        with wait_for_socket(tmp_path, proc) as client:
+            sub = client.subscribe("stroke", timeout_ns=5_000 * MS)
+            last = None
+            for rec in sub:
+                last = rec
+                if rec["cycle"] >= 60:
+                    break
+            assert last is not None
+            time.sleep(0.3)  # "more than a moment before" the kill
+            os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(timeout=20)
+        proc.stderr.close()
+        proc.stdout.close()
+    recorded = rows(tmp_path)
+    cycles = [c for c, _ in recorded]
+    assert cycles[: last["cycle"]] == list(range(1, last["cycle"] + 1))
+    integrity = (
+        sqlite3.connect(tmp_path / "state" / "records.sqlite").execute("PRAGMA integrity_check").fetchone()
+    )
+    assert integrity == ("ok",)
+
+    # The server process the killed daemon left must not keep the socket: a restart binds again.
+    proc = spawn(tmp_path)
+    try:
+        with wait_for_socket(tmp_path, proc) as client:
+            stats = client.stats()
+            assert stats["on"]["ready"] and stats["off"]["ready"]  # warm from the file, no cold start
+            status = client.status()
+            assert status["cycle"] > len(recorded)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0
+    warm = [e for e in log_lines(err) if e.get("event") == "warm start"]
+    assert len(warm) == 2 and all(e["strokes"] >= 25 and e["ready"] for e in warm)
+    after = rows(tmp_path)
+    assert [c for c, _ in after] == list(range(1, len(after) + 1))
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT])
+def test_sigint_is_a_clean_stop_too(tmp_path: Path, sig: signal.Signals) -> None:
+    proc = spawn(tmp_path)
+    try:
+        wait_for_socket(tmp_path, proc).close()
+        time.sleep(0.2)
+    finally:
+        proc.send_signal(sig)
+        proc.communicate(timeout=20)
+    assert proc.returncode == 0
