@@ -310,7 +310,7 @@ class _Hub:
         self.snapshot_methods = frozenset(cfg["snapshot_methods"])
         self.topics = tuple(cfg["topics"])
         self.known = frozenset(BUILTIN_METHODS) | self.handlers | self.snapshot_methods
-        self.snaps: dict[str, bytes] = {}
+        self.snaps: dict[str, bytes] = dict(cfg["snaps"])
         self.subs: dict[str, set[_Conn]] = {t: set() for t in self.topics}
         self.conns: set[_Conn] = set()
         self.pending: dict[int, tuple[_Conn, int, int]] = {}  # fid -> (conn, msgid, deadline_ns)
@@ -806,7 +806,8 @@ class RpcServer:
     def snapshot(self, method: str, result: object) -> None:
         """Set what `method []` returns, answered by the server process without calling the daemon.
 
-        O(1), never blocks; snapshots set faster than they are sent coalesce to the latest.
+        O(1), never blocks; snapshots set faster than they are sent coalesce to the latest. Those
+        set before `start()` are served from the first request; later ones a moment after the call.
         """
         if method not in self.snapshot_methods:
             raise ValueError(
@@ -909,6 +910,8 @@ class RpcServer:
             "snapshot_methods": sorted(self.snapshot_methods),
             "topics": list(self.topics),
             "lost": self.lost,
+            # Snapshots set so far are served from the first request (and after a restart).
+            "snaps": {method: _packb(value) for method, value in list(self._snaps.items())},
         }
 
     def _spawn(self) -> _Link:
@@ -947,7 +950,7 @@ class RpcServer:
                 proc.kill()
                 proc.wait()
             raise
-        # Replay the snapshots the new process has not seen.
+        # Snapshots set while the process started may have missed the config: send them again.
         for method in list(self._snaps):
             if method not in self._snap_pending:
                 self._snap_pending.add(method)

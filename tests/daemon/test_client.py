@@ -76,8 +76,8 @@ def server(rec: Recorder) -> Iterator[RpcServer]:
         snapshot_methods=["stats"],
         limits=Limits(subscriber_buffer_bytes=8192),
     )
-    srv.start()
     srv.snapshot("stats", {"all": {"count": 3}})
+    srv.start()
     yield srv
     srv.stop()
     d.rmdir()

@@ -119,8 +119,8 @@ def rig() -> Rig:
 @pytest.fixture
 def server(sockdir: Path, rig: Rig) -> Iterator[RpcServer]:
     srv = make_server(sockdir, rig, tcp=("127.0.0.1", 0), tcp_token=TOKEN)
+    srv.snapshot("stats", {"count": 7, "error_std_ns": 95_300})  # before start: served at once
     srv.start()
-    srv.snapshot("stats", {"count": 7, "error_std_ns": 95_300})
     yield srv
     srv.stop()
 
@@ -484,9 +484,9 @@ def test_a_killed_server_process_is_replaced_and_snapshots_replayed(server: RpcS
 def test_thread_isolation_serves_the_same_protocol(sockdir: Path, rig: Rig) -> None:
     with make_server(sockdir, rig, isolation="thread") as srv:
         assert srv.server_pid is None and srv.alive
-        srv.snapshot("stats", {"count": 1})
         c = unix(srv)
         assert c.call("ping")[3] == "pong"
+        assert c.call("stats")[2][0] == ErrorCode.UNAVAILABLE  # nothing published yet
         assert c.call("set_target", 5_000_000, "off")[3]["target_off_ns"] == 5_000_000
         assert c.call("subscribe", ["state"])[2] is None
         srv.publish("state", {"state": "cycling"})

@@ -130,8 +130,8 @@ def served() -> Iterator[tuple[RpcServer, Counter]]:
     }
     limits = Limits(max_connections=256, auth_timeout_ns=2_000_000_000)
     srv = RpcServer(handlers, unix_path=d / "rpc.sock", snapshot_methods=["stats"], limits=limits)
-    srv.start()
     srv.snapshot("stats", {"count": 42})
+    srv.start()
     yield srv, counter
     srv.stop()
     d.rmdir()
