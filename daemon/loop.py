@@ -279,7 +279,8 @@ class ControlLoop:
 
     def _cycle_once(self) -> None:
         t_cmd = self._next_tick_ns
-        self._slack_until(t_cmd)
+        # A hardware-timed device is told ahead and waits for the instant itself.
+        self._slack_until(t_cmd - self.daq.command_lead_ns)
         if self.state is not State.CYCLING or self._shutdown.is_set():
             return
         now = self.clock.now_ns()
@@ -312,12 +313,11 @@ class ControlLoop:
             self._latch_fault(f"command failed: {exc}")
             return self._finish(plan, t_cmd, None, None, None, None, None, flags_for_failure(plan))
         t_start = cmd.t_start_ns
+        lateness = cmd.lateness_ns
         deadline = (cmd.t_cmd_ns + cmd.delay_ns if t_start is None else t_start) + self.stroke_timeout_ns
         t_depart = t_arrive = None
         fault = ""
         flags = plan.flags
-        if cmd.lateness_ns is not None and cmd.lateness_ns > self.late_margin_ns:
-            flags |= Flag.LATE  # started past its instant: the stroke cannot meet T
         src, dst = direction.source, direction.dest
         while True:
             now = self.clock.now_ns()
@@ -346,6 +346,7 @@ class ControlLoop:
             elif kind is EventKind.START:
                 if t_start is None:
                     t_start = ev.t_ns
+                    lateness = ev.lateness_ns
                     deadline = t_start + self.stroke_timeout_ns
             elif kind is EventKind.FAULT and ev.fault in (
                 FaultCode.DISCONNECT,
@@ -374,9 +375,9 @@ class ControlLoop:
             self._latch_fault(fault)
         if daq.bounces != bounces_before:
             flags |= Flag.BOUNCE
-        return self._finish(
-            plan, cmd.t_cmd_ns, t_start, t_depart, t_arrive, operating, cmd.lateness_ns, flags
-        )
+        if lateness is not None and lateness > self.late_margin_ns:
+            flags |= Flag.LATE  # started past its instant: the stroke cannot meet T
+        return self._finish(plan, cmd.t_cmd_ns, t_start, t_depart, t_arrive, operating, lateness, flags)
 
     def _finish(
         self,

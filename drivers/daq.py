@@ -59,6 +59,11 @@ class Daq(ABC):
     hardware_timed: bool = False
     #: Short driver name for logs and status ("sim", "serial", "usb").
     name: str = "daq"
+    #: How long after its stamp an event can reach the host (a link's transit time): the
+    #: debouncer waits this much longer before deciding that a sensor has settled.
+    delivery_latency_ns: int = 0
+    #: Hardware-timed: how far ahead of its instant a command is sent (the device waits).
+    command_lead_ns: int = 0
 
     def __init__(self, *, clock: Clock, debounce_ns: int = DEFAULT_DEBOUNCE_NS) -> None:
         self.clock = clock
@@ -125,9 +130,10 @@ class Daq(ABC):
         direction = Direction(direction)
         check_ns("delay_ns", delay_ns)
         with self._lock:
-            self._armed = (direction, delay_ns)
+            self._armed = None  # a failed arm leaves nothing armed
             if self.hardware_timed:
                 self._arm(direction, delay_ns)
+            self._armed = (direction, delay_ns)
 
     @property
     def armed(self) -> tuple[Direction, int] | None:
@@ -190,10 +196,11 @@ class Daq(ABC):
             if ev is None:
                 wait_to = deadline
                 if hold is not None:
-                    wait_to = hold.until_ns if deadline is None else min(deadline, hold.until_ns)
+                    settled = hold.until_ns + self.delivery_latency_ns
+                    wait_to = settled if deadline is None else min(deadline, settled)
                 ev = self._recv_internal(wait_to)
                 if ev is None:
-                    if hold is not None and self.clock.now_ns() >= hold.until_ns:
+                    if hold is not None and self.clock.now_ns() >= hold.until_ns + self.delivery_latency_ns:
                         self._settle()
                         continue
                     return None

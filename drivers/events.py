@@ -63,14 +63,15 @@ class Event:
     direction: Direction | None = None  # START, STOP
     fault: FaultCode | None = None  # FAULT
     detail: str = ""
+    lateness_ns: int | None = None  # START from a hardware-timed device: how late it fired
 
     @classmethod
     def edge(cls, t_ns: int, channel: Channel, level: int) -> Event:
         return cls(EventKind.EDGE, t_ns, channel=channel, level=level)
 
     @classmethod
-    def start(cls, t_ns: int, direction: Direction) -> Event:
-        return cls(EventKind.START, t_ns, direction=direction)
+    def start(cls, t_ns: int, direction: Direction, lateness_ns: int | None = None) -> Event:
+        return cls(EventKind.START, t_ns, direction=direction, lateness_ns=lateness_ns)
 
     @classmethod
     def stop(cls, t_ns: int, direction: Direction | None = None, detail: str = "") -> Event:

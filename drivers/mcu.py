@@ -193,6 +193,11 @@ class McuDaq(Daq):
 
     hardware_timed = True
     name = "mcu"
+    # A serial/USB frame reaches the host ~0.3-1 ms after the device stamped it (measured in
+    # bench_serial); chatter frames must be in before the debouncer decides.
+    delivery_latency_ns = 3_000_000
+    # COMMAND goes out this long before its tick; the device waits for t_cmd + delay itself.
+    command_lead_ns = 4_000_000
 
     def __init__(
         self,
@@ -693,7 +698,7 @@ class McuDaq(Daq):
             log.warning("%s: START with direction %d ignored", self.name, msg.direction)
             return
         detail = f"late {msg.late_us} us" if msg.late_us else ""
-        ev = Event(EventKind.START, t, direction=direction, detail=detail)
+        ev = Event(EventKind.START, t, direction=direction, detail=detail, lateness_ns=msg.late_us * 1000)
         ctx = self._ctx
         if ctx is None or ctx.stroke != msg.stroke:
             if ctx is not None:

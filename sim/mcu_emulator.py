@@ -150,6 +150,7 @@ class McuEmulator:
         self._corrupt_next = 0
         self._drop_next = 0
         self._drop_only: MsgType | None = None
+        self._corrupt_only: MsgType | None = None
         self._delay_next = 0
         self._delay_ns = 0
         self._silent_until_ns = 0
@@ -248,10 +249,11 @@ class McuEmulator:
             self._boot()
 
     # -- fault injection -----------------------------------------------------------------------
-    def inject_corrupt(self, frames: int = 1) -> None:
-        """Flip a byte in each of the next `frames` frames sent."""
+    def inject_corrupt(self, frames: int = 1, only: MsgType | None = None) -> None:
+        """Flip a byte in each of the next `frames` frames sent (of type `only`, if given)."""
         with self._lock:
             self._corrupt_next += frames
+            self._corrupt_only = only
 
     def inject_drop(self, frames: int = 1, only: MsgType | None = None) -> None:
         """Drop the next `frames` frames (of type `only`, if given): their sequence numbers are spent."""
@@ -304,7 +306,7 @@ class McuEmulator:
             self.injected.dropped += 1
             return
         frame = encode_frame(msg, seq)
-        if self._corrupt_next:
+        if self._corrupt_next and (self._corrupt_only is None or self._corrupt_only == msg.TYPE):
             self._corrupt_next -= 1
             self.injected.corrupted += 1
             b = bytearray(frame)

@@ -83,10 +83,9 @@ def test_lost_arrival_edge_is_rebuilt_from_the_report(rig, kind: str, inject: st
     if kind == "drop":
         emu.inject_drop(1, only=MsgType.EDGE)
     else:
+        emu.inject_corrupt(1, only=MsgType.EDGE)  # the next stroke's depart edge
         daq.arm(Direction.OFF, 1_000_000)
         cmd = daq.command(daq.now_ns() + 2_000_000)
-        time.sleep(0.0025)  # START is out; corrupt the depart edge frame next
-        emu.inject_corrupt(1)
         events = []
         while not events or events[-1].kind is not EventKind.STOP:
             ev = daq.recv(300_000_000)
