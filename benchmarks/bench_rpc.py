@@ -174,8 +174,8 @@ def main() -> int:
         srv = RpcServer(
             {}, unix_path=tmp / f"{isolation}.sock", snapshot_methods=["stats"], isolation=isolation
         )
-        srv.start()
         srv.snapshot("stats", STATS)
+        srv.start()
         servers[isolation] = srv
     try:
         rows = []
