@@ -184,6 +184,8 @@ class ModbusConfig:
     frequency_hz: float = 40_000.0
     voltage_vpp: float = 500.0
     poll_interval_ns: int = 1_000_000_000  # temperature and status reads, off the timing path
+    # [modbus.registers]: moves registers of docs/modbus.md's map, e.g. temperature = {address = 10}
+    registers: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
 
 
 @dataclass(frozen=True)
@@ -527,9 +529,22 @@ def _modbus(t: _Table) -> ModbusConfig:
         frequency_hz=t.get("frequency_hz", _positive_float, ModbusConfig.frequency_hz),
         voltage_vpp=t.get("voltage_vpp", _positive_float, ModbusConfig.voltage_vpp),
         poll_interval_ns=t.get("poll_interval", _duration_pos, ModbusConfig.poll_interval_ns),
+        registers=t.get("registers", _register_map, MappingProxyType({})),
     )
     t.done()
     return cfg
+
+
+def _register_map(key: str, v: Any) -> Mapping[str, Any]:
+    if not isinstance(v, Mapping):
+        raise ConfigError(key, f"expected a table of registers, got {_show(v)}")
+    from usmswitch.drivers.modbus_board import RegisterMap  # pymodbus only when a map is given
+
+    try:
+        RegisterMap.from_dict(v)
+    except ValueError as exc:
+        raise ConfigError(key, str(exc)) from None
+    return MappingProxyType({k: dict(spec) for k, spec in v.items()})
 
 
 # -- endpoint strings ------------------------------------------------------------------------------

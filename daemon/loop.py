@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 
-from usmswitch.drivers import Daq, DaqError, Direction, EventKind, FaultCode, check_ns
+from usmswitch.drivers import Conditions, Daq, DaqError, Direction, EventKind, FaultCode, check_ns
 
 from .record import CycleRecord, Flag
 from .stats import DirectionStats
@@ -84,6 +84,7 @@ class ControlLoop:
         first_cycle: int = 1,
         next_direction: Direction = Direction.ON,
         conditions_every: int = 1,
+        conditions: Callable[[], Conditions | None] | None = None,
     ) -> None:
         if len(predictors) != 2:
             raise ValueError(f"one predictor per direction (on, off) is needed, got {len(predictors)}")
@@ -107,7 +108,9 @@ class ControlLoop:
         self.listeners: list[Callable[[CycleRecord], None]] = []
         self.slack_hooks: list[Callable[[], None]] = []
         self._conditions_every = max(1, conditions_every)
-        self._conditions = daq.conditions()
+        # Where temperature and frequency come from: the driver (sim) or a drive board's poller.
+        self._conditions_source = conditions or daq.conditions
+        self._conditions = self._conditions_source()
         self._next_dir = Direction(next_direction)
         self._plan: Plan | None = None
         self._requests: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]] = queue.SimpleQueue()
@@ -393,7 +396,7 @@ class ControlLoop:
         """Slack work after a stroke: the record, statistics, the sink and the listeners."""
         if self.cycle % self._conditions_every == 0:
             try:
-                self._conditions = self.daq.conditions()
+                self._conditions = self._conditions_source()
             except DaqError:
                 self._conditions = None  # unknown while the device is away
         cond = self._conditions

@@ -188,16 +188,19 @@ class Methods:
 
     def set_drive(self, params: list[Any]) -> Future[Any]:
         (settings,) = params
-        setter = getattr(self.daemon, "set_drive", None)
+        done: Future[Any] = Future()
 
-        def run() -> dict[str, Any]:
-            if setter is None:
-                raise RpcError(ErrorCode.UNAVAILABLE, "set_drive: no drive board on this daemon")
-            applied = setter(**settings)
+        def finished(fut: Future[dict[str, Any]]) -> None:
+            exc = fut.exception()
+            if exc is not None:
+                done.set_exception(RpcError(ErrorCode.UNAVAILABLE, f"set_drive: {exc}"))
+                return
+            applied = fut.result()
             self.store.record_event("drive", **applied)
-            return applied
+            done.set_result(applied)
 
-        return self._on_loop(run)
+        self.daemon.set_drive(settings).add_done_callback(finished)
+        return done
 
     # -- from the loop, in its slack ---------------------------------------------------------------
     def on_record(self, rec: CycleRecord) -> None:

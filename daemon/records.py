@@ -449,6 +449,7 @@ class RecordStore:
                         backoff = min(2 * backoff, self._retry_ns[1])
                         break
                     done += len(batch)
+                    batch = []  # the records are on disk: hold none of them while idle
                     if self._writer_error is not None:
                         log.info("record writer recovered", path=str(self.path), after=self._writer_error)
                         self._writer_error = None

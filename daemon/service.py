@@ -10,6 +10,7 @@ import os
 import signal
 import sys
 import time
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -18,6 +19,7 @@ import structlog
 from usmswitch.drivers import Daq, DaqError, Direction
 from usmswitch.predictor import ARPredictor
 
+from .board import BoardPoller
 from .config import Config
 from .daqfactory import make_daq
 from .logsetup import configure_logging
@@ -70,6 +72,7 @@ class Daemon:
         self.daq: Daq | None = None
         self.loop: ControlLoop | None = None
         self.rpc: Any = None
+        self.board: BoardPoller | None = None
         self._next_summary_ns = 0
         self._next_live_ns = 0
         self._live = self.log_format == "console" and self.stream.isatty()
@@ -90,6 +93,15 @@ class Daemon:
             )
         self.daq = make_daq(cfg)
         self.daq.open()
+        conditions = None
+        if cfg.modbus.enabled:
+            store = self.store
+            self.board = BoardPoller(
+                cfg.modbus, on_event=lambda kind, fields: store.record_event(kind, **fields)
+            )
+            self.board.start()
+            board = self.board
+            conditions = lambda: board.latest  # noqa: E731  (an attribute read on the loop thread)
         last = self.store.history(1)
         last_rec = last[-1] if last else None
         self.loop = ControlLoop(
@@ -103,6 +115,7 @@ class Daemon:
             sink=self.store.submit,
             first_cycle=self.store.last_cycle() + 1,
             next_direction=first_direction(self.daq, last_rec),
+            conditions=conditions,
         )
         self.loop.slack_hooks.append(self._housekeeping)
         self.loop.listeners.append(self._on_record)
@@ -175,6 +188,9 @@ class Daemon:
             self.rpc = None
         if self.daq is not None:
             self.daq.close()
+        if self.board is not None:
+            self.board.stop()
+            self.board = None
         if self.store is not None:
             if self.loop is not None:
                 self.store.record_event("stop", cycle=self.loop.cycle - 1)
@@ -190,18 +206,27 @@ class Daemon:
         if self.rpc is not None and self.loop is not None:
             self.rpc.snapshot("stats", self.loop.snapshot())
 
-    def set_drive(self, **settings: Any) -> dict[str, Any]:
-        """Excitation frequency / voltage / enable on the drive (the sim's, or the Modbus board's)."""
-        board = getattr(self, "board", None)
-        if board is not None:
-            return board.set_drive(**settings)
-        setter = getattr(self.daq, "set_drive", None)
-        if setter is None:
-            raise DaqError(f"{self.daq.name if self.daq else 'driver'}: no drive board to set")
-        known = {k: v for k, v in settings.items() if k in ("frequency_hz", "voltage_vpp")}
-        setter(**known)
-        cond = self.daq.conditions()
-        return {"frequency_hz": cond.frequency_hz, "voltage_vpp": cond.voltage_vpp}
+    def set_drive(self, settings: dict[str, Any]) -> Future[dict[str, Any]]:
+        """Excitation frequency / voltage / enable: on the Modbus board, else on the sim's drive."""
+        if self.board is not None:
+            return self.board.set_drive(**settings)
+        daq, loop = self.daq, self.loop
+        setter = getattr(daq, "set_drive", None)
+        if setter is None or loop is None or daq is None:
+            fut: Future[dict[str, Any]] = Future()
+            fut.set_exception(DaqError(f"{daq.name if daq else 'driver'}: no drive board to set"))
+            return fut
+        if "enabled" in settings:
+            fut = Future()
+            fut.set_exception(DaqError(f"{daq.name}: the drive enable is the driver's own (stop/estop)"))
+            return fut
+
+        def apply() -> dict[str, Any]:
+            setter(**settings)
+            cond = daq.conditions()
+            return {"frequency_hz": cond.frequency_hz, "voltage_vpp": cond.voltage_vpp}
+
+        return loop.call(apply)
 
     # -- slack work (on the loop thread, never mid-stroke) --------------------------------------------
     def _on_record(self, rec: CycleRecord) -> None:
