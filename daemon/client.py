@@ -426,9 +426,11 @@ class Client:
         """Stop cycling after the stroke in progress."""
         return self.call("stop_cycling")
 
-    def set_mode(self, mode: str) -> dict[str, Any]:
+    def set_mode(self, mode: str, open_delay_ns: int | None = None) -> dict[str, Any]:
         """Open loop ("open": fixed delay) or closed loop ("closed": AR-predicted delay)."""
-        return self.call("set_mode", mode)
+        if open_delay_ns is None:
+            return self.call("set_mode", mode)
+        return self.call("set_mode", mode, open_delay_ns)
 
     def reset_fault(self) -> dict[str, Any]:
         """Clear a latched FAULT so strokes may run again."""

@@ -208,6 +208,10 @@ class ControlLoop:
             self.state = State.STOPPED
             gc.enable()
 
+    def conditions(self) -> Conditions | None:
+        """Drive conditions now, from the same source the records use (any thread)."""
+        return self._conditions_source()
+
     @property
     def next_direction(self) -> Direction:
         """The direction of the next stroke (away from where the mover rests)."""

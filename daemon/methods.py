@@ -18,7 +18,7 @@ from usmswitch.drivers import DaqError, Direction
 from .config import parse_host_port
 from .loop import LoopError, Mode, State
 from .record import CycleRecord
-from .rpc import PROTOCOL_VERSION, ErrorCode, RpcError, RpcServer
+from .rpc import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, RpcServer
 
 if TYPE_CHECKING:
     from .service import Daemon
@@ -28,6 +28,7 @@ try:
 except PackageNotFoundError:  # running from a source tree that was never installed
     PACKAGE_VERSION = "0+unknown"
 
+ESTOP_REASON = "estop (socket)"
 DIRECTIONS = {"on": (Direction.ON,), "off": (Direction.OFF,), "both": (Direction.ON, Direction.OFF)}
 
 
@@ -42,7 +43,7 @@ class Methods:
         self.daq = daemon.daq
         self.server: RpcServer | None = None
         self._targets_from_cycle = self.loop.cycle
-        self._last_state = self.loop.state
+        self._last_state: tuple[Any, ...] = ()
 
     def table(self) -> dict[str, Callable[[list[Any]], object]]:
         """Method name -> handler(params), params already checked by the server."""
@@ -127,8 +128,7 @@ class Methods:
         return self._on_loop(apply)
 
     def set_mode(self, params: list[Any]) -> Future[Any]:
-        mode = params[0]
-        open_delay_ns = params[1] if len(params) > 1 else None
+        mode, open_delay_ns = params
 
         def apply() -> dict[str, Any]:
             self.loop.set_mode(Mode(mode), open_delay_ns)
@@ -159,32 +159,35 @@ class Methods:
 
         def run() -> dict[str, int]:
             self.loop.start_cycling(period_ns, count)
-            self.store.record_event("cycle", period_ns=period_ns, count=count, from_cycle=self.loop.cycle)
-            return {"period_ns": period_ns, "count": count, "from_cycle": self.loop.cycle}
+            self.store.record_event("cycle", period_ns=period_ns, count=count, first_cycle=self.loop.cycle)
+            return {"period_ns": period_ns, "count": count, "first_cycle": self.loop.cycle}
 
         return self._on_loop(run)
 
     def stop_cycling(self, params: list[Any]) -> Future[Any]:
         def run() -> dict[str, Any]:
+            was = self.loop.state is State.CYCLING
             self.loop.stop_cycling()
-            return {"state": str(self.loop.state), "cycle": self.loop.cycle}
+            return {"was_cycling": was, "cycle": self.loop.cycle}
 
         return self._on_loop(run)
 
     def reset_fault(self, params: list[Any]) -> Future[Any]:
         def run() -> dict[str, Any]:
+            if self.loop.state is not State.FAULT:
+                raise LoopError("no fault is latched")
             was = self.loop.fault_reason
             self.loop.reset_fault()
             self.store.record_event("reset", fault=was)
-            return {"state": str(self.loop.state), "cleared": was}
+            return {"fault": was}
 
         return self._on_loop(run)
 
     def estop(self, params: list[Any]) -> dict[str, Any]:
         # Not queued behind anything: the drive goes off from this thread, now.
-        self.loop.estop("emergency stop (socket)")
+        self.loop.estop(ESTOP_REASON)
         self.store.record_event("estop", source="socket")
-        return {"state": str(State.FAULT), "fault": "emergency stop (socket)"}
+        return {"state": str(State.FAULT), "fault": ESTOP_REASON}
 
     def set_drive(self, params: list[Any]) -> Future[Any]:
         (settings,) = params
@@ -195,8 +198,11 @@ class Methods:
             if exc is not None:
                 done.set_exception(RpcError(ErrorCode.UNAVAILABLE, f"set_drive: {exc}"))
                 return
-            applied = fut.result()
+            applied = dict(fut.result())
             self.store.record_event("drive", **applied)
+            applied.setdefault("enabled", True)
+            cond = self.loop.conditions()
+            applied.setdefault("temperature_c", None if cond is None else cond.temperature_c)
             done.set_result(applied)
 
         self.daemon.set_drive(settings).add_done_callback(finished)
@@ -212,12 +218,21 @@ class Methods:
         self.daemon.refresh_snapshot()
 
     def on_slack(self) -> None:
-        """Tell subscribers when the loop's state changes (cycling, idle, fault)."""
-        state = self.loop.state
-        if state is not self._last_state and self.server is not None:
-            self._last_state = state
+        """Tell subscribers when state, mode, fault or a target changes."""
+        loop = self.loop
+        key = (loop.state, loop.mode, loop.fault_reason, loop.targets[0], loop.targets[1])
+        if key != self._last_state and self.server is not None:
+            self._last_state = key
             self.server.publish(
-                "state", {"state": str(state), "fault": self.loop.fault_reason, "cycle": self.loop.cycle}
+                "state",
+                {
+                    "state": str(loop.state),
+                    "mode": str(loop.mode),
+                    "fault": loop.fault_reason,
+                    "target_on_ns": loop.targets[Direction.ON],
+                    "target_off_ns": loop.targets[Direction.OFF],
+                    "cycle": loop.cycle,
+                },
             )
             self.daemon.refresh_snapshot()
 
@@ -236,6 +251,7 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         tcp_token=cfg.tcp_token or None,
         topics=("stroke", "state"),
         snapshot_methods=("stats",),
+        limits=Limits(max_connections=cfg.max_clients),
     )
     server.start()
     methods.server = server

@@ -217,7 +217,10 @@ PARAMS: dict[str, _Spec] = {
         ("count", _integer("count", 0, _MAX_COUNT), 0),
     ),
     "stop_cycling": (),
-    "set_mode": (("mode", _choice("mode", ("open", "closed")), _REQUIRED),),
+    "set_mode": (
+        ("mode", _choice("mode", ("open", "closed")), _REQUIRED),
+        ("open_delay_ns", _integer("open_delay_ns", 0, _MAX_TARGET_NS), None),
+    ),
     "reset_fault": (),
     "estop": (),
     "set_drive": (("settings", _drive, {}),),

@@ -115,7 +115,7 @@ def test_every_typed_method_sends_the_documented_params(server: RpcServer, rec: 
         ("start_cycling", [50_000_000, 1000]),
         ("start_cycling", [20_000_000, 0]),
         ("stop_cycling", []),
-        ("set_mode", ["open"]),
+        ("set_mode", ["open", None]),
         ("estop", []),
         ("set_drive", [{"frequency_hz": 40_500.0, "enabled": True}]),
         ("set_drive", [{}]),
