@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import signal
@@ -165,4 +166,41 @@ def test_sigint_is_a_clean_stop_too(tmp_path: Path, sig: signal.Signals) -> None
     finally:
         proc.send_signal(sig)
         proc.communicate(timeout=20)
+    assert proc.returncode == 0
+
+
+def test_sd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> None:
+    """Under systemd (Type=notify, WatchdogSec): READY, STATUS, WATCHDOG at half the period, STOPPING."""
+    import socket as _socket
+
+    addr = str(tmp_path / "notify")
+    listener = _socket.socket(_socket.AF_UNIX, _socket.SOCK_DGRAM)
+    listener.bind(addr)
+    listener.settimeout(10)
+    env = dict(os.environ, NOTIFY_SOCKET=addr, WATCHDOG_USEC="200000")
+    cmd = [sys.executable, "-m", "usmswitch.daemon.cli", "--sim", "--no-autostart", "--log-format", "json",
+           "--state-dir", str(tmp_path / "state"), "--socket", str(tmp_path / "s.sock")]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    got: list[tuple[float, str]] = []
+    try:
+        end = time.monotonic() + 20
+        while time.monotonic() < end and sum("WATCHDOG=1" in m for _, m in got) < 4:
+            got.append((time.monotonic(), listener.recv(4096).decode()))
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=20)
+        while True:
+            try:
+                listener.settimeout(0.5)
+                got.append((time.monotonic(), listener.recv(4096).decode()))
+            except OSError:
+                break
+        listener.close()
+    msgs = [m for _, m in got]
+    assert any("READY=1" in m for m in msgs)
+    assert any("STOPPING=1" in m for m in msgs)
+    pings = [t for t, m in got if "WATCHDOG=1" in m]
+    assert len(pings) >= 4  # idle, the loop still pings: a hung loop would not
+    gaps = [b - a for a, b in itertools.pairwise(pings)]
+    assert max(gaps) < 0.2  # at least every WatchdogSec (here half of it is 100 ms)
     assert proc.returncode == 0
