@@ -449,9 +449,9 @@ class ControlLoop:
         return rec
 
     def _serve_requests(self, block_ns: int = 0) -> None:
-        """Run queued requests; in real time wait up to `block_ns` for the first one."""
+        """Run queued requests, first waiting up to `block_ns` of wall time for one (idle)."""
         try:
-            if block_ns > 0 and not self.clock.virtual:
+            if block_ns > 0:  # idle waits on wall time, whatever the clock: nothing to simulate
                 item = self._requests.get(timeout=block_ns / 1e9)
             else:
                 item = self._requests.get_nowait()
