@@ -245,3 +245,12 @@ def test_modbus_urls():
     for bad in ("rtu:/dev/ttyUSB1", "tcp:host", "tcp:h:0", "rtu:ttyUSB1:9600", "serial:/dev/x:1"):
         with pytest.raises(ValueError, match=re.escape(repr(bad))):
             parse_modbus_url(bad)
+
+
+def test_modbus_register_map_is_checked_at_load() -> None:
+    c = load_config(None, {"modbus.registers": {"temperature": {"table": "holding", "address": 10}}})
+    assert dict(c.modbus.registers) == {"temperature": {"table": "holding", "address": 10}}
+    with pytest.raises(ConfigError, match=r"modbus\.registers: .*unknown register 'temprature'"):
+        load_config(None, {"modbus.registers": {"temprature": {"address": 10}}})
+    with pytest.raises(ConfigError, match=r"modbus\.registers"):
+        load_config(None, {"modbus.registers": {"enable": {"table": "input"}}})
