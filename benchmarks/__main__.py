@@ -11,7 +11,8 @@ import benchmarks
 
 
 def main(argv: list[str]) -> int:
-    names = sorted(m.name[len("bench_") :] for m in pkgutil.iter_modules(benchmarks.__path__) if m.name.startswith("bench_"))
+    modules = pkgutil.iter_modules(benchmarks.__path__)
+    names = sorted(m.name[len("bench_") :] for m in modules if m.name.startswith("bench_"))
     wanted = argv or names
     unknown = [w for w in wanted if w not in names]
     if unknown:

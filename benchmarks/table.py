@@ -12,6 +12,12 @@ def print_table(headers: Sequence[str], rows: Sequence[Sequence[object]], title:
     if title:
         print(title)
     for k, row in enumerate(cells):
-        print("  ".join(c.rjust(w) if k else c.ljust(w) for c, w in zip(row, widths, strict=True)))
+        # Headers and the first (label) column read left to right; figures line up on the right.
+        print(
+            "  ".join(
+                c.ljust(w) if k == 0 or i == 0 else c.rjust(w)
+                for i, (c, w) in enumerate(zip(row, widths, strict=True))
+            )
+        )
         if k == 0:
             print("  ".join("-" * w for w in widths))
