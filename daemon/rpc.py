@@ -22,6 +22,7 @@ import hmac
 import logging
 import os
 import queue
+import signal
 import socket
 import stat
 import subprocess
@@ -1122,6 +1123,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--listen", action="append", default=[], help="FD:unix or FD:tcp, a listening socket")
     parser.add_argument("--nice", type=int, default=0)
     args = parser.parse_args(argv)
+    # The daemon owns shutdown: a Ctrl-C to the terminal's process group or systemd's SIGTERM to the
+    # cgroup must not kill the server under it mid-stop. It ends when the daemon's channel closes.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     listeners = []
     for spec in args.listen:
         fd, _, kind = spec.partition(":")

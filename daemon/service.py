@@ -163,6 +163,7 @@ class Daemon:
             self.log.info(
                 "cycling", period=format_ns(cfg.cycle.period_ns), count=cfg.cycle.count or "forever"
             )
+        self._next_summary_ns = time.monotonic_ns() + cfg.daemon.summary_interval_ns
         self.notifier.ready(status=self._status_line())
         try:
             self.loop.run()
@@ -242,8 +243,7 @@ class Daemon:
         self.notifier.maybe_watchdog(now)
         if now >= self._next_summary_ns:
             self._next_summary_ns = now + self.config.daemon.summary_interval_ns
-            if self._next_summary_ns and self.loop is not None and self.loop.cycle > 1:
-                self._summary()
+            self._summary()
         if self._live and now >= self._next_live_ns:
             self._next_live_ns = now + LIVE_LINE_NS
             self.stream.write("\r\x1b[K" + self._status_line())
