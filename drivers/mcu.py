@@ -195,7 +195,7 @@ class McuDaq(Daq):
     name = "mcu"
     # A serial/USB frame reaches the host ~0.3-1 ms after the device stamped it (measured in
     # bench_serial); chatter frames must be in before the debouncer decides.
-    delivery_latency_ns = 3_000_000
+    delivery_latency_ns = 2_000_000
     # COMMAND goes out this long before its tick; the device waits for t_cmd + delay itself.
     command_lead_ns = 4_000_000
 
