@@ -811,6 +811,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     # A closed pipe (`usmswitchctl watch | head`) ends us quietly, as for other command-line tools.
     signal.signal(signal.SIGPIPE, signal.SIG_DFL)
+    address = "the daemon"
     try:
         _check_counts(args)
         address = resolve_address(args)
@@ -835,8 +836,8 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(args, EXIT_CONNECT, f"no answer from the daemon: {exc}")
     except ConnectionClosed as exc:
         return _fail(args, EXIT_CONNECT, f"lost the daemon: {exc}", exc.code)
-    except (ConnectionError, FileNotFoundError, OSError) as exc:
-        return _fail(args, EXIT_CONNECT, f"cannot connect: {exc}")
+    except OSError as exc:  # no socket file, refused, permission denied, unreachable host
+        return _fail(args, EXIT_CONNECT, f"cannot connect to {address}: {exc.strerror or exc}")
     except KeyboardInterrupt:
         return _fail(args, EXIT_INTERRUPTED, "interrupted")
 
