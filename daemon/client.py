@@ -79,6 +79,7 @@ class Status(TypedDict):
     mode: str  # "closed" or "open"
     fault: str  # why FAULT is latched; "" when not
     driver: str
+    driver_ok: bool  # the device answers (link up)
     protocol_version: int
     version: str
     uptime_ns: int

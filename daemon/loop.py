@@ -105,6 +105,7 @@ class ControlLoop:
         self.stats_all = DirectionStats()  # both directions together
         self.spurious_edges = 0
         self.overruns = 0
+        self.stale_events = 0  # driver events dropped at a fault reset
         self.listeners: list[Callable[[CycleRecord], None]] = []
         self.slack_hooks: list[Callable[[], None]] = []
         self._conditions_every = max(1, conditions_every)
@@ -156,8 +157,11 @@ class ControlLoop:
 
     def reset_fault(self) -> None:
         """Clear a latched FAULT; the drive stays off until the next command."""
+        if self.state is State.FAULT and not self.daq.ping():
+            raise LoopError(f"{self.daq.name} is not connected: reset when the device is back")
         self._estop.clear()
         if self.state is State.FAULT:
+            self._drain_stale_events()
             self.state = State.IDLE
             self.fault_reason = ""
 
@@ -282,7 +286,14 @@ class ControlLoop:
 
     def _rearm(self) -> None:
         if self._plan is not None:
-            self._arm(self._plan.direction)
+            self._arm_or_defer(self._plan.direction)
+
+    def _arm_or_defer(self, direction: Direction) -> None:
+        """Arm now; a device that cannot take it (gone) is armed again at the next command."""
+        try:
+            self._arm(direction)
+        except DaqError:
+            self._plan = None
 
     def _cycle_once(self) -> None:
         t_cmd = self._next_tick_ns
@@ -305,16 +316,18 @@ class ControlLoop:
     def _stroke(self, t_cmd_ns: int | None) -> CycleRecord:
         """Command the armed stroke, stamp it, update the predictor, arm the next one, record."""
         direction = self._next_dir
-        if self._plan is None or self._plan.direction is not direction:
-            self._arm(direction)
-        plan = self._plan
-        assert plan is not None
         daq = self.daq
         bounces_before = daq.bounces
         self._estop.clear()
         try:
+            if self._plan is None or self._plan.direction is not direction:
+                self._arm(direction)
+            plan = self._plan
+            assert plan is not None
             cmd = daq.command(t_cmd_ns)
         except DaqError as exc:
+            plan = self._plan if self._plan is not None else self._plan_for(direction)
+            self._plan = None
             # Nothing moved; the attempt is still a cycle and gets its record.
             t_cmd = self.clock.now_ns() if t_cmd_ns is None else t_cmd_ns
             self._latch_fault(f"command failed: {exc}")
@@ -355,10 +368,10 @@ class ControlLoop:
                     t_start = ev.t_ns
                     lateness = ev.lateness_ns
                     deadline = t_start + self.stroke_timeout_ns
-            elif kind is EventKind.FAULT and ev.fault in (
-                FaultCode.DISCONNECT,
-                FaultCode.STALL,
-                FaultCode.DRIVE,
+            elif (
+                kind is EventKind.FAULT
+                and ev.fault in (FaultCode.DISCONNECT, FaultCode.STALL, FaultCode.DRIVE)
+                and ev.t_ns >= cmd.t_cmd_ns  # not one left over from before this command
             ):
                 fault = f"{ev.fault.name.lower()}: {ev.detail}" if ev.detail else ev.fault.name.lower()
                 break
@@ -367,7 +380,7 @@ class ControlLoop:
             # Arm ahead: the next stroke goes the other way, so its predictor is already up to date
             # and this stroke's update (an AIC re-selection may take a millisecond) comes after it.
             self._next_dir = direction.opposite
-            self._arm(self._next_dir)  # the timing path ends here
+            self._arm_or_defer(self._next_dir)  # the timing path ends here
             self.predictors[direction].update(operating)
         else:
             operating = None
@@ -447,6 +460,12 @@ class ControlLoop:
         for listener in self.listeners:
             listener(rec)
         return rec
+
+    def _drain_stale_events(self) -> None:
+        """Drop what the driver queued while faulted (the disconnect itself, late edges)."""
+        with contextlib.suppress(DaqError):
+            while self.daq.recv(0) is not None:
+                self.stale_events += 1
 
     def _serve_requests(self, block_ns: int = 0) -> None:
         """Run queued requests, first waiting up to `block_ns` of wall time for one (idle)."""

@@ -69,6 +69,7 @@ class Methods:
             "mode": str(loop.mode),
             "fault": loop.fault_reason,
             "driver": self.daq.name,
+            "driver_ok": self.daq.ping(),
             "protocol_version": PROTOCOL_VERSION,
             "version": PACKAGE_VERSION,
             "uptime_ns": time.monotonic_ns() - self.daemon.started_ns,
