@@ -281,6 +281,7 @@ class RunningStats:
     """Welford mean/std of the errors watch has seen, so the live view needs no extra call per stroke."""
 
     def __init__(self) -> None:
+        self.strokes = 0
         self.n = 0
         self.mean = 0.0
         self._m2 = 0.0
@@ -290,6 +291,7 @@ class RunningStats:
 
     def add(self, rec: CycleRecord) -> None:
         """Count one stroke (its error, when it has one; its flags always)."""
+        self.strokes += 1
         if rec["flags"] & Flag.LATE:
             self.late += 1
         if rec["flags"] & UNUSABLE:
@@ -311,7 +313,8 @@ class RunningStats:
     def summary(self) -> str:
         """One line for people: what the watched strokes did."""
         return (
-            f"{self.n} strokes with an error: mean {show_ns(self.mean)}, std {show_ns(self.std)}, "
+            f"watched {self.strokes} strokes, {self.n} with an error: "
+            f"mean {show_ns(self.mean)}, std {show_ns(self.std)}, "
             f"max |error| {show_ns(self.max_abs)}, late {self.late}, stall/fault/estop {self.faulted}"
         )
 
@@ -814,10 +817,11 @@ def main(argv: list[str] | None = None) -> int:
     address = "the daemon"
     try:
         _check_counts(args)
-        address = resolve_address(args)
         timeout_ns = args.timeout if args.timeout is not None else 10_000_000_000
 
         def connect() -> Client:
+            nonlocal address
+            address = resolve_address(args)  # only when needed: export from the file has no socket
             try:
                 return Client(address, timeout_ns=timeout_ns, token=args.token)
             except ValueError as exc:  # a malformed address, a TCP connection without a token
