@@ -343,7 +343,10 @@ def cmd_status(client: Client, args: argparse.Namespace) -> int:
             ["target on", show_ns(st["target_on_ns"])],
             ["target off", show_ns(st["target_off_ns"])],
             ["next cycle", str(st["cycle"])],
-            ["driver", st["driver"]],
+            [
+                "driver",
+                st["driver"] + {True: " (answering)", False: " (NOT answering)"}.get(st.get("driver_ok"), ""),
+            ],
             ["version", f"{st['version']} (protocol {st['protocol_version']})"],
             ["uptime", show_ns(st["uptime_ns"])],
         ]
@@ -411,8 +414,10 @@ def cmd_cycle(client: Client, args: argparse.Namespace) -> int:
         print_json(result)
     else:
         count = f"{args.count} strokes" if args.count else "until stopped"
-        first = result.get("from_cycle", result.get("first_cycle", "?"))
-        print(f"cycling every {show_ns(result['period_ns'])}, {count}, from cycle {first}", flush=True)
+        print(
+            f"cycling every {show_ns(result['period_ns'])}, {count}, from cycle {result['first_cycle']}",
+            flush=True,
+        )
     if not args.wait:
         return EXIT_OK
     try:
@@ -442,7 +447,8 @@ def cmd_stop(client: Client, args: argparse.Namespace) -> int:
     if args.json:
         print_json(result)
     else:
-        print(f"stopped; state {result.get('state', '?')}, next cycle {result.get('cycle', '?')}")
+        what = "stopping after the stroke in progress" if result["was_cycling"] else "was not cycling"
+        print(f"{what}; next cycle {result['cycle']}")
     return EXIT_OK
 
 
@@ -450,11 +456,7 @@ def cmd_mode(client: Client, args: argparse.Namespace) -> int:
     """Closed loop (T_d = T - t_hat) or open loop with a fixed delay, from the next armed stroke."""
     if args.delay is not None and args.mode != "open":
         raise UsageError("mode: --delay is the open loop's fixed delay; it needs `mode open`")
-    if args.delay is None:
-        result = client.set_mode(args.mode)
-    else:
-        # Client.set_mode has no delay parameter; the daemon's handler takes it as the second param.
-        result = client.call("set_mode", args.mode, args.delay)
+    result = client.set_mode(args.mode, args.delay)
     if args.json:
         print_json(result)
     else:
@@ -464,7 +466,7 @@ def cmd_mode(client: Client, args: argparse.Namespace) -> int:
             if result.get("mode") == "open" and delay is not None
             else ""
         )
-        print(f"mode {result['mode']}{extra}, from cycle {result.get('from_cycle', '?')}")
+        print(f"mode {result['mode']}{extra}, from cycle {result['from_cycle']}")
     return EXIT_OK
 
 
@@ -605,13 +607,12 @@ def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
 
 
 def cmd_reset(client: Client, args: argparse.Namespace) -> int:
-    """Clear a latched FAULT so strokes may run again."""
+    """Clear a latched FAULT so strokes may run again (refused, exit 1, when none is latched)."""
     result = client.reset_fault()
     if args.json:
         print_json(result)
     else:
-        cleared = result.get("cleared", result.get("fault", ""))
-        print(f"fault cleared ({cleared}); state {result.get('state', '?')}")
+        print(f"fault cleared ({result['fault']})")
     return EXIT_OK
 
 

@@ -25,7 +25,6 @@ import pytest
 from usmswitch.daemon import ctl
 from usmswitch.daemon.client import Client, RpcError
 from usmswitch.daemon.record import FIELDS, CycleRecord, Flag
-from usmswitch.daemon.rpc import PARAMS
 
 MS = 1_000_000
 BIN = Path(sys.executable).parent / "usmswitchctl"
@@ -135,7 +134,7 @@ def test_status_ping_human_and_json(idle: Rig) -> None:
     lines = dict(
         line.split(None, 1) for line in r.stdout.splitlines() if line.split()[0] in ("state", "driver")
     )
-    assert lines == {"state": "idle", "driver": "sim"}
+    assert lines == {"state": "idle", "driver": "sim (answering)"}
     assert "target on" in r.stdout and "12.000 ms" in r.stdout
     r = run(idle, "status", "--json")  # --json after the command works as well as before it
     st = json.loads(r.stdout)
@@ -195,11 +194,12 @@ def test_mode_open_closed_and_delay(idle: Rig) -> None:
     assert r.returncode == 0 and r.stdout.startswith("mode closed")
     r = run(idle, "mode", "closed", "--delay", "1ms")
     assert r.returncode == 2 and "--delay" in r.stderr
-    r = run(idle, "--json", "mode", "open", "--delay", "1ms")
-    if len(PARAMS["set_mode"]) >= 2:  # the server takes the open-loop delay
-        assert r.returncode == 0 and json.loads(r.stdout)["open_delay_ns"] == 1 * MS
-    else:  # it does not (yet): the daemon's refusal is reported, exit 1
-        assert r.returncode == 1 and json.loads(r.stderr)["error"]["name"] == "INVALID_PARAMS"
+    r = run(idle, "--json", "mode", "open", "--delay", "1500us")
+    assert r.returncode == 0 and json.loads(r.stdout)["open_delay_ns"] == 1_500_000
+    rec = json.loads(run(idle, "--json", "switch").stdout)
+    assert rec["mode"] == "open" and rec["delay_ns"] == 1_500_000  # the open loop's fixed T_d
+    r = run(idle, "mode", "open", "--delay", "0ms")
+    assert r.returncode == 0 and "open-loop delay 0 ns" in r.stdout
 
 
 def test_cycle_wait_stats_and_history(idle: Rig) -> None:
@@ -234,8 +234,10 @@ def test_refused_call_exits_1_and_stop(idle: Rig) -> None:
     err = json.loads(r.stderr)["error"]
     assert r.returncode == 1 and err["code"] == 4 and err["name"] == "STATE" and r.stdout == ""
     r = run(idle, "stop")
-    assert r.returncode == 0 and r.stdout.startswith("stopped")
+    assert r.returncode == 0 and r.stdout.startswith("stopping after the stroke in progress")
     wait_state(idle, "idle")
+    r = run(idle, "--json", "stop")
+    assert r.returncode == 0 and json.loads(r.stdout)["was_cycling"] is False
 
 
 def test_watch_count_human_and_json(idle: Rig) -> None:
@@ -292,6 +294,8 @@ def test_estop_fault_exit_4_and_reset(idle: Rig) -> None:
     assert r.returncode == 0 and f"fault cleared ({reply['fault']})" in r.stdout
     assert run(idle, "status").returncode == 0
     assert run(idle, "switch").returncode == 0
+    r = run(idle, "reset")  # nothing latched: the daemon refuses
+    assert r.returncode == 1 and "[4 STATE]" in r.stderr
 
 
 def _read_csv(text: str) -> list[CycleRecord]:

@@ -1,0 +1,117 @@
+"""The examples/ lab scripts as subprocesses against a real usmswitchd on the simulated rig.
+
+The daemon starts with the sim's default, cycling on its own, so the script's "stop what is running
+first" path is exercised; the script runs a small stroke count to stay fast.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from usmswitch.daemon.client import Client, RpcError
+
+MS = 1_000_000
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+
+
+@pytest.fixture(scope="module")
+def daemon_socket(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    tmp = tmp_path_factory.mktemp("examples")
+    sock = tmp / "usmswitchd.sock"
+    cmd = [
+        sys.executable,
+        "-m",
+        "usmswitch.daemon.cli",
+        "--sim",
+        "--state-dir",
+        str(tmp / "state"),
+        "--socket",
+        str(sock),
+        "--log-format",
+        "json",
+        "--log-level",
+        "warning",
+        "--period",
+        "20ms",
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        end = time.monotonic() + 20
+        while True:
+            assert proc.poll() is None, proc.stderr.read().decode()[-2000:] if proc.stderr else ""
+            assert time.monotonic() < end, "daemon socket never answered"
+            if sock.exists():
+                try:
+                    with Client(str(sock), timeout_ns=5_000 * MS) as c:
+                        c.ping()
+                        c.stats()  # the first snapshot arrives a moment after bind
+                    break
+                except (OSError, RpcError):
+                    pass
+            time.sleep(0.05)
+        yield sock
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+
+
+def run_example(sock: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, str(EXAMPLES / "run_500_strokes.py"), "--socket", str(sock), *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+
+
+def test_run_strokes_json_matches_the_records(daemon_socket: Path) -> None:
+    r = run_example(daemon_socket, "--strokes", "40", "--period", "20ms", "--target", "13ms", "--json")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["target_ns"] == 13 * MS and out["last_cycle"] - out["first_cycle"] == 39
+    s = out["summary"]
+    assert s["all"]["strokes"] == 40 and s["on"]["strokes"] == s["off"]["strokes"] == 20
+    with Client(str(daemon_socket)) as c:
+        recs = [x for x in c.history(200) if out["first_cycle"] <= x["cycle"] <= out["last_cycle"]]
+        status = c.status()
+    assert status["state"] == "idle" and status["target_on_ns"] == 13 * MS  # the script set T and finished
+    assert {x["target_ns"] for x in recs} == {13 * MS}
+    errors = [x["error_ns"] for x in recs if x["error_ns"] is not None]
+    assert s["all"]["error_std_ns"] == pytest.approx(statistics.stdev(errors))
+    assert s["all"]["error_max_abs_ns"] == max(abs(e) for e in errors)
+    on_errors = [x["error_ns"] for x in recs if x["direction"] == 0 and x["error_ns"] is not None]
+    assert s["on"]["error_mean_ns"] == pytest.approx(statistics.fmean(on_errors))
+    assert out["order"]["on"] >= 1 and len(out["coefficients"]["on"]) >= 1
+
+
+def test_run_strokes_prints_the_table(daemon_socket: Path) -> None:
+    r = run_example(daemon_socket, "--strokes", "10", "--period", "20ms", "--progress", "5")
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.splitlines()
+    assert lines[0].strip().startswith("5/10 strokes") and lines[1].strip().startswith("10/10 strokes")
+    assert lines[2] == "10 strokes, mode closed, T = 12.000 ms"
+    assert lines[3].split() == ["on", "off", "all"]
+    for label in ("error std", "max |error| % of T", "|error| p99", "model order"):
+        assert any(line.startswith(label) for line in lines), label
+    assert lines[-1].startswith("paper, closed loop at T = 12.000 ms: error std 95.3 us")
+
+
+def test_bad_arguments_and_no_daemon(tmp_path: Path) -> None:
+    r = run_example(tmp_path / "none.sock", "--period", "10ms", "--target", "12ms")
+    assert r.returncode == 2 and "--period" in r.stderr
+    r = run_example(tmp_path / "none.sock", "--strokes", "5")
+    assert r.returncode == 1 and "none.sock" in r.stderr and "Traceback" not in r.stderr
