@@ -62,13 +62,17 @@ def summarise(records: list[CycleRecord]) -> dict[str, Any]:
         "operating_mean_ns": statistics.fmean(operating) if operating else None,
         "operating_std_ns": statistics.stdev(operating) if len(operating) > 1 else None,
     }
-    if len(abs_errors) > 1:
-        # numpy's default (linear) percentiles: the daemon's stats use the same definition.
-        cuts = statistics.quantiles(abs_errors, n=100, method="inclusive")
-        out |= {"abs_error_p50_ns": cuts[49], "abs_error_p95_ns": cuts[94], "abs_error_p99_ns": cuts[98]}
-    else:
-        out |= {"abs_error_p50_ns": None, "abs_error_p95_ns": None, "abs_error_p99_ns": None}
+    ranked = sorted(abs_errors)
+    for q in (50, 95, 99):
+        out[f"abs_error_p{q}_ns"] = nearest_rank(ranked, q)
     return out
+
+
+def nearest_rank(ranked: list[int], q: float) -> int | None:
+    """The q-th percentile by nearest rank (a value that occurred), as the daemon's stats define it."""
+    if not ranked:
+        return None
+    return ranked[max(1, math.ceil(q * len(ranked) / 100)) - 1]
 
 
 def show(value: float | None) -> str:

@@ -93,6 +93,9 @@ def test_run_strokes_json_matches_the_records(daemon_socket: Path) -> None:
     errors = [x["error_ns"] for x in recs if x["error_ns"] is not None]
     assert s["all"]["error_std_ns"] == pytest.approx(statistics.stdev(errors))
     assert s["all"]["error_max_abs_ns"] == max(abs(e) for e in errors)
+    ranked = sorted(abs(e) for e in errors)
+    assert s["all"]["abs_error_p50_ns"] == ranked[19] and s["all"]["abs_error_p99_ns"] == ranked[39]
+    assert s["all"]["abs_error_p95_ns"] == ranked[37]  # nearest rank: ceil(0.95 * 40) = 38th
     on_errors = [x["error_ns"] for x in recs if x["direction"] == 0 and x["error_ns"] is not None]
     assert s["on"]["error_mean_ns"] == pytest.approx(statistics.fmean(on_errors))
     assert out["order"]["on"] >= 1 and len(out["coefficients"]["on"]) >= 1

@@ -298,6 +298,26 @@ def test_estop_fault_exit_4_and_reset(idle: Rig) -> None:
     assert r.returncode == 1 and "[4 STATE]" in r.stderr
 
 
+def test_cycle_wait_exits_4_when_the_run_faults(idle: Rig) -> None:
+    proc = subprocess.Popen(
+        [*CTL, "--socket", str(idle.sock), "cycle", "--period", "20ms", "--wait"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        wait_state(idle, "cycling")
+        with idle.client() as c:
+            c.estop()
+        out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 4, err
+    assert "finished: fault" in out
+
+
 def _read_csv(text: str) -> list[CycleRecord]:
     reader = csv.DictReader(io.StringIO(text))
     assert tuple(reader.fieldnames or ()) == FIELDS
