@@ -151,7 +151,7 @@ def table(rows: Sequence[Sequence[str]], header: Sequence[str] | None = None, ri
 
 
 def print_json(value: Any, out: IO[str] | None = None) -> None:
-    """The raw result for scripts: one JSON document (NaN never appears: the daemon sends none)."""
+    """The raw result for scripts: one JSON document, keys sorted so diffs between runs stay small."""
     print(json.dumps(value, indent=2, sort_keys=True), file=out or sys.stdout)
 
 
@@ -484,14 +484,13 @@ def cmd_history(client: Client, args: argparse.Namespace) -> int:
 
 def cmd_watch(client: Client, args: argparse.Namespace) -> int:
     """Print every stroke as it finishes, with running error figures; Ctrl-C or --count ends it."""
-    topics = ("stroke", "state")
-    sub = client.subscribe(*topics)
     running = RunningStats()
+    if args.count == 0:
+        return EXIT_OK
+    sub = client.subscribe("stroke", "state")
     seen = 0
     widths = [len(h) for h in HISTORY_HEADER]
     try:
-        if args.count == 0:
-            return EXIT_OK
         if not args.json:
             print(f"watching {client.address} (Ctrl-C to stop)", flush=True)
         for note in sub:
@@ -758,7 +757,7 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _check_counts(args: argparse.Namespace) -> None:
+def _check_args(args: argparse.Namespace) -> None:
     if args.command == "history" and not 1 <= args.n <= MAX_HISTORY:
         raise UsageError(f"history: -n must be in 1..{MAX_HISTORY}, got {args.n}")
     if args.command == "export" and not 1 <= args.n <= MAX_HISTORY:
@@ -817,7 +816,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     address = "the daemon"
     try:
-        _check_counts(args)
+        _check_args(args)
         timeout_ns = args.timeout if args.timeout is not None else 10_000_000_000
 
         def connect() -> Client:

@@ -31,22 +31,39 @@ BIN = Path(sys.executable).parent / "usmswitchctl"
 CTL = [str(BIN)] if BIN.exists() else [sys.executable, "-m", "usmswitch.daemon.ctl"]
 
 
+TOKEN = "ctl-test-token-0123456789"
+
+
 @dataclass
 class Rig:
     sock: Path
     state_dir: Path
+    tcp: str
     proc: subprocess.Popen[bytes]
 
     def client(self) -> Client:
         return Client(str(self.sock), timeout_ns=5_000 * MS)
 
 
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 def _spawn_and_wait(tmp: Path) -> Rig:
     sock = tmp / "usmswitchd.sock"
+    config = tmp / "usmswitchd.toml"
+    config.write_text(f'[socket]\ntcp_token = "{TOKEN}"\n')
+    tcp = f"127.0.0.1:{_free_port()}"
     cmd = [
         sys.executable,
         "-m",
         "usmswitch.daemon.cli",
+        "--config",
+        str(config),
+        "--tcp",
+        tcp,
         "--sim",
         "--no-autostart",
         "--state-dir",
@@ -70,7 +87,7 @@ def _spawn_and_wait(tmp: Path) -> Rig:
                 with Client(str(sock), timeout_ns=5_000 * MS) as c:
                     c.ping()
                     c.stats()  # the first snapshot reaches the server process a moment after bind
-                return Rig(sock, tmp / "state", proc)
+                return Rig(sock, tmp / "state", tcp, proc)
             except (OSError, RpcError):
                 pass
         time.sleep(0.05)
@@ -148,6 +165,19 @@ def test_default_socket_from_environment(idle: Rig) -> None:
     r = run(None, "--json", "status", env=env)
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["driver"] == "sim"
+
+
+def test_tcp_with_token(idle: Rig) -> None:
+    r = run(None, "--tcp", idle.tcp, "--token", TOKEN, "--json", "status")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["driver"] == "sim"
+    r = run(None, "--tcp", idle.tcp, "stats", env={**os.environ, "USMSWITCH_TOKEN": TOKEN})
+    assert r.returncode == 0 and "error std" in r.stdout
+    r = run(None, "--tcp", idle.tcp, "--token", "wrong-token-0123456789", "status")
+    assert r.returncode == 1 and "[2 UNAUTHORIZED]" in r.stderr
+    env = {k: v for k, v in os.environ.items() if k != "USMSWITCH_TOKEN"}
+    r = run(None, "--tcp", idle.tcp, "status", env=env)
+    assert r.returncode == 2 and "token" in r.stderr
 
 
 def test_switch_prints_the_record(idle: Rig) -> None:
