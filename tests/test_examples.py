@@ -88,6 +88,10 @@ def test_run_strokes_json_matches_the_records(daemon_socket: Path) -> None:
     with Client(str(daemon_socket)) as c:
         recs = [x for x in c.history(200) if out["first_cycle"] <= x["cycle"] <= out["last_cycle"]]
         status = c.status()
+        end = time.monotonic() + 5
+        while status["state"] == "cycling" and time.monotonic() < end:  # the loop idles after the last
+            time.sleep(0.02)
+            status = c.status()
     assert status["state"] == "idle" and status["target_on_ns"] == 13 * MS  # the script set T and finished
     assert {x["target_ns"] for x in recs} == {13 * MS}
     errors = [x["error_ns"] for x in recs if x["error_ns"] is not None]

@@ -271,7 +271,7 @@ def test_refused_call_exits_1_and_stop(idle: Rig) -> None:
 
 
 def test_watch_count_human_and_json(idle: Rig) -> None:
-    assert run(idle, "cycle", "--period", "20ms", "--count", "40").returncode == 0
+    assert run(idle, "cycle", "--period", "20ms").returncode == 0  # until stopped: a slow start misses none
     r = run(idle, "watch", "--count", "5")
     assert r.returncode == 0, r.stderr
     lines = r.stdout.splitlines()
