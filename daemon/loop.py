@@ -19,10 +19,14 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 
+import structlog
+
 from usmswitch.drivers import Conditions, Daq, DaqError, Direction, EventKind, FaultCode, check_ns
 
 from .record import CycleRecord, Flag
 from .stats import DirectionStats
+
+log = structlog.get_logger("usmswitch.loop")
 
 # Events are polled in slices so an emergency stop or shutdown is seen within this bound.
 RECV_SLICE_NS = 2_000_000
@@ -60,6 +64,17 @@ class Plan:
     order: int
     coefficients: tuple[float, ...]
     flags: Flag  # LATE|CLAMPED when T < t_hat, WARMUP while the predictor gives its nominal
+
+
+def direction_from_levels(levels: tuple[int, int] | None, otherwise: Direction) -> Direction:
+    """The stroke that leaves the sensor the mover rests on; `otherwise` when that is not known."""
+    if levels is not None:
+        a, b = levels
+        if a and not b:
+            return Direction.ON
+        if b and not a:
+            return Direction.OFF
+    return otherwise
 
 
 def flags_for_failure(plan: Plan) -> Flag:
@@ -164,6 +179,9 @@ class ControlLoop:
             self._drain_stale_events()
             self.state = State.IDLE
             self.fault_reason = ""
+            # After a fault the mover may be anywhere: ask the sensors where it rests.
+            self._next_dir = direction_from_levels(self.daq.levels(), self._next_dir)
+            self._plan = None
 
     def start_cycling(self, period_ns: int, count: int = 0) -> None:
         """Command a stroke every `period_ns`, alternately on and off, `count` strokes (0: until stopped)."""
@@ -171,6 +189,17 @@ class ControlLoop:
         if isinstance(count, bool) or not isinstance(count, int) or count < 0:
             raise ValueError(f"count must be an integer >= 0, got {count!r}")
         self._require_no_fault()
+        longest = max(
+            max(self.targets)
+            if self.mode is Mode.CLOSED
+            else self.open_delay_ns + round(max(p.predict() for p in self.predictors)),
+            1,
+        )
+        if period_ns <= longest:
+            raise ValueError(
+                f"period_ns {period_ns} is not longer than a stroke from its command ({longest} ns): "
+                "commands would overlap"
+            )
         self._period_ns = period_ns
         self._cycling_left = count if count else -1
         self._next_tick_ns = self.clock.now_ns() + COMMAND_LEAD_NS
@@ -202,7 +231,12 @@ class ControlLoop:
         try:
             while not self._shutdown.is_set():
                 if self.state is State.CYCLING:
-                    self._cycle_once()
+                    try:
+                        self._cycle_once()
+                    except Exception as exc:  # a bug must not leave the drive on or the socket dark
+                        self._safe_stop("internal error")
+                        self._latch_fault(f"internal error: {type(exc).__name__}: {exc}")
+                        log.exception("stroke failed; drive off, FAULT latched")
                 else:
                     self._serve_requests(block_ns=50_000_000)
                     self._slack()
@@ -354,7 +388,7 @@ class ControlLoop:
                 continue
             kind = ev.kind
             if kind is EventKind.EDGE:
-                if t_start is None or ev.t_ns < t_start:
+                if t_start is None or ev.t_ns <= t_start:
                     self.spurious_edges += 1
                 elif ev.channel is dst and ev.level == 1:
                     t_arrive = ev.t_ns
@@ -381,7 +415,11 @@ class ControlLoop:
             # and this stroke's update (an AIC re-selection may take a millisecond) comes after it.
             self._next_dir = direction.opposite
             self._arm_or_defer(self._next_dir)  # the timing path ends here
-            self.predictors[direction].update(operating)
+            try:
+                self.predictors[direction].update(operating)
+            except ValueError as exc:  # a stamp the model cannot take: keep it out, say so
+                flags |= Flag.FAULT
+                self._latch_fault(f"stroke not fed to the predictor: {exc}")
         else:
             operating = None
             self._safe_stop(fault or "stall")

@@ -23,7 +23,7 @@ from .board import BoardPoller
 from .config import Config
 from .daqfactory import make_daq
 from .logsetup import configure_logging
-from .loop import ControlLoop, State
+from .loop import ControlLoop, State, direction_from_levels
 from .realtime import apply_realtime
 from .record import CycleRecord, Flag
 from .records import RecordStore
@@ -46,16 +46,8 @@ def make_predictor(config: Config) -> ARPredictor:
 
 def first_direction(daq: Daq, last: CycleRecord | None) -> Direction:
     """Where the next stroke goes: away from the sensor the mover rests on, else after the last record."""
-    levels = daq.levels()
-    if levels is not None:
-        a, b = levels
-        if a and not b:
-            return Direction.ON
-        if b and not a:
-            return Direction.OFF
-    if last is not None and last.t_arrive_ns is not None:
-        return Direction(last.direction).opposite
-    return Direction.ON
+    after_last = Direction(last.direction).opposite if last is not None and last.t_arrive_ns else Direction.ON
+    return direction_from_levels(daq.levels(), after_last)
 
 
 class Daemon:

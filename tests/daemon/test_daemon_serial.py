@@ -131,11 +131,17 @@ def test_unplug_mid_run_faults_reconnects_and_loses_no_record(tmp_path: Path) ->
             while c.status()["state"] == "cycling":
                 time.sleep(0.1)
             st = c.status()
+    except Exception as exc:
+        failure: Exception | None = exc
+    else:
+        failure = None
     finally:
         daemon.send_signal(signal.SIGTERM)
         _, err = daemon.communicate(timeout=20)
         link.close()
         emu.stop()
+    if failure is not None:  # with the daemon's own account of it
+        raise AssertionError(err.decode()[-4000:]) from failure
     assert daemon.returncode == 0, err.decode()[-3000:]
     assert st["state"] in ("idle", "fault")
     con = sqlite3.connect(tmp_path / "state" / "records.sqlite")
