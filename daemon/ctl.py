@@ -605,6 +605,29 @@ def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
     return EXIT_OK
 
 
+def cmd_plot(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
+    """Draw a run (operating time and t_hat, error against T, its histogram) to an image file."""
+    from .plots import plot_run
+    from .record import CycleRecord as Record
+
+    if args.state_dir is not None:
+        rows: Iterable[CycleRecord] = _records_from_file(Path(args.state_dir), args.first, args.last)
+    else:
+        with connect() as client:
+            rows = client.history(args.n)
+    try:
+        out = plot_run((Record.from_row(r) for r in rows), args.out, title=args.title or "")
+    except ValueError as exc:
+        raise UsageError(f"plot: {exc}") from None
+    except OSError as exc:
+        raise UsageError(f"plot: cannot write {args.out}: {exc.strerror or exc}") from None
+    if args.json:
+        print_json({"file": str(out)})
+    else:
+        print(f"plot written to {out}")
+    return EXIT_OK
+
+
 def cmd_reset(client: Client, args: argparse.Namespace) -> int:
     """Clear a latched FAULT so strokes may run again (refused, exit 1, when none is latched)."""
     result = client.reset_fault()
@@ -746,6 +769,15 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("--first", type=int, default=1, help="with --state-dir: first cycle (default 1)")
     c.add_argument("--last", type=int, help="with --state-dir: last cycle (default: the newest)")
+    c = command("plot", "draw a run to an image (PNG, SVG or PDF by the file's suffix)")
+    c.add_argument("--out", required=True, metavar="FILE", help="e.g. run.png")
+    c.add_argument("--state-dir", help="read the records from this state directory, read-only")
+    c.add_argument(
+        "-n", type=int, default=MAX_HISTORY, help=f"over the socket: the last n (max {MAX_HISTORY})"
+    )
+    c.add_argument("--first", type=int, default=1, help="with --state-dir: first cycle (default 1)")
+    c.add_argument("--last", type=int, help="with --state-dir: last cycle (default: the newest)")
+    c.add_argument("--title", help="the plot's title")
     command("reset", "clear a latched FAULT")
     command("estop", "emergency stop: drive off, latch FAULT")
     c = command("drive", "set the drive board's excitation; no flags: read it")
@@ -829,6 +861,8 @@ def main(argv: list[str] | None = None) -> int:
 
         if args.command == "export":
             return cmd_export(args, connect)
+        if args.command == "plot":
+            return cmd_plot(args, connect)
         with connect() as client:
             return COMMANDS[args.command](client, args)
     except UsageError as exc:

@@ -385,6 +385,31 @@ def test_export_csv_round_trip(idle: Rig, tmp_path: Path) -> None:
     assert run(idle, "export").returncode == 2  # no --csv
 
 
+def test_plot_from_the_socket_and_from_the_file(idle: Rig, tmp_path: Path) -> None:
+    assert run(idle, "cycle", "--period", "20ms", "--count", "6", "--wait").returncode == 0
+    png = tmp_path / "run.png"
+    r = run(idle, "plot", "--out", str(png), "-n", "50")
+    assert r.returncode == 0, r.stderr
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    svg = tmp_path / "run.svg"
+    r = run(
+        None, "--json", "plot", "--out", str(svg), "--state-dir", str(idle.state_dir), "--title", "lab run"
+    )
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["file"] == str(svg) and "lab run" in svg.read_text()
+    r = run(
+        None,
+        "plot",
+        "--out",
+        str(tmp_path / "none.png"),
+        "--state-dir",
+        str(idle.state_dir),
+        "--first",
+        "999999",
+    )
+    assert r.returncode == 2 and "no completed strokes" in r.stderr
+
+
 def test_drive_human_units(idle: Rig) -> None:
     r = run(idle, "--json", "drive", "--frequency", "39.6kHz", "--voltage", "500V")
     if r.returncode == 1:  # a daemon without a drive board refuses with UNAVAILABLE
