@@ -8,52 +8,24 @@ import os
 import signal
 import sqlite3
 import subprocess
-import sys
 import time
 from pathlib import Path
 
+import daemonproc
 import pytest
 
-from usmswitch.daemon.client import Client, RpcError
+from usmswitch.daemon.client import Client
 
 MS = 1_000_000
 
 
-def spawn(tmp: Path, *extra: str) -> subprocess.Popen[bytes]:
-    cmd = [
-        sys.executable,
-        "-m",
-        "usmswitch.daemon.cli",
-        "--sim",
-        "--state-dir",
-        str(tmp / "state"),
-        "--socket",
-        str(tmp / "usmswitchd.sock"),
-        "--log-format",
-        "json",
-        "--period",
-        "20ms",
-        *extra,
-    ]
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+def start(tmp: Path, *extra: str) -> subprocess.Popen[bytes]:
+    return daemonproc.spawn(daemonproc.daemon_args(tmp, "--period", "20ms", *extra), stdout=subprocess.PIPE)
 
 
-def wait_for_socket(tmp: Path, proc: subprocess.Popen[bytes], timeout: float = 20.0) -> Client:
-    sock = tmp / "usmswitchd.sock"
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if proc.poll() is not None:
-            raise AssertionError(f"daemon exited {proc.returncode}: {proc.stderr.read().decode()[-2000:]}")
-        if sock.exists():
-            try:
-                client = Client(str(sock), timeout_ns=5_000 * MS)
-                client.ping()
-                client.stats()  # the first snapshot reaches the server process a moment after bind
-                return client
-            except (OSError, RpcError):
-                pass
-        time.sleep(0.05)
-    raise AssertionError("daemon socket never answered")
+def wait_for_socket(tmp: Path, proc: subprocess.Popen[bytes]) -> Client:
+    daemonproc.wait_serving(tmp / "d.sock", proc)
+    return Client(str(tmp / "d.sock"), timeout_ns=5_000 * MS)
 
 
 def rows(tmp: Path) -> list[tuple[int, int | None]]:
@@ -73,7 +45,7 @@ def log_lines(stderr: bytes) -> list[dict]:
 
 
 def test_starts_cycles_and_sigterm_exits_0_with_every_row(tmp_path: Path) -> None:
-    proc = spawn(tmp_path)
+    proc = start(tmp_path)
     try:
         with wait_for_socket(tmp_path, proc) as client:
             status = client.status()
@@ -98,24 +70,24 @@ def test_starts_cycles_and_sigterm_exits_0_with_every_row(tmp_path: Path) -> Non
     recorded = rows(tmp_path)
     assert len(recorded) == final[0]["records"]
     assert [c for c, _ in recorded] == list(range(1, len(recorded) + 1))
-    assert not (tmp_path / "usmswitchd.sock").exists()
+    assert not (tmp_path / "d.sock").exists()
 
 
 def test_bad_config_key_refuses_to_start_naming_it(tmp_path: Path) -> None:
     cfg = tmp_path / "bad.toml"
     cfg.write_text("[control]\nwindow = 2\norder = 1\n")
-    proc = spawn(tmp_path, "--config", str(cfg))
+    proc = start(tmp_path, "--config", str(cfg))
     _, err = proc.communicate(timeout=20)
     assert proc.returncode == 2
     assert "control.window" in err.decode()
     cfg.write_text("[control]\nwindwo = 100\n")
-    proc = spawn(tmp_path, "--config", str(cfg))
+    proc = start(tmp_path, "--config", str(cfg))
     _, err = proc.communicate(timeout=20)
     assert proc.returncode == 2 and "windwo" in err.decode()
 
 
 def test_kill_9_loses_no_completed_stroke_and_restart_warm_starts(tmp_path: Path) -> None:
-    proc = spawn(tmp_path)
+    proc = start(tmp_path)
     try:
         with wait_for_socket(tmp_path, proc) as client:
             sub = client.subscribe("stroke", timeout_ns=5_000 * MS)
@@ -140,7 +112,7 @@ def test_kill_9_loses_no_completed_stroke_and_restart_warm_starts(tmp_path: Path
     assert integrity == ("ok",)
 
     # The server process the killed daemon left must not keep the socket: a restart binds again.
-    proc = spawn(tmp_path)
+    proc = start(tmp_path)
     try:
         with wait_for_socket(tmp_path, proc) as client:
             stats = client.stats()
@@ -159,7 +131,7 @@ def test_kill_9_loses_no_completed_stroke_and_restart_warm_starts(tmp_path: Path
 
 @pytest.mark.parametrize("sig", [signal.SIGINT])
 def test_sigint_is_a_clean_stop_too(tmp_path: Path, sig: signal.Signals) -> None:
-    proc = spawn(tmp_path)
+    proc = start(tmp_path)
     try:
         wait_for_socket(tmp_path, proc).close()
         time.sleep(0.2)
@@ -178,9 +150,7 @@ def test_sd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> None:
     listener.bind(addr)
     listener.settimeout(10)
     env = dict(os.environ, NOTIFY_SOCKET=addr, WATCHDOG_USEC="200000")
-    cmd = [sys.executable, "-m", "usmswitch.daemon.cli", "--sim", "--no-autostart", "--log-format", "json",
-           "--state-dir", str(tmp_path / "state"), "--socket", str(tmp_path / "s.sock")]  # fmt: skip
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, "--no-autostart"), env=env)
     got: list[tuple[float, str]] = []
     try:
         end = time.monotonic() + 20

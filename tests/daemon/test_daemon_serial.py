@@ -11,6 +11,7 @@ import sys
 import time
 from pathlib import Path
 
+import daemonproc
 import pytest
 
 from usmswitch.daemon.client import Client, RpcError
@@ -33,23 +34,11 @@ def test_closed_loop_over_serial_records_every_stroke(tmp_path: Path) -> None:
     try:
         assert emu.stdout.readline().startswith(b"mcu emulator on")
         sock = tmp_path / "d.sock"
-        daemon = subprocess.Popen(
-            [sys.executable, "-m", "usmswitch.daemon.cli", "--driver", "serial", "--port", str(link),
-             "--state-dir", str(tmp_path / "state"), "--socket", str(sock), "--log-format", "json",
-             "--target", "12ms", "--period", "24ms"],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-        )  # fmt: skip
-        end = time.monotonic() + 20
-        while True:
-            assert daemon.poll() is None, daemon.stderr.read().decode()[-3000:]
-            try:
-                with Client(str(sock), timeout_ns=5_000 * MS) as c:
-                    st = c.status()
-                    break
-            except (OSError, RpcError):
-                assert time.monotonic() < end
-                time.sleep(0.05)
+        args = ["--driver", "serial", "--port", str(link), "--target", "12ms", "--period", "24ms"]
+        daemon = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False))
+        daemonproc.wait_serving(sock, daemon)
+        with Client(str(sock), timeout_ns=5_000 * MS) as c:
+            st = c.status()
         # On hardware the daemon starts idle: a motor never moves unasked.
         assert st["state"] == "idle" and st["driver"] == "serial"
         with Client(str(sock), timeout_ns=30_000 * MS) as c:
@@ -88,24 +77,10 @@ def test_unplug_mid_run_faults_reconnects_and_loses_no_record(tmp_path: Path) ->
     emu = McuEmulator(seed=5).start()
     link = PtyLink(emu, tmp_path / "usmswitch").plug()
     sock = tmp_path / "d.sock"
-    daemon = subprocess.Popen(
-        [sys.executable, "-m", "usmswitch.daemon.cli", "--driver", "serial",
-         "--port", str(tmp_path / "usmswitch"), "--state-dir", str(tmp_path / "state"),
-         "--socket", str(sock), "--log-format", "json", "--period", "24ms"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )  # fmt: skip
+    args = ["--driver", "serial", "--port", str(tmp_path / "usmswitch"), "--period", "24ms"]
+    daemon = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False))
     try:
-        end = time.monotonic() + 20
-        while True:
-            assert daemon.poll() is None, daemon.stderr.read().decode()[-3000:]
-            try:
-                with Client(str(sock), timeout_ns=5_000 * MS) as c:
-                    c.stats()
-                break
-            except (OSError, RpcError):
-                assert time.monotonic() < end
-                time.sleep(0.05)
+        daemonproc.wait_serving(sock, daemon)
         with Client(str(sock), timeout_ns=30_000 * MS) as c:
             c.start_cycling(24 * MS, 0)
             with c.subscribe("stroke", timeout_ns=5_000 * MS) as sub:

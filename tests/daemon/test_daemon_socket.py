@@ -9,12 +9,11 @@ import signal
 import socket
 import sqlite3
 import stat
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import daemonproc
 import msgpack
 import pytest
 
@@ -38,27 +37,8 @@ class Daemon:
         self.port = free_port()
         cfg = tmp / "d.toml"
         cfg.write_text(f'[socket]\ntcp = "127.0.0.1:{self.port}"\ntcp_token = "{TOKEN}"\n{config}')
-        self.proc = subprocess.Popen(
-            [
-                sys.executable, "-m", "usmswitch.daemon.cli", "--sim", "--config", str(cfg),
-                "--state-dir", str(tmp / "state"), "--socket", str(self.sock),
-                "--log-format", "json", *extra,
-            ],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-        )  # fmt: skip
-        end = time.monotonic() + 20
-        while True:
-            if self.proc.poll() is not None:
-                raise AssertionError(self.proc.stderr.read().decode()[-3000:])
-            try:
-                with self.client() as c:
-                    c.stats()
-                return
-            except (OSError, RpcError):
-                if time.monotonic() > end:
-                    raise
-                time.sleep(0.05)
+        self.proc = daemonproc.spawn(daemonproc.daemon_args(tmp, "--config", str(cfg), *extra))
+        daemonproc.wait_serving(self.sock, self.proc)
 
     def client(self, **kw) -> Client:
         return Client(str(self.sock), timeout_ns=10_000 * MS, **kw)

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 from boardsim import BoardServer
+from daemonproc import daemon_args, spawn, stop, wait_serving
 
 from usmswitch.daemon.client import Client, ErrorCode, RpcError
 
@@ -29,23 +28,9 @@ def start_daemon(tmp: Path, port: int) -> tuple[subprocess.Popen[bytes], Path]:
         "[modbus]\nenabled = true\n"
         f'url = "tcp:127.0.0.1:{port}"\nfrequency_hz = 40500.0\nvoltage_vpp = 480.0\npoll_interval = "50ms"\n'
     )
-    sock = tmp / "d.sock"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "usmswitch.daemon.cli", "--sim", "--no-autostart", "--config", str(cfg),
-         "--state-dir", str(tmp / "state"), "--socket", str(sock), "--log-format", "json"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-    )  # fmt: skip
-    end = time.monotonic() + 20
-    while True:
-        assert proc.poll() is None, proc.stderr.read().decode()[-3000:]
-        try:
-            with Client(str(sock), timeout_ns=5_000 * MS) as c:
-                c.stats()
-            return proc, sock
-        except (OSError, RpcError):
-            assert time.monotonic() < end
-            time.sleep(0.05)
+    proc = spawn(daemon_args(tmp, "--no-autostart", "--config", str(cfg)))
+    wait_serving(tmp / "d.sock", proc)
+    return proc, tmp / "d.sock"
 
 
 def test_board_set_at_start_on_request_and_read_into_records(tmp_path: Path, board: BoardServer) -> None:
@@ -73,8 +58,7 @@ def test_board_set_at_start_on_request_and_read_into_records(tmp_path: Path, boa
             time.sleep(0.5)
             assert c.switch()["temperature_c"] == pytest.approx(31.25)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=20)
+        err = stop(proc)
     assert proc.returncode == 0
     log = err.decode()
     assert "drive board fault" in log and "drive board answers again" in log

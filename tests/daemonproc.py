@@ -1,0 +1,57 @@
+"""usmswitchd as a real subprocess for tests: start it, wait until its socket serves, stop it.
+
+Importable from any test (tests/conftest.py puts this folder on sys.path first).
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from usmswitch.daemon.client import Client, RpcError
+
+MS = 1_000_000
+
+
+def daemon_args(tmp: Path, *extra: str, sim: bool = True, socket: Path | None = None) -> list[str]:
+    """The usmswitchd command line for a daemon whose state and socket live under `tmp`."""
+    sock = socket or tmp / "d.sock"
+    args = [sys.executable, "-m", "usmswitch.daemon.cli", "--state-dir", str(tmp / "state")]
+    args += ["--socket", str(sock), "--log-format", "json"]
+    if sim:
+        args.append("--sim")
+    return [*args, *extra]
+
+
+def spawn(args: list[str], **popen: object) -> subprocess.Popen[bytes]:
+    """Start a daemon with stdout discarded and stderr (its JSON log) kept for the test."""
+    popen.setdefault("stdout", subprocess.DEVNULL)
+    popen.setdefault("stderr", subprocess.PIPE)
+    return subprocess.Popen(args, **popen)  # type: ignore[call-overload]
+
+
+def wait_serving(sock: Path, proc: subprocess.Popen[bytes], timeout_s: float = 20.0) -> None:
+    """Return once `stats` answers (the first snapshot arrives a moment after the socket binds)."""
+    end = time.monotonic() + timeout_s
+    while True:
+        if proc.poll() is not None:
+            err = proc.stderr.read().decode() if proc.stderr else ""
+            raise AssertionError(f"daemon exited {proc.returncode}: {err[-3000:]}")
+        try:
+            with Client(str(sock), timeout_ns=5_000 * MS) as c:
+                c.stats()
+            return
+        except (OSError, RpcError):
+            if time.monotonic() > end:
+                raise
+            time.sleep(0.05)
+
+
+def stop(proc: subprocess.Popen[bytes], timeout_s: float = 20.0) -> bytes:
+    """SIGTERM and wait; returns what the daemon logged on stderr."""
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=timeout_s)
+    return err or b""
