@@ -30,6 +30,7 @@ from typing import IO, Any, NoReturn
 
 from .client import Client, ConnectionClosed, CycleRecord, ErrorCode, RpcError
 from .record import FIELDS, UNUSABLE, Flag
+from .stats import Running
 from .units import format_ns, parse_duration_ns
 
 EXIT_OK = 0
@@ -278,16 +279,13 @@ def stats_table(stats: dict[str, Any]) -> str:
 
 
 class RunningStats:
-    """Welford mean/std of the errors watch has seen, so the live view needs no extra call per stroke."""
+    """Errors and flags of the strokes watch has seen, so the live view needs no extra call per stroke."""
 
     def __init__(self) -> None:
         self.strokes = 0
-        self.n = 0
-        self.mean = 0.0
-        self._m2 = 0.0
-        self.max_abs = 0
         self.late = 0
         self.faulted = 0
+        self.errors = Running()  # the daemon's own Welford accumulator
 
     def add(self, rec: CycleRecord) -> None:
         """Count one stroke (its error, when it has one; its flags always)."""
@@ -296,19 +294,26 @@ class RunningStats:
             self.late += 1
         if rec["flags"] & UNUSABLE:
             self.faulted += 1
-        err = rec["error_ns"]
-        if err is None:
-            return
-        self.n += 1
-        delta = err - self.mean
-        self.mean += delta / self.n
-        self._m2 += delta * (err - self.mean)
-        self.max_abs = max(self.max_abs, abs(err))
+        if rec["error_ns"] is not None:
+            self.errors.add(rec["error_ns"])
+
+    @property
+    def n(self) -> int:
+        """Strokes with an error (completed)."""
+        return self.errors.count
+
+    @property
+    def mean(self) -> float:
+        return self.errors.mean
 
     @property
     def std(self) -> float:
         """Sample standard deviation of the errors seen (0 with fewer than two)."""
-        return math.sqrt(self._m2 / (self.n - 1)) if self.n > 1 else 0.0
+        return self.errors.std
+
+    @property
+    def max_abs(self) -> int:
+        return self.errors.max_abs
 
     def summary(self) -> str:
         """One line for people: what the watched strokes did."""

@@ -9,8 +9,6 @@ from __future__ import annotations
 import math
 from array import array
 
-import numpy as np
-
 # |error| and lateness percentiles are taken over the most recent strokes only, in fixed memory.
 PERCENTILE_WINDOW = 4096
 
@@ -65,6 +63,8 @@ class Ring:
         n = min(self.n, self.size)
         if not n:
             return [None] * len(qs)
+        import numpy as np  # here, not at import: usmswitchctl uses Running without it
+
         values = np.frombuffer(self.buf, dtype=np.int64, count=n)
         return [int(v) for v in np.percentile(values, qs, method="inverted_cdf")]
 
