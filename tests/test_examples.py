@@ -7,7 +7,6 @@ first" path is exercised; the script runs a small stroke count to stay fast.
 from __future__ import annotations
 
 import json
-import signal
 import statistics
 import subprocess
 import sys
@@ -15,9 +14,10 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import daemonproc
 import pytest
 
-from usmswitch.daemon.client import Client, RpcError
+from usmswitch.daemon.client import Client
 
 MS = 1_000_000
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
@@ -26,46 +26,12 @@ EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 @pytest.fixture(scope="module")
 def daemon_socket(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     tmp = tmp_path_factory.mktemp("examples")
-    sock = tmp / "usmswitchd.sock"
-    cmd = [
-        sys.executable,
-        "-m",
-        "usmswitch.daemon.cli",
-        "--sim",
-        "--state-dir",
-        str(tmp / "state"),
-        "--socket",
-        str(sock),
-        "--log-format",
-        "json",
-        "--log-level",
-        "warning",
-        "--period",
-        "20ms",
-    ]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = daemonproc.spawn(daemonproc.daemon_args(tmp, "--log-level", "warning", "--period", "20ms"))
     try:
-        end = time.monotonic() + 20
-        while True:
-            assert proc.poll() is None, proc.stderr.read().decode()[-2000:] if proc.stderr else ""
-            assert time.monotonic() < end, "daemon socket never answered"
-            if sock.exists():
-                try:
-                    with Client(str(sock), timeout_ns=5_000 * MS) as c:
-                        c.ping()
-                        c.stats()  # the first snapshot arrives a moment after bind
-                    break
-                except (OSError, RpcError):
-                    pass
-            time.sleep(0.05)
-        yield sock
+        daemonproc.wait_serving(tmp / "d.sock", proc)
+        yield tmp / "d.sock"
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.communicate(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.communicate()
+        daemonproc.stop(proc)
 
 
 def run_example(sock: Path, *args: str) -> subprocess.CompletedProcess[str]:

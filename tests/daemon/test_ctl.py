@@ -20,10 +20,11 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import daemonproc
 import pytest
 
 from usmswitch.daemon import ctl
-from usmswitch.daemon.client import Client, RpcError
+from usmswitch.daemon.client import Client
 from usmswitch.daemon.record import FIELDS, CycleRecord, Flag
 
 MS = 1_000_000
@@ -52,47 +53,23 @@ def _free_port() -> int:
 
 
 def _spawn_and_wait(tmp: Path) -> Rig:
-    sock = tmp / "usmswitchd.sock"
     config = tmp / "usmswitchd.toml"
     config.write_text(f'[socket]\ntcp_token = "{TOKEN}"\n')
     tcp = f"127.0.0.1:{_free_port()}"
-    cmd = [
-        sys.executable,
-        "-m",
-        "usmswitch.daemon.cli",
+    extra = [
         "--config",
         str(config),
         "--tcp",
         tcp,
-        "--sim",
         "--no-autostart",
-        "--state-dir",
-        str(tmp / "state"),
-        "--socket",
-        str(sock),
-        "--log-format",
-        "json",
         "--log-level",
         "warning",
         "--period",
         "20ms",
     ]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    end = time.monotonic() + 20
-    while time.monotonic() < end:
-        if proc.poll() is not None:
-            raise AssertionError(f"daemon exited {proc.returncode}: {proc.stderr.read().decode()[-2000:]}")
-        if sock.exists():
-            try:
-                with Client(str(sock), timeout_ns=5_000 * MS) as c:
-                    c.ping()
-                    c.stats()  # the first snapshot reaches the server process a moment after bind
-                return Rig(sock, tmp / "state", tcp, proc)
-            except (OSError, RpcError):
-                pass
-        time.sleep(0.05)
-    proc.kill()
-    raise AssertionError("daemon socket never answered")
+    proc = daemonproc.spawn(daemonproc.daemon_args(tmp, *extra, "--period", "20ms"))
+    daemonproc.wait_serving(tmp / "d.sock", proc)
+    return Rig(tmp / "d.sock", tmp / "state", tcp, proc)
 
 
 @pytest.fixture(scope="module")
@@ -101,12 +78,7 @@ def rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
     try:
         yield r
     finally:
-        r.proc.send_signal(signal.SIGTERM)
-        try:
-            r.proc.communicate(timeout=20)
-        except subprocess.TimeoutExpired:
-            r.proc.kill()
-            r.proc.communicate()
+        daemonproc.stop(r.proc)
 
 
 def run(rig: Rig | None, *args: str, timeout: float = 30, env: dict[str, str] | None = None):
