@@ -33,10 +33,13 @@ class Flag(IntFlag):
     ESTOP = 1 << 5
     # The predictor was still cold (fewer strokes than it needs): t_hat was the configured nominal.
     WARMUP = 1 << 6
+    # The stroke was cut short or never started because the daemon was shutting down (SIGTERM,
+    # SIGINT, SIGHUP): not a stall, not a fault of the rig.
+    ABORTED = 1 << 7
 
 
 #: Flags after which `operating_ns` is not a real stroke time (the predictor must not learn it).
-UNUSABLE = Flag.STALL | Flag.FAULT | Flag.ESTOP
+UNUSABLE = Flag.STALL | Flag.FAULT | Flag.ESTOP | Flag.ABORTED
 
 MODES = ("closed", "open")
 
