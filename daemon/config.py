@@ -4,8 +4,9 @@
 and validates everything in one place, so a bad file and a bad flag get the same message naming the
 key ("control.window: 3 is less than order + 2 = 4"). The result is a tree of frozen dataclasses;
 `apply_overrides(config, window=50)` makes a changed copy through the same checks. With no file, the
-defaults run the simulated rig. Durations are human strings ("12ms", "10500us") or integer ns; in the
-dataclasses they are integer ns with `_ns` in the field name. Reference: docs/config.md.
+defaults run the simulated rig. Durations are human strings with a unit ("12ms", "10500us"; a bare
+number is refused as ambiguous); in the dataclasses they are integer ns with `_ns` in the field name.
+Reference: docs/config.md.
 """
 
 from __future__ import annotations
@@ -18,13 +19,14 @@ import tomllib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
+from socket import gethostname
 from types import MappingProxyType
 from typing import Any
 
 from usmswitch.predictor import MAX_ORDER, MODELS, check_stroke_ns, min_samples
 from usmswitch.sim import FaultPlan
 
-from .units import format_ns, parse_duration_ns
+from .units import UNITS_NS, format_ns, parse_duration_ns
 
 DRIVERS = ("sim", "serial", "usb")
 SIM_CLOCKS = ("real", "virtual")
@@ -34,6 +36,13 @@ MODES = ("closed", "open")
 SOCKET_NAME = "usmswitchd.sock"
 # A token shorter than this can be guessed by anyone who can reach the TCP port.
 MIN_TOKEN_CHARS = 16
+# The simulated rig keeps its records apart from the hardware's, below the default state directory.
+SIM_STATE_SUBDIR = "sim"
+# Bounds that match the socket's checks (docs/protocol.md): a target or a delay past 10 s is a typo.
+MAX_TARGET_NS = 10_000_000_000
+MAX_DEBOUNCE_NS = 10_000_000
+# The socket's mode may give the group read and write, never anything to others or any execute bit.
+SOCKET_MODE_ALLOWED = 0o660
 
 
 class ConfigError(ValueError):
@@ -45,18 +54,25 @@ class ConfigError(ValueError):
 
 
 # -- default paths ---------------------------------------------------------------------------------
-def default_state_dir(env: Mapping[str, str] | None = None) -> Path:
-    """Where records live: $STATE_DIRECTORY (systemd), else $XDG_STATE_HOME/usmswitch, else ~/.local/state."""
+def default_state_dir(env: Mapping[str, str] | None = None, *, sim: bool = False) -> Path:
+    """Where records live: $STATE_DIRECTORY (systemd), else $XDG_STATE_HOME/usmswitch, else ~/.local/state.
+
+    `sim=True`: the simulated rig's directory, `<that>/sim`, so simulated strokes never share a file
+    (and a warm start) with a real rig's.
+    """
     env = os.environ if env is None else env
     if env.get("STATE_DIRECTORY"):
-        return Path(env["STATE_DIRECTORY"].split(":")[0])
-    if env.get("XDG_STATE_HOME"):
-        return Path(env["XDG_STATE_HOME"]) / "usmswitch"
-    return Path(env.get("HOME") or Path.home()) / ".local" / "state" / "usmswitch"
+        base = Path(env["STATE_DIRECTORY"].split(":")[0])
+    elif env.get("XDG_STATE_HOME"):
+        base = Path(env["XDG_STATE_HOME"]) / "usmswitch"
+    else:
+        base = Path(env.get("HOME") or Path.home()) / ".local" / "state" / "usmswitch"
+    return base / SIM_STATE_SUBDIR if sim else base
 
 
 def default_socket_path(env: Mapping[str, str] | None = None) -> Path:
-    """Where the daemon listens: $RUNTIME_DIRECTORY (systemd), else $XDG_RUNTIME_DIR/usmswitch, else /tmp."""
+    """Where the daemon listens: $RUNTIME_DIRECTORY (systemd), else $XDG_RUNTIME_DIR/usmswitch, else a
+    per-user /tmp/usmswitch-<uid> (created 0700 and checked before use: daemon/sockdir.py)."""
     env = os.environ if env is None else env
     if env.get("RUNTIME_DIRECTORY"):
         return Path(env["RUNTIME_DIRECTORY"].split(":")[0]) / SOCKET_NAME
@@ -83,6 +99,7 @@ class DaemonConfig:
     log_format: str = "auto"  # json for the service, console in a terminal; auto picks by isatty
     log_level: str = "info"
     summary_interval_ns: int = 5_000_000_000  # the periodic info line with the running statistics
+    rig: str = ""  # this rig's name, stamped on every record ("" only before load: load sets the host name)
 
 
 @dataclass(frozen=True)
@@ -171,7 +188,8 @@ class SocketConfig:
     group: str = ""  # "" = the daemon's own group
     tcp: str = ""  # "" = no TCP; "127.0.0.1:7770"
     tcp_token: str = ""  # required with tcp
-    max_clients: int = 32
+    max_clients: int = 64  # Unix socket connections served at once
+    max_tcp_clients: int = 8  # TCP connections (authenticated or not) served at once, apart from Unix
 
 
 @dataclass(frozen=True)
@@ -209,7 +227,8 @@ class Config:
         return self.driver.kind == "sim"
 
     def to_dict(self, *, redact: bool = False) -> dict[str, Any]:
-        """The configuration as a TOML-shaped dict of plain values (durations in ns): loads back as is.
+        """The configuration as a TOML-shaped dict of plain values (durations as exact text with a
+        unit, "12ms"): loads back as is.
 
         `redact=True` hides the TCP token, for logs and the status reply.
         """
@@ -354,20 +373,11 @@ class _Table:
 
 def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     top = _Table(raw, "")
-    t = top.table("daemon")
-    daemon = DaemonConfig(
-        state_dir=t.get("state_dir", _path, default_state_dir(env)),
-        log_format=t.get("log_format", _choice(LOG_FORMATS), "auto"),
-        log_level=t.get("log_level", _choice(LOG_LEVELS), "info"),
-        summary_interval_ns=t.get("summary_interval", _duration_pos, 5_000_000_000),
-    )
-    t.done()
-
     t = top.table("driver")
     s, u = t.table("serial"), t.table("usb")
     driver = DriverConfig(
         kind=t.get("kind", _choice(DRIVERS), "sim"),
-        debounce_ns=t.get("debounce", _duration, 100_000),
+        debounce_ns=t.get("debounce", _duration_max(MAX_DEBOUNCE_NS), 100_000),
         serial=SerialConfig(
             port=s.get("port", _nonempty_str, SerialConfig.port),
             baudrate=_t_int(s, "baudrate", SerialConfig.baudrate, 50, 20_000_000),
@@ -380,6 +390,16 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     )
     s.done()
     u.done()
+    t.done()
+
+    t = top.table("daemon")
+    daemon = DaemonConfig(
+        state_dir=t.get("state_dir", _path, default_state_dir(env, sim=driver.kind == "sim")),
+        log_format=t.get("log_format", _choice(LOG_FORMATS), "auto"),
+        log_level=t.get("log_level", _choice(LOG_LEVELS), "info"),
+        summary_interval_ns=t.get("summary_interval", _duration_pos, 5_000_000_000),
+        rig=t.get("rig", _rig_name, None) or _default_rig(),
+    )
     t.done()
 
     t = top.table("sim")
@@ -430,9 +450,10 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
 
 def _control(t: _Table) -> ControlConfig:
     d = ControlConfig()
-    target = t.get("target", _duration_pos, None)
-    on = t.get("target_on", _duration_pos, target if target is not None else d.target_on_ns)
-    off = t.get("target_off", _duration_pos, target if target is not None else d.target_off_ns)
+    target_ns = _duration_pos_max(MAX_TARGET_NS)
+    target = t.get("target", target_ns, None)
+    on = t.get("target_on", target_ns, target if target is not None else d.target_on_ns)
+    off = t.get("target_off", target_ns, target if target is not None else d.target_off_ns)
     model = t.get("model", _choice(MODELS), d.model)
     order = t.get("order", _order, d.order)
     max_order = _t_int(t, "max_order", d.max_order, 1, MAX_ORDER)
@@ -468,7 +489,7 @@ def _control(t: _Table) -> ControlConfig:
         target_on_ns=on,
         target_off_ns=off,
         mode=t.get("mode", _choice(MODES), d.mode),
-        open_delay_ns=t.get("open_delay", _duration, d.open_delay_ns),
+        open_delay_ns=t.get("open_delay", _duration_max(MAX_TARGET_NS), d.open_delay_ns),
         model=model,
         order=order,
         max_order=max_order,
@@ -510,7 +531,8 @@ def _socket(t: _Table, env: Mapping[str, str]) -> SocketConfig:
         group=group,
         tcp=tcp,
         tcp_token=token,
-        max_clients=_t_int(t, "max_clients", 32, 1, 4096),
+        max_clients=_t_int(t, "max_clients", SocketConfig.max_clients, 1, 4096),
+        max_tcp_clients=_t_int(t, "max_tcp_clients", SocketConfig.max_tcp_clients, 1, 1024),
     )
     t.done()
     return cfg
@@ -603,8 +625,8 @@ def _bool(key: str, v: Any) -> bool:
 
 
 def _int(key: str, v: Any, lo: int, hi: int | None) -> int:
-    if isinstance(v, str) and re.fullmatch(r"[+-]?\d+", v.strip()):
-        v = int(v)  # command-line flags arrive as text
+    # Text is refused, even "100": a quoted number in the file is a mistake worth naming (the
+    # command line's integer flags are converted by argparse before they get here).
     if isinstance(v, bool) or not isinstance(v, int):
         raise ConfigError(key, f"expected an integer, got {_show(v)}")
     if v < lo or (hi is not None and v > hi):
@@ -626,6 +648,11 @@ def _positive_float(key: str, v: Any) -> float:
 
 
 def _duration(key: str, v: Any) -> int:
+    if isinstance(v, int) and not isinstance(v, bool) and v != 0:
+        # A bare number is ambiguous (12 meant as ms would be a 12 ns target): only 0 is safe.
+        raise ConfigError(
+            key, f'{v} has no unit: write "{v}ms" (or "{v}us", "{v}s", "{v}ns": text with a unit)'
+        )
     try:
         return parse_duration_ns(v)
     except ValueError as exc:
@@ -637,6 +664,42 @@ def _duration_pos(key: str, v: Any) -> int:
     if ns == 0:
         raise ConfigError(key, f"{v!r} must be longer than 0")
     return ns
+
+
+def _duration_max(limit_ns: int, positive: bool = False) -> Callable[[str, Any], int]:
+    def parse(key: str, v: Any) -> int:
+        ns = _duration_pos(key, v) if positive else _duration(key, v)
+        if ns > limit_ns:
+            raise ConfigError(key, f"{duration_text(ns)} is longer than the limit {duration_text(limit_ns)}")
+        return ns
+
+    return parse
+
+
+def _duration_pos_max(limit_ns: int) -> Callable[[str, Any], int]:
+    return _duration_max(limit_ns, positive=True)
+
+
+def duration_text(ns: int) -> str:
+    """Integer ns as the exact text the loader reads back, in the largest unit that divides it."""
+    for unit in ("s", "ms", "us"):
+        scale = UNITS_NS[unit]
+        if ns % scale == 0:
+            return f"{ns // scale}{unit}"
+    return f"{ns}ns"
+
+
+def _default_rig() -> str:
+    return gethostname() or "localhost"
+
+
+def _rig_name(key: str, v: Any) -> str:
+    name = _str(key, v).strip()
+    if not name:
+        raise ConfigError(key, "must not be empty (unset it to use the host name)")
+    if len(name) > 64 or not name.isprintable():
+        raise ConfigError(key, f"{v!r} is not a printable name of at most 64 characters")
+    return name
 
 
 def _choice(choices: tuple[str, ...]) -> Callable[[str, Any], str]:
@@ -651,7 +714,7 @@ def _choice(choices: tuple[str, ...]) -> Callable[[str, Any], str]:
 def _order(key: str, v: Any) -> int | str:
     if v == "auto":
         return v
-    if isinstance(v, str) and not v.strip().isdigit():
+    if isinstance(v, str):
         raise ConfigError(key, f"{v!r} is not an order 1..{MAX_ORDER} or 'auto'")
     return _int(key, v, 1, MAX_ORDER)
 
@@ -672,17 +735,32 @@ def _file_mode(key: str, v: Any) -> int:
     m = _int(key, v, 0, 0o777)
     if m & 0o600 != 0o600:
         raise ConfigError(key, f"{oct(m)} leaves the daemon's own user without read and write")
+    if m & ~SOCKET_MODE_ALLOWED:
+        raise ConfigError(
+            key,
+            f"{oct(m)} is looser than {oct(SOCKET_MODE_ALLOWED)}: others may get nothing and nobody"
+            " execute (anyone who can connect can stop the rig)",
+        )
     return m
 
 
+def existing_cpus() -> frozenset[int]:
+    """The CPU numbers this machine has (those the process may run on, and every configured one)."""
+    cpus = set(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else set()
+    return frozenset(cpus | set(range(os.cpu_count() or 1)))
+
+
 def _cpu_list(key: str, v: Any) -> tuple[int, ...]:
-    if isinstance(v, str):
-        v = [p for p in v.split(",") if p.strip()]
     if not isinstance(v, list):
         raise ConfigError(key, f"expected a list of CPU numbers like [2, 3], got {_show(v)}")
     cpus = tuple(_int(f"{key}[{i}]", c, 0, 4095) for i, c in enumerate(v))
     if len(set(cpus)) != len(cpus):
         raise ConfigError(key, f"{list(cpus)} names a CPU twice")
+    have = existing_cpus()
+    missing = [c for c in cpus if c not in have]
+    if missing:
+        listed = ", ".join(map(str, sorted(have)))
+        raise ConfigError(key, f"CPU {missing[0]} does not exist on this machine (CPUs: {listed})")
     return cpus
 
 
@@ -693,6 +771,8 @@ def _section_to_dict(obj: Any) -> dict[str, Any]:
         name = fl.name
         if name.endswith("_ns"):
             name = name[: -len("_ns")]
+            if isinstance(value, int):
+                value = duration_text(value)  # with its unit, as the loader wants it
         if is_dataclass(value):
             out[name] = _section_to_dict(value)
         elif isinstance(value, Path):
@@ -725,6 +805,8 @@ __all__ = [
     "client_socket_paths",
     "default_socket_path",
     "default_state_dir",
+    "duration_text",
+    "existing_cpus",
     "load_config",
     "overrides_from",
     "parse_host_port",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
+import socket
 from pathlib import Path
 
 import pytest
@@ -40,11 +41,32 @@ def dotted_keys(d: dict, prefix: str = "") -> set[str]:
     return out
 
 
+def toml_lines(d: dict, prefix: str = "") -> list[str]:
+    """A plain dict of str, int, float, bool, lists and tables as TOML (enough for Config.to_dict())."""
+    out, tables = [], []
+    for k, v in d.items():
+        if isinstance(v, dict):
+            tables.append((k, v))
+        elif isinstance(v, bool):
+            out.append(f"{k} = {str(v).lower()}")
+        else:
+            out.append(f"{k} = {v!r}")
+    for k, v in tables:
+        out += [f"[{prefix}{k}]", *toml_lines(v, f"{prefix}{k}.")]
+    return out
+
+
 def test_defaults_run_the_simulated_rig_closed_loop_at_12_ms():
     cfg = load_config(None, env=ENV)
     assert cfg.driver.kind == "sim" and cfg.autostart
     assert cfg.control.mode == "closed" and cfg.control.target_ns(0) == cfg.control.target_ns(1) == 12_000_000
-    assert cfg.daemon.state_dir == Path("/home/lab/.local/state/usmswitch")
+    # The simulated rig's records live apart from a real rig's (no warm start from simulated strokes).
+    assert cfg.daemon.state_dir == Path("/home/lab/.local/state/usmswitch/sim")
+    assert load_config(None, {"driver": "serial"}, env=ENV).daemon.state_dir == Path(
+        "/home/lab/.local/state/usmswitch"
+    )
+    assert cfg.daemon.rig == socket.gethostname()
+    assert (cfg.socket.max_clients, cfg.socket.max_tcp_clients) == (64, 8)
     assert cfg.socket.path == Path("/run/user/1000/usmswitch/usmswitchd.sock")
     with pytest.raises(dataclasses.FrozenInstanceError):
         cfg.control.window = 3  # type: ignore[misc]
@@ -88,7 +110,7 @@ def test_file_values_and_units(tmp_path: Path):
         """
         [control]
         target_on = "24ms"
-        target_off = 12000000
+        target_off = "12000000ns"
         order = "auto"
         max_order = 4
         window = 200
@@ -100,7 +122,7 @@ def test_file_values_and_units(tmp_path: Path):
         [driver.usb]
         vid = 0xCAFE
         [realtime]
-        cpu_affinity = [1, 3]
+        cpu_affinity = [1, 0]
         [socket]
         mode = 0o640
         tcp = "[::1]:7770"
@@ -117,7 +139,7 @@ def test_file_values_and_units(tmp_path: Path):
     assert cfg.control.order == "auto" and cfg.control.model == "centered"
     assert cfg.cycle.period_ns == 100_000_000 and not cfg.autostart
     assert cfg.driver.usb.vid == 0xCAFE and cfg.driver.usb.pid == 0x0001
-    assert cfg.realtime.cpu_affinity == (1, 3)
+    assert cfg.realtime.cpu_affinity == (1, 0)
     assert cfg.socket.mode == 0o640
     assert cfg.to_dict(redact=True)["socket"]["tcp_token"] == "<redacted>"
     assert cfg.to_dict()["socket"]["tcp_token"] == "0123456789abcdef"
@@ -178,6 +200,31 @@ def test_file_values_and_units(tmp_path: Path):
         ("[modbus]\nunit = 300", "modbus.unit: 300 is outside the allowed range (in 0..247)"),
         ("[modbus]\nvoltage_vpp = -5", "modbus.voltage_vpp: -5 must be a positive finite number"),
         ('[daemon]\nlog_level = "verbose"', "daemon.log_level: 'verbose' is not one of"),
+        # Bounds and types that match the socket's (issue 10).
+        ('[control]\ntarget = "10001ms"', "control.target: 10001ms is longer than the limit 10s"),
+        ('[control]\ntarget_on = "292y"', "control.target_on: duration '292y': unknown unit"),
+        ('[control]\nopen_delay = "11s"', "control.open_delay: 11s is longer than the limit 10s"),
+        ('[driver]\ndebounce = "10s"', "driver.debounce: 10s is longer than the limit 10ms"),
+        ('[driver]\ndebounce = "10001us"', "driver.debounce: 10001us is longer than the limit 10ms"),
+        ("[control]\ntarget = 12", 'control.target: 12 has no unit: write "12ms"'),
+        ("[cycle]\nperiod = 50000000", 'cycle.period: 50000000 has no unit: write "50000000ms"'),
+        ("[driver]\ndebounce = 100", 'driver.debounce: 100 has no unit: write "100ms"'),
+        ('[control]\nwindow = "100"', "control.window: expected an integer, got '100' (str)"),
+        ('[control]\norder = "2"', "control.order: '2' is not an order 1..8 or 'auto'"),
+        ('[cycle]\ncount = "5"', "cycle.count: expected an integer, got '5' (str)"),
+        ("[socket]\nmax_clients = 1.5", "socket.max_clients: expected an integer, got 1.5 (float)"),
+        ("[socket]\nmax_tcp_clients = true", "socket.max_tcp_clients: expected an integer, got True"),
+        ("[socket]\nmax_tcp_clients = 0", "socket.max_tcp_clients: 0 is outside the allowed range"),
+        ('[sim]\nseed = "7"', "sim.seed: expected an integer, got '7' (str)"),
+        ("[realtime]\ncpu_affinity = [999]", "realtime.cpu_affinity: CPU 999 does not exist on this machine"),
+        ('[realtime]\ncpu_affinity = "0"', "realtime.cpu_affinity: expected a list of CPU numbers"),
+        ('[realtime]\ncpu_affinity = ["0"]', "realtime.cpu_affinity[0]: expected an integer, got '0'"),
+        ("[socket]\nmode = 0o777", "socket.mode: 0o777 is looser than 0o660"),
+        ("[socket]\nmode = 0o664", "socket.mode: 0o664 is looser than 0o660"),
+        ("[socket]\nmode = 0o670", "socket.mode: 0o670 is looser than 0o660"),
+        ("[socket]\nmode = 0o760", "socket.mode: 0o760 is looser than 0o660"),
+        ('[daemon]\nrig = ""', "daemon.rig: must not be empty"),
+        ('[daemon]\nrig = "a\\nb"', "daemon.rig: 'a\\nb' is not a printable name"),
         ("daemon = 3", "daemon: expected a table, got 3 (int)"),
         ('[deamon]\nlog_level = "info"', "deamon: unknown key (known sections: "),
     ],
@@ -187,6 +234,43 @@ def test_bad_values_stop_with_a_message_naming_the_key(tmp_path: Path, text: str
         load_config(write(tmp_path, text), env=ENV)
     assert str(info.value).startswith(message), str(info.value)
     assert info.value.key == message.split(":")[0]
+
+
+def test_bounds_at_the_limit_and_tight_socket_modes_are_accepted(tmp_path: Path):
+    p = write(
+        tmp_path,
+        """
+        [daemon]
+        rig = "bench-3"
+        [control]
+        target = "10s"
+        open_delay = "10s"
+        mode = "open"
+        [cycle]
+        period = "11s"
+        [driver]
+        debounce = "10ms"
+        [socket]
+        mode = "0600"
+        max_clients = 100
+        max_tcp_clients = 2
+        """,
+    )
+    cfg = load_config(p, env=ENV)
+    assert cfg.control.target_on_ns == cfg.control.open_delay_ns == 10_000_000_000
+    assert cfg.driver.debounce_ns == 10_000_000 and cfg.daemon.rig == "bench-3"
+    assert (cfg.socket.mode, cfg.socket.max_clients, cfg.socket.max_tcp_clients) == (0o600, 100, 2)
+    for mode in (0o640, 0o620, 0o660):
+        assert load_config(None, {"socket.mode": mode}, env=ENV).socket.mode == mode
+    # Zero needs no unit (nothing is ambiguous about it).
+    assert load_config(None, {"control.open_delay": 0}, env=ENV).control.open_delay_ns == 0
+
+
+def test_a_bare_number_from_the_command_line_is_refused_too():
+    with pytest.raises(ConfigError, match=r"control\.target: duration \'12\': needs a unit"):
+        load_config(None, {"target": "12"}, env=ENV)
+    with pytest.raises(ConfigError, match=r'control\.target: 12 has no unit: write "12ms"'):
+        load_config(None, {"target": 12}, env=ENV)
 
 
 def test_file_errors_name_the_file(tmp_path: Path):
@@ -208,7 +292,7 @@ def test_overrides_from_flags_and_dotted_keys(tmp_path: Path):
     assert cfg.daemon.log_format == "auto"
     assert (cfg.control.target_on_ns, cfg.control.target_off_ns) == (24_000_000, 30_000_000)
     # A target from the command line means both directions.
-    both = apply_overrides(cfg, target="10ms", period="20ms", state_dir=str(tmp_path / "s"), order="2")
+    both = apply_overrides(cfg, target="10ms", period="20ms", state_dir=str(tmp_path / "s"), order=2)
     assert (both.control.target_on_ns, both.control.target_off_ns) == (10_000_000, 10_000_000)
     assert both.cycle.period_ns == 20_000_000 and both.control.order == 2
     assert both.daemon.state_dir == tmp_path / "s"
@@ -223,10 +307,17 @@ def test_overrides_from_flags_and_dotted_keys(tmp_path: Path):
         apply_overrides(cfg, sim="yes")
 
 
-def test_to_dict_round_trips_through_the_loader():
+def test_to_dict_round_trips_through_the_loader(tmp_path: Path):
     cfg = load_config(None, {"control.order": "auto", "realtime.cpu_affinity": [0]}, env=ENV)
     again = apply_overrides(cfg)
     assert again == cfg
+    # Durations come out as text with their unit, exactly, so the dict loads back from a file too.
+    d = cfg.to_dict()
+    assert d["control"]["target_on"] == "12ms" and d["control"]["nominal"] == "10500us"
+    assert d["daemon"]["summary_interval"] == "5s" and d["control"]["open_delay"] == "0s"
+    odd = load_config(None, {"control.late_margin": "1234567ns"}, env=ENV)
+    assert odd.to_dict()["control"]["late_margin"] == "1234567ns"
+    assert load_config(write(tmp_path, "\n".join(toml_lines(d))), env=ENV) == cfg
     assert isinstance(again, Config)
     assert "autostart" not in cfg.to_dict()["cycle"]  # None: decided by the driver, not frozen in
 

@@ -69,9 +69,11 @@ def test_unit_agrees_with_the_config_defaults(unit: Path):
     env = {"STATE_DIRECTORY": "/var/lib/usmswitch", "RUNTIME_DIRECTORY": "/run/usmswitch"}
     assert s["StateDirectory"] == ["usmswitch"] and s["RuntimeDirectory"] == ["usmswitch"]
     assert s["ConfigurationDirectory"] == ["usmswitch"]
-    cfg = load_config(None, env=env)
+    cfg = load_config(None, {"driver": "serial"}, env=env)
     assert cfg.socket.path == Path("/run/usmswitch/usmswitchd.sock") in client_socket_paths({})
     assert cfg.daemon.state_dir == Path("/var/lib/usmswitch")
+    # The simulated rig's records stay apart from the hardware's.
+    assert load_config(None, env=env).daemon.state_dir == Path("/var/lib/usmswitch/sim")
     # The real-time limits the example config relies on.
     assert s["LimitRTPRIO"] == ["99"] and s["LimitMEMLOCK"] == ["infinity"]
     assert "ProtectSystem" in s and s["ProtectSystem"] == ["strict"] and s["DevicePolicy"] == ["closed"]
