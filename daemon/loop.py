@@ -21,7 +21,7 @@ from typing import Any
 
 import structlog
 
-from usmswitch.drivers import Conditions, Daq, DaqError, Direction, EventKind, FaultCode, check_ns
+from usmswitch.drivers import Conditions, Daq, DaqError, DaqHalted, Direction, EventKind, FaultCode, check_ns
 
 from .record import CycleRecord, Flag
 from .stats import DirectionStats
@@ -144,37 +144,74 @@ class ControlLoop:
         return fut
 
     def estop(self, reason: str = "emergency stop") -> None:
-        """Drive off now, from any thread; the loop latches FAULT and stops cycling."""
+        """Drive off now, from any thread, and final: when it returns no start can follow.
+
+        The driver is halted (drive off, nothing armed, a waiting start abandoned) until
+        `reset_fault`; the loop latches FAULT and stops cycling at its next step.
+        """
         self._estop.set()
-        self._safe_stop(reason)
+        self._halt(reason)
         self.call(lambda: self._latch_fault(reason))
 
     def shutdown(self) -> None:
-        """Ask `run()` to return after switching the drive off (signal handlers call this)."""
+        """Ask `run()` to return, drive off and no start after this call (signal handlers call this)."""
         self._shutdown.set()
-        self._safe_stop("shutdown")
+        self._halt("shutdown")
         self._requests.put((lambda: None, Future()))  # wake a blocked queue wait
 
+    def latch_fault(self, reason: str) -> None:
+        """Drive off, stop cycling, FAULT until reset (loop thread: a slack hook's finding)."""
+        self._safe_stop(reason)
+        self._latch_fault(reason)
+
     # -- operations (loop thread) -----------------------------------------------------------------
-    def set_target(self, target_ns: int, direction: Direction | None = None) -> None:
-        """New target T for one direction or both; it applies from the next armed stroke."""
+    def set_target(self, target_ns: int, direction: Direction | None = None) -> list[str]:
+        """New target T for one direction or both, from the next armed stroke; returns warnings.
+
+        While cycling, a target the period cannot hold is refused (commands would overlap); a
+        target shorter than the predicted stroke is taken but warned about: those strokes are late.
+        """
         check_ns("target_ns", target_ns, minimum=1)
-        for d in (Direction.ON, Direction.OFF) if direction is None else (Direction(direction),):
-            self.targets[d] = target_ns
+        dirs = (Direction.ON, Direction.OFF) if direction is None else (Direction(direction),)
+        targets = list(self.targets)
+        for d in dirs:
+            targets[d] = target_ns
+        if self.state is State.CYCLING:
+            self._check_period(self._period_ns, targets, self.mode, self.open_delay_ns)
+        self.targets = targets
         self._rearm()
+        return self.reach_warnings() if self.mode is Mode.CLOSED else []
 
     def set_mode(self, mode: Mode | str, open_delay_ns: int | None = None) -> None:
         """Closed loop (Eq. 7) or open loop with a fixed delay; applies from the next armed stroke."""
-        self.mode = Mode(mode)
-        if open_delay_ns is not None:
-            self.open_delay_ns = check_ns("open_delay_ns", open_delay_ns)
+        mode = Mode(mode)
+        delay = self.open_delay_ns if open_delay_ns is None else check_ns("open_delay_ns", open_delay_ns)
+        if self.state is State.CYCLING:
+            self._check_period(self._period_ns, self.targets, mode, delay)
+        self.mode = mode
+        self.open_delay_ns = delay
         self._rearm()
+
+    def reach_warnings(self) -> list[str]:
+        """Per direction, a warning when T is shorter than the predicted stroke (it will be late)."""
+        out = []
+        for d in (Direction.ON, Direction.OFF):
+            t_hat = round(self.predictors[d].predict())
+            if self.targets[d] < t_hat:
+                out.append(
+                    f"target_{d.name.lower()}_ns {self.targets[d]} is shorter than the predicted stroke "
+                    f"({t_hat} ns): those strokes start at once and arrive late"
+                )
+        return out
 
     def reset_fault(self) -> None:
         """Clear a latched FAULT; the drive stays off until the next command."""
         if self.state is State.FAULT and not self.daq.ping():
             raise LoopError(f"{self.daq.name} is not connected: reset when the device is back")
+        if self._shutdown.is_set():
+            raise LoopError("shutting down")
         self._estop.clear()
+        self.daq.release()
         if self.state is State.FAULT:
             self._drain_stale_events()
             self.state = State.IDLE
@@ -189,17 +226,9 @@ class ControlLoop:
         if isinstance(count, bool) or not isinstance(count, int) or count < 0:
             raise ValueError(f"count must be an integer >= 0, got {count!r}")
         self._require_no_fault()
-        longest = max(
-            max(self.targets)
-            if self.mode is Mode.CLOSED
-            else self.open_delay_ns + round(max(p.predict() for p in self.predictors)),
-            1,
-        )
-        if period_ns <= longest:
-            raise ValueError(
-                f"period_ns {period_ns} is not longer than a stroke from its command ({longest} ns): "
-                "commands would overlap"
-            )
+        if self.state is State.CYCLING:
+            raise LoopError("already cycling: stop_cycling first (or wait for the run to end)")
+        self._check_period(period_ns, self.targets, self.mode, self.open_delay_ns)
         self._period_ns = period_ns
         self._cycling_left = count if count else -1
         self._next_tick_ns = self.clock.now_ns() + COMMAND_LEAD_NS
@@ -216,7 +245,15 @@ class ControlLoop:
         if self.state is State.CYCLING:
             raise LoopError("busy: cycling; stop_cycling first")
         self._require_no_fault()
-        self._next_dir = Direction(direction)
+        direction = Direction(direction)
+        if direction_from_levels(self.daq.levels(), direction) is not direction:
+            # Driving toward the sensor the mover rests at pushes it into the end stop until the
+            # stroke timeout: refuse instead.
+            raise LoopError(
+                f"the mover already rests at sensor {direction.dest.name} (switch is "
+                f"{'on' if direction is Direction.ON else 'off'}): nothing to do"
+            )
+        self._next_dir = direction
         return self._stroke(None)
 
     def run_cycles(self, period_ns: int, count: int) -> None:
@@ -268,6 +305,7 @@ class ControlLoop:
             "spurious_edges": self.spurious_edges,
             "overruns": self.overruns,
             "driver_bounces": self.daq.bounces,
+            "driver": self.daq.counters(),
             "all": self.stats_all.snapshot(),
         }
         for d, name in ((Direction.ON, "on"), (Direction.OFF, "off")):
@@ -288,6 +326,24 @@ class ControlLoop:
         """Drive off; a device that is already gone cannot be driving, so its refusal is not an error."""
         with contextlib.suppress(DaqError):
             self.daq.stop(detail=detail)
+
+    def _halt(self, reason: str) -> None:
+        """Drive off and no start until released; a device already gone cannot be driving."""
+        try:
+            self.daq.halt(reason)
+        except DaqError:
+            log.warning("halt: the device did not take the stop", reason=reason)
+
+    def _check_period(self, period_ns: int, targets: Sequence[int], mode: Mode, open_delay_ns: int) -> None:
+        """Refuse a period that a stroke from its command (T, or t_hat when late) would not fit in."""
+        t_hat = max(round(p.predict()) for p in self.predictors)
+        longest = max(*targets, t_hat) if mode is Mode.CLOSED else open_delay_ns + t_hat
+        if period_ns <= longest:
+            what = "max of T and t_hat" if mode is Mode.CLOSED else "open delay + t_hat"
+            raise ValueError(
+                f"period {period_ns} ns is not longer than a stroke from its command"
+                f" ({longest} ns, {what}): commands would overlap"
+            )
 
     def _latch_fault(self, reason: str) -> None:
         self.state = State.FAULT
@@ -352,7 +408,8 @@ class ControlLoop:
         direction = self._next_dir
         daq = self.daq
         bounces_before = daq.bounces
-        self._estop.clear()
+        levels = daq.levels()
+        partial = levels is not None and not levels[direction.source]
         try:
             if self._plan is None or self._plan.direction is not direction:
                 self._arm(direction)
@@ -364,8 +421,15 @@ class ControlLoop:
             self._plan = None
             # Nothing moved; the attempt is still a cycle and gets its record.
             t_cmd = self.clock.now_ns() if t_cmd_ns is None else t_cmd_ns
-            self._latch_fault(f"command failed: {exc}")
-            return self._finish(plan, t_cmd, None, None, None, None, None, flags_for_failure(plan))
+            if isinstance(exc, DaqHalted) and self._shutdown.is_set():
+                flags = plan.flags | Flag.ABORTED
+            elif isinstance(exc, DaqHalted):
+                flags = plan.flags | Flag.ESTOP | Flag.FAULT
+                self._latch_fault(daq.halt_reason or "emergency stop")
+            else:
+                flags = flags_for_failure(plan)
+                self._latch_fault(f"command failed: {exc}")
+            return self._finish(plan, t_cmd, None, None, None, None, None, flags)
         t_start = cmd.t_start_ns
         lateness = cmd.lateness_ns
         deadline = (cmd.t_cmd_ns + cmd.delay_ns if t_start is None else t_start) + self.stroke_timeout_ns
@@ -383,7 +447,7 @@ class ControlLoop:
                 fault = f"driver: {exc}"
                 break
             if ev is None:
-                if self._estop.is_set():
+                if self._estop.is_set() or self._shutdown.is_set():
                     break
                 continue
             kind = ev.kind
@@ -409,23 +473,31 @@ class ControlLoop:
             ):
                 fault = f"{ev.fault.name.lower()}: {ev.detail}" if ev.detail else ev.fault.name.lower()
                 break
+            elif kind is EventKind.STOP and (self._estop.is_set() or self._shutdown.is_set()):
+                break  # the halt's own stop: nothing will arrive
         if t_arrive is not None and t_start is not None:
             operating = t_arrive - t_start
             # Arm ahead: the next stroke goes the other way, so its predictor is already up to date
             # and this stroke's update (an AIC re-selection may take a millisecond) comes after it.
             self._next_dir = direction.opposite
             self._arm_or_defer(self._next_dir)  # the timing path ends here
-            try:
-                self.predictors[direction].update(operating)
-            except ValueError as exc:  # a stamp the model cannot take: keep it out, say so
-                flags |= Flag.FAULT
-                self._latch_fault(f"stroke not fed to the predictor: {exc}")
+            if partial:
+                flags |= Flag.PARTIAL  # a part of a stroke would teach the predictor nonsense
+            else:
+                try:
+                    self.predictors[direction].update(operating)
+                except ValueError as exc:  # a stamp the model cannot take: keep it out, say so
+                    flags |= Flag.FAULT
+                    self._latch_fault(f"stroke not fed to the predictor: {exc}")
         else:
             operating = None
             self._safe_stop(fault or "stall")
+            if self._shutdown.is_set() and not fault:
+                flags |= Flag.ABORTED  # cut short by shutdown: not the rig's fault
+                return self._finish(plan, cmd.t_cmd_ns, t_start, t_depart, None, None, lateness, flags)
             if self._estop.is_set():
                 flags |= Flag.ESTOP
-                fault = fault or "emergency stop"
+                fault = fault or daq.halt_reason or "emergency stop"
             elif not fault:
                 flags |= Flag.STALL
                 fault = f"stall: no arrival within {self.stroke_timeout_ns} ns of the start"

@@ -36,10 +36,13 @@ class Flag(IntFlag):
     # The stroke was cut short or never started because the daemon was shutting down (SIGTERM,
     # SIGINT, SIGHUP): not a stall, not a fault of the rig.
     ABORTED = 1 << 7
+    # The mover did not start from the source sensor (an estop or a fault had stopped it midway):
+    # a part of a stroke, recorded but not fed to the predictor.
+    PARTIAL = 1 << 8
 
 
 #: Flags after which `operating_ns` is not a real stroke time (the predictor must not learn it).
-UNUSABLE = Flag.STALL | Flag.FAULT | Flag.ESTOP | Flag.ABORTED
+UNUSABLE = Flag.STALL | Flag.FAULT | Flag.ESTOP | Flag.ABORTED | Flag.PARTIAL
 
 MODES = ("closed", "open")
 

@@ -1,7 +1,7 @@
 """DAQ drivers: the interface (`Daq`), its clocks and events, and the hardware drivers."""
 
 from .clock import Clock, MonotonicClock, VirtualClock
-from .daq import Daq, DaqDisconnected, DaqError, check_ns
+from .daq import Daq, DaqDisconnected, DaqError, DaqHalted, check_ns
 from .events import Channel, Commanded, Conditions, Direction, Event, EventKind, FaultCode
 
 __all__ = [
@@ -12,6 +12,7 @@ __all__ = [
     "Daq",
     "DaqDisconnected",
     "DaqError",
+    "DaqHalted",
     "Direction",
     "Event",
     "EventKind",

@@ -6,6 +6,7 @@ jumps the clock forward so 100,000 strokes take seconds.
 
 from __future__ import annotations
 
+import threading
 import time
 from abc import ABC, abstractmethod
 
@@ -24,8 +25,11 @@ class Clock(ABC):
         """The current instant."""
 
     @abstractmethod
-    def sleep_until(self, t_ns: int) -> int:
-        """Return at or after `t_ns` as precisely as the clock allows; returns the instant woken."""
+    def sleep_until(self, t_ns: int, cancel: threading.Event | None = None) -> int:
+        """Return at or after `t_ns` as precisely as the clock allows; returns the instant woken.
+
+        When `cancel` is set (an emergency stop from another thread) it returns at once, early.
+        """
 
     def wait_until(self, t_ns: int) -> int:
         """Return at or after `t_ns` without spinning: for waiting on events, not for starting motors."""
@@ -45,21 +49,29 @@ class MonotonicClock(Clock):
     def now_ns(self) -> int:
         return time.monotonic_ns()
 
-    def sleep_until(self, t_ns: int) -> int:
-        now = time.monotonic_ns()
+    def sleep_until(self, t_ns: int, cancel: threading.Event | None = None) -> int:
+        now_ns = self.now_ns
+        now = now_ns()
         ahead = t_ns - now - self.spin_margin_ns
         if ahead > 0:
-            time.sleep(ahead / 1e9)
-        now = time.monotonic_ns()
-        while now < t_ns:
-            now = time.monotonic_ns()
+            if cancel is None:
+                time.sleep(ahead / 1e9)
+            elif cancel.wait(ahead / 1e9):
+                return now_ns()
+        now = now_ns()
+        if cancel is None:
+            while now < t_ns:
+                now = now_ns()
+        else:
+            while now < t_ns and not cancel.is_set():
+                now = now_ns()
         return now
 
     def wait_until(self, t_ns: int) -> int:
-        now = time.monotonic_ns()
+        now = self.now_ns()
         while now < t_ns:
             time.sleep((t_ns - now) / 1e9)
-            now = time.monotonic_ns()
+            now = self.now_ns()
         return now
 
 
@@ -74,7 +86,9 @@ class VirtualClock(Clock):
     def now_ns(self) -> int:
         return self._t
 
-    def sleep_until(self, t_ns: int) -> int:
+    def sleep_until(self, t_ns: int, cancel: threading.Event | None = None) -> int:
+        if cancel is not None and cancel.is_set():
+            return self._t
         if t_ns > self._t:
             self._t = t_ns
         return self._t

@@ -25,6 +25,10 @@ class DaqDisconnected(DaqError):
     """The device went away (unplugged, port closed); the drive must be taken as stopped."""
 
 
+class DaqHalted(DaqError):
+    """The driver is halted (emergency stop, shutdown): no stroke may start until `release()`."""
+
+
 def check_ns(name: str, value: object, *, minimum: int = 0) -> int:
     """Validate an integer nanosecond argument (bools and floats are refused)."""
     if isinstance(value, bool) or not isinstance(value, int):
@@ -74,6 +78,11 @@ class Daq(ABC):
         self._ready: deque[Event] = deque()
         self._last_t_ns: int | None = None
         self._lock = threading.RLock()  # stop() may come from another thread
+        # Set by halt() from any thread; a start is only ever switched on under _lock after
+        # checking it, so once halt() returns no start can follow.
+        self._halt = threading.Event()
+        #: Why the driver is halted ("" when it is not).
+        self.halt_reason = ""
         self.is_open = False
         #: Edges delivered after chatter (the chatter itself is dropped).
         self.bounces = 0
@@ -112,6 +121,10 @@ class Daq(ABC):
         """True when the device answers (the default: it is open)."""
         return self.is_open
 
+    def counters(self) -> dict[str, int]:
+        """What the driver dropped or repaired so far, for status and stats (drivers add their own)."""
+        return {"bounces": self.bounces, "glitches": self.glitches, "out_of_order": self.out_of_order}
+
     # -- timing ------------------------------------------------------------------------------
     def now_ns(self) -> int:
         """The driver's clock: the one every event stamp is on."""
@@ -131,6 +144,7 @@ class Daq(ABC):
         check_ns("delay_ns", delay_ns)
         with self._lock:
             self._armed = None  # a failed arm leaves nothing armed
+            self._check_not_halted("arm")
             if self.hardware_timed:
                 self._arm(direction, delay_ns)
             self._armed = (direction, delay_ns)
@@ -151,18 +165,50 @@ class Daq(ABC):
                 raise DaqError("command without an armed stroke: call arm(direction, delay_ns) first")
             if not self.is_open:
                 raise DaqError(f"{self.name}: command on a closed driver")
+            self._check_not_halted("command")
             direction, delay_ns = self._armed
             self._armed = None
-        if self.hardware_timed:
-            t_cmd = self._command(t_cmd_ns)
-            return Commanded(direction, t_cmd, delay_ns)
+            if self.hardware_timed:
+                # Under the lock: a halt() waits for the device to have the command, then stops it.
+                t_cmd = self._command(t_cmd_ns)
+                return Commanded(direction, t_cmd, delay_ns)
         t_cmd = self.clock.now_ns() if t_cmd_ns is None else check_ns("t_cmd_ns", t_cmd_ns)
         target = t_cmd + delay_ns
-        self.clock.sleep_until(target)
+        self.clock.sleep_until(target, self._halt)
         with self._lock:
+            self._check_not_halted("start")
             t_start = self._drive(direction)
             self._pending.append(Event.start(t_start, direction))
         return Commanded(direction, t_cmd, delay_ns, t_start, t_start - target)
+
+    def halt(self, reason: str) -> None:
+        """Emergency stop or shutdown, from any thread: drive off, nothing armed, no start until release().
+
+        When it returns, the drive is off (a hardware-timed device has been sent STOP, which disarms
+        it) and no start can follow: a software-timed start waiting for its instant gives up.
+        """
+        self._halt.set()
+        with self._lock:
+            self.halt_reason = reason
+            self._armed = None
+            if self.is_open:
+                self._stop()
+                self._pending.append(Event.stop(self.clock.now_ns(), detail=reason))
+
+    def release(self) -> None:
+        """Allow starts again after a halt (a fault reset)."""
+        with self._lock:
+            self._halt.clear()
+            self.halt_reason = ""
+
+    @property
+    def halted(self) -> bool:
+        """True from halt() until release(): no stroke can start."""
+        return self._halt.is_set()
+
+    def _check_not_halted(self, what: str) -> None:
+        if self._halt.is_set():
+            raise DaqHalted(f"{self.name}: {what} refused: halted ({self.halt_reason or 'stop'})")
 
     def stop(self, detail: str = "stop") -> None:
         """Switch the drive off now (end of stroke, stall, emergency stop). Any thread may call it."""

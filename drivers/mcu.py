@@ -22,7 +22,7 @@ from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
 
-from .clock import DEFAULT_SPIN_MARGIN_NS, Clock
+from .clock import DEFAULT_SPIN_MARGIN_NS, MonotonicClock
 from .daq import DEFAULT_DEBOUNCE_NS, Daq, DaqDisconnected, DaqError, check_ns
 from .events import Channel, Direction, Event, EventKind, FaultCode
 from .mcu_protocol import (
@@ -102,35 +102,16 @@ class Transport(ABC):
         """Where the device is, for logs and errors."""
 
 
-class DeviceClock(Clock):
+class DeviceClock(MonotonicClock):
     """The device's timeline on the host: `time.monotonic_ns() + offset_ns`, the offset kept by heartbeats."""
 
-    virtual = False
-
     def __init__(self, spin_margin_ns: int = DEFAULT_SPIN_MARGIN_NS) -> None:
-        self.spin_margin_ns = check_ns("spin_margin_ns", spin_margin_ns)
+        super().__init__(check_ns("spin_margin_ns", spin_margin_ns))
         #: Device timeline minus host monotonic time, in ns (written by the link thread only).
         self.offset_ns = 0
 
     def now_ns(self) -> int:
         return time.monotonic_ns() + self.offset_ns
-
-    def sleep_until(self, t_ns: int) -> int:
-        now = self.now_ns()
-        ahead = t_ns - now - self.spin_margin_ns
-        if ahead > 0:
-            time.sleep(ahead / 1e9)
-        now = self.now_ns()
-        while now < t_ns:
-            now = self.now_ns()
-        return now
-
-    def wait_until(self, t_ns: int) -> int:
-        now = self.now_ns()
-        while now < t_ns:
-            time.sleep((t_ns - now) / 1e9)
-            now = self.now_ns()
-        return now
 
 
 @dataclass
@@ -316,6 +297,9 @@ class McuDaq(Daq):
     def connected(self) -> bool:
         """True between a good handshake and the next loss of the link."""
         return self._connected
+
+    def counters(self) -> dict[str, int]:
+        return {**super().counters(), **self.link_stats()}
 
     def link_stats(self) -> dict[str, int]:
         """The link's counters (errors, losses, recoveries, round trip)."""

@@ -154,6 +154,9 @@ class SimDaq(Daq):
         return self.is_open and self._connected
 
     # -- drive settings and conditions -----------------------------------------------------------
+    def counters(self) -> dict[str, int]:
+        return {**super().counters(), **{f"injected_{k}": n for k, n in self.fault_counts.items()}}
+
     def conditions(self) -> Conditions:
         """Motor temperature now and the drive's frequency and voltage."""
         with self._lock:
