@@ -28,3 +28,11 @@ lint: $(STAMP)
 
 clean:
 	rm -rf $(VENV) build *.egg-info
+
+# The MCU firmware (firmware/): avr-gcc image + simavr harness; `make flash PORT=/dev/ttyACM0`.
+.PHONY: firmware flash
+firmware:
+	$(MAKE) -C firmware firmware
+
+flash:
+	$(MAKE) -C firmware flash PORT=$(PORT)
