@@ -72,6 +72,10 @@ class CycleRecord:
     frequency_hz: float | None  # drive excitation frequency when known
     flags: int  # Flag bits
     wall_ns: int  # time.time_ns() at arrival (or at the stroke's end), for people
+    # Where the stroke came from. The loop leaves them None; the record store stamps its own
+    # (the daemon's driver name and rig identity) at submit, so every stored row says its source.
+    driver: str | None = None  # "sim", "serial", "usb" (None: unknown, e.g. a schema 1 row)
+    rig: str | None = None  # [daemon] rig, by default the host name
 
     @classmethod
     def build(
@@ -94,6 +98,8 @@ class CycleRecord:
         frequency_hz: float | None = None,
         flags: int = 0,
         wall_ns: int,
+        driver: str | None = None,
+        rig: str | None = None,
     ) -> CycleRecord:
         """Make a record from the stamps, deriving operating, total, error and dead time in one place."""
         operating = total = error = dead = None
@@ -126,6 +132,8 @@ class CycleRecord:
             frequency_hz=frequency_hz,
             flags=int(flags),
             wall_ns=wall_ns,
+            driver=driver,
+            rig=rig,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -159,19 +167,26 @@ class CycleRecord:
             self.frequency_hz,
             int(self.flags),
             self.wall_ns,
+            self.driver,
+            self.rig,
         )
 
     @classmethod
     def from_row(cls, row: Mapping[str, Any] | Sequence[Any]) -> CycleRecord:
-        """Rebuild a record from `to_dict()`, `to_row()`, a sqlite3.Row or a CSV row (all text)."""
+        """Rebuild a record from `to_dict()`, `to_row()`, a sqlite3.Row or a CSV row (all text).
+
+        `driver` and `rig` may be missing (a row or CSV from before they existed): they read as None.
+        """
         if isinstance(row, Mapping) or hasattr(row, "keys"):
             keys = set(row.keys())
-            missing = [f for f in FIELDS if f not in keys]
+            missing = [f for f in FIELDS if f not in keys and f not in SOURCE_FIELDS]
             if missing:
                 raise ValueError(f"cycle record row lacks field(s) {', '.join(missing)}")
-            values = [row[f] for f in FIELDS]
+            values = [row[f] if f in keys else None for f in FIELDS]
         else:
             values = list(row)
+            if len(values) == len(FIELDS) - len(SOURCE_FIELDS):
+                values += [None] * len(SOURCE_FIELDS)
             if len(values) != len(FIELDS):
                 raise ValueError(f"cycle record row has {len(values)} values, expected {len(FIELDS)}")
         kwargs = {}
@@ -181,6 +196,8 @@ class CycleRecord:
 
 
 FIELDS: tuple[str, ...] = tuple(f.name for f in fields(CycleRecord))
+#: The fields that say where a record came from (schema 2); absent from older rows and exports.
+SOURCE_FIELDS: tuple[str, ...] = ("driver", "rig")
 
 
 def _to_int(value: Any) -> int:
@@ -191,6 +208,14 @@ def _to_int(value: Any) -> int:
 
 def _opt_int(value: Any) -> int | None:
     return None if value is None or value == "" else _to_int(value)
+
+
+def _opt_str(value: Any) -> str | None:
+    if value is None or value == "":
+        return None
+    if not isinstance(value, str):
+        raise ValueError("expected text")
+    return value
 
 
 def _opt_float(value: Any) -> float | None:
@@ -216,6 +241,8 @@ _CONVERT = (
         "coefficients": _coefficients,
         "temperature_c": _opt_float,
         "frequency_hz": _opt_float,
+        "driver": _opt_str,
+        "rig": _opt_str,
     }
     | {
         name: _opt_int

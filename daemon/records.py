@@ -10,16 +10,19 @@ committed, and WAL recovery keeps the file consistent. What NORMAL gives up agai
 the last transactions on a power cut or kernel crash (the file still opens, consistent): an fsync
 per stroke would cost milliseconds on slow storage and buy little for a record of strokes.
 
-Writer failures (disk full, read-only, locked) are kept in `writer_error`, logged, and retried with
-backoff; the records wait in memory (up to `max_pending`, past which the oldest are dropped and
-counted), so the loop never stalls and nothing is lost silently. Reads use their own read-only
-connection per thread and never wait on the writer. Schema: docs/records.md.
+Writer failures (disk full, read-only, locked, and the file deleted or replaced under the writer,
+which would otherwise swallow every commit into an unlinked inode) are kept in `writer_error`,
+logged, and retried with backoff; the records wait in memory (up to `max_pending`, past which the
+oldest are dropped and counted), so the loop never stalls and nothing is lost silently. The store
+stamps each record with its `driver` and `rig`. Reads use their own read-only connection per
+thread and never wait on the writer. Schema: docs/records.md.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
 import queue
 import re
 import sqlite3
@@ -34,11 +37,15 @@ from urllib.parse import quote
 import structlog
 
 from .realtime import drop_realtime
-from .record import FIELDS, UNUSABLE, CycleRecord
+from .record import FIELDS, SOURCE_FIELDS, UNUSABLE, CycleRecord
 
 log = structlog.get_logger("usmswitch.records")
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+#: Versions this code reads; a writer migrates an older file to SCHEMA_VERSION at open.
+READABLE_VERSIONS = (1, 2)
+#: How often an idle writer checks that its file is still the one at its path.
+FILE_CHECK_NS = 200_000_000
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (
@@ -66,9 +73,12 @@ CREATE TABLE IF NOT EXISTS cycles (
     temperature_c REAL,
     frequency_hz REAL,
     flags INTEGER NOT NULL DEFAULT 0,
-    wall_ns INTEGER NOT NULL
+    wall_ns INTEGER NOT NULL,
+    driver TEXT,
+    rig TEXT
 );
 CREATE INDEX IF NOT EXISTS cycles_direction ON cycles (direction, cycle);
+CREATE INDEX IF NOT EXISTS cycles_source ON cycles (driver, rig, direction, cycle);
 CREATE TABLE IF NOT EXISTS events (
     id INTEGER PRIMARY KEY,
     wall_ns INTEGER NOT NULL,
@@ -83,6 +93,16 @@ _COLUMNS = ", ".join(f'"{f}"' for f in FIELDS)
 _INSERT_CYCLE = f"INSERT INTO cycles ({_COLUMNS}) VALUES ({', '.join('?' * len(FIELDS))})"
 _INSERT_EVENT = "INSERT INTO events (wall_ns, after_cycle, kind, data) VALUES (?, ?, ?, ?)"
 _SELECT_CYCLES = f"SELECT {_COLUMNS} FROM cycles"
+# A schema 1 file (read-only) has no source columns: they read as NULL.
+_SELECT_CYCLES_V1 = "SELECT {}, {} FROM cycles".format(
+    ", ".join(f'"{f}"' for f in FIELDS if f not in SOURCE_FIELDS),
+    ", ".join(f'NULL AS "{f}"' for f in SOURCE_FIELDS),
+)
+# Schema 1 -> 2: where each record came from. Old rows keep NULL ("unknown"): no warm start uses them.
+_MIGRATE_1_TO_2 = """
+ALTER TABLE cycles ADD COLUMN driver TEXT;
+ALTER TABLE cycles ADD COLUMN rig TEXT;
+"""
 
 _EVENT_KIND = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 _EVENT_RESERVED = frozenset({"id", "wall_ns", "after_cycle", "kind"})
@@ -90,6 +110,10 @@ _EVENT_RESERVED = frozenset({"id", "wall_ns", "after_cycle", "kind"})
 
 class RecordStoreError(Exception):
     """The record file cannot be opened or used; the message names the path and the reason."""
+
+
+class RecordFileGone(Exception):
+    """The file at the store's path is no longer the one it writes (deleted or replaced)."""
 
 
 class _Flush:
@@ -117,9 +141,21 @@ class RecordStore:
         max_pending: int = 1_000_000,
         busy_timeout_ns: int = 200_000_000,
         retry_ns: tuple[int, int] = (50_000_000, 2_000_000_000),
+        driver: str | None = None,
+        rig: str | None = None,
+        file_mode: int = 0o640,
     ) -> None:
         self.path = Path(path)
         self.readonly = readonly
+        #: Stamped on every record submitted without its own (the daemon's driver and rig).
+        self.driver = driver
+        self.rig = rig
+        if file_mode & ~0o666:
+            raise ValueError(f"file_mode {oct(file_mode)} has bits beyond read and write")
+        self._file_mode = file_mode
+        self._identity: tuple[int, int] | None = None  # (st_dev, st_ino) of the file the writer opened
+        self._select = _SELECT_CYCLES
+        self.schema_version = SCHEMA_VERSION
         if synchronous.upper() not in ("OFF", "NORMAL", "FULL", "EXTRA"):
             raise ValueError(f"synchronous must be OFF, NORMAL, FULL or EXTRA, got {synchronous!r}")
         if max_batch < 1 or max_pending < max_batch:
@@ -154,7 +190,9 @@ class RecordStore:
                 raise RecordStoreError(f"record file {self.path} does not exist")
             self._writer = None
             self._closed = True  # nothing may be submitted to a read-only store
-            self._check_schema(self._reader())
+            self.schema_version = self._check_schema(self._reader())
+            if self.schema_version == 1:
+                self._select = _SELECT_CYCLES_V1
             return
         self._writer = self._open_writer(synchronous.upper())
         row = self._writer.execute("SELECT max(cycle) FROM cycles").fetchone()
@@ -169,6 +207,10 @@ class RecordStore:
             raise RecordStoreError(f"record store {self.path} is closed (or read-only)")
         if type(record) is not CycleRecord:
             raise TypeError(f"submit takes a CycleRecord, got {type(record).__name__}")
+        if record.driver is None:
+            record.driver = self.driver
+        if record.rig is None:
+            record.rig = self.rig
         self.submitted += 1
         self._last_submitted_cycle = record.cycle
         self._queue.put(record)
@@ -254,19 +296,35 @@ class RecordStore:
         """How many strokes the file holds."""
         return self._reader().execute("SELECT count(*) FROM cycles").fetchone()[0]
 
-    def last_strokes(self, direction: int, n: int, exclude_flags: int = UNUSABLE) -> list[int]:
-        """The last `n` operating times (ns) of one direction, oldest first: a predictor's warm start."""
+    def last_strokes(
+        self,
+        direction: int,
+        n: int,
+        exclude_flags: int = UNUSABLE,
+        *,
+        driver: str | None = None,
+        rig: str | None = None,
+    ) -> list[int]:
+        """The last `n` operating times (ns) of one direction, oldest first: a predictor's warm start.
+
+        With `driver` and/or `rig`, only strokes that driver made on that rig: a real rig never
+        warm-starts from simulated strokes or another rig's (rows of unknown source never match).
+        """
         if direction not in (0, 1):
             raise ValueError(f"direction must be 0 (on) or 1 (off), got {direction!r}")
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
+        where = "direction = ? AND operating_ns IS NOT NULL AND (flags & ?) = 0"
+        args: list[Any] = [direction, int(exclude_flags)]
+        for column, value in (("driver", driver), ("rig", rig)):
+            if value is not None:
+                if self.schema_version < 2:
+                    return []  # a schema 1 file does not know where its strokes came from
+                where += f" AND {column} = ?"
+                args.append(value)
         rows = (
             self._reader()
-            .execute(
-                "SELECT operating_ns FROM cycles WHERE direction = ? AND operating_ns IS NOT NULL"
-                " AND (flags & ?) = 0 ORDER BY cycle DESC LIMIT ?",
-                (direction, int(exclude_flags), n),
-            )
+            .execute(f"SELECT operating_ns FROM cycles WHERE {where} ORDER BY cycle DESC LIMIT ?", (*args, n))
             .fetchall()
         )
         return [r[0] for r in reversed(rows)]
@@ -276,9 +334,9 @@ class RecordStore:
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
         if direction is None:
-            sql, args = f"{_SELECT_CYCLES} ORDER BY cycle DESC LIMIT ?", (n,)
+            sql, args = f"{self._select} ORDER BY cycle DESC LIMIT ?", (n,)
         else:
-            sql, args = f"{_SELECT_CYCLES} WHERE direction = ? ORDER BY cycle DESC LIMIT ?", (direction, n)
+            sql, args = f"{self._select} WHERE direction = ? ORDER BY cycle DESC LIMIT ?", (direction, n)
         rows = self._reader().execute(sql, args).fetchall()
         return [CycleRecord.from_row(r) for r in reversed(rows)]
 
@@ -295,7 +353,7 @@ class RecordStore:
             rows = (
                 self._reader()
                 .execute(
-                    f"{_SELECT_CYCLES} WHERE cycle > ? AND cycle <= ? ORDER BY cycle LIMIT ?",
+                    f"{self._select} WHERE cycle > ? AND cycle <= ? ORDER BY cycle LIMIT ?",
                     (after, stop, chunk),
                 )
                 .fetchall()
@@ -323,6 +381,7 @@ class RecordStore:
     def _open_writer(self, synchronous: str) -> sqlite3.Connection:
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._restrict_files()
             conn = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
             conn.execute(f"PRAGMA busy_timeout = {self._busy_timeout_ms}")
             mode = conn.execute("PRAGMA journal_mode = WAL").fetchone()[0]
@@ -331,18 +390,56 @@ class RecordStore:
             conn.execute(f"PRAGMA synchronous = {synchronous}")
             # Keep the WAL file from staying huge after a burst (it is reset at each checkpoint).
             conn.execute("PRAGMA journal_size_limit = 67108864")
-            self._check_schema(conn)
+            if self._check_schema(conn) == 1:
+                self._migrate_1_to_2(conn)
             conn.executescript(SCHEMA)
             conn.execute(
                 "INSERT OR IGNORE INTO meta (key, value)"
                 " VALUES ('schema_version', ?), ('created_wall_ns', ?)",
                 (str(SCHEMA_VERSION), str(time.time_ns())),
             )
+            # The -wal and -shm files exist now (SQLite gives them the main file's mode).
+            self._restrict_files()
+            st = os.stat(self.path)
+            self._identity = (st.st_dev, st.st_ino)
         except (sqlite3.Error, OSError) as exc:
             raise RecordStoreError(f"record file {self.path}: {exc}") from exc
         return conn
 
-    def _check_schema(self, conn: sqlite3.Connection) -> None:
+    def _restrict_files(self) -> None:
+        """The file and its -wal/-shm readable by nobody beyond `file_mode` (0640: owner and group).
+
+        A new file is created with that mode before SQLite opens it (SQLite gives the -wal and -shm
+        files the main file's mode); an existing one that is looser is tightened.
+        """
+        try:
+            fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, self._file_mode)
+        except FileExistsError:
+            pass
+        else:
+            os.close(fd)
+        for suffix in ("", "-wal", "-shm"):
+            p = Path(f"{self.path}{suffix}")
+            try:
+                mode = os.stat(p).st_mode & 0o7777
+            except FileNotFoundError:
+                continue
+            if mode & ~self._file_mode:
+                os.chmod(p, mode & self._file_mode)
+
+    def _migrate_1_to_2(self, conn: sqlite3.Connection) -> None:
+        """Schema 1 -> 2: the source columns added, every row kept (driver and rig NULL: unknown)."""
+        rows = conn.execute("SELECT count(*) FROM cycles").fetchone()[0]
+        conn.executescript(
+            f"BEGIN IMMEDIATE; {_MIGRATE_1_TO_2}"
+            f" UPDATE meta SET value = '{SCHEMA_VERSION}' WHERE key = 'schema_version'; COMMIT;"
+        )
+        log.info(
+            "record file migrated", path=str(self.path), schema_from=1, schema_to=SCHEMA_VERSION, rows=rows
+        )
+
+    def _check_schema(self, conn: sqlite3.Connection) -> int:
+        """The file's schema version (SCHEMA_VERSION for a new, empty file); refuses one it cannot read."""
         try:
             has_meta = conn.execute(
                 "SELECT 1 FROM sqlite_master WHERE type='table' AND name='meta'"
@@ -350,15 +447,29 @@ class RecordStore:
             if not has_meta:
                 if self.readonly:
                     raise RecordStoreError(f"record file {self.path} has no usmswitch schema")
-                return
+                return SCHEMA_VERSION
             row = conn.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
         except sqlite3.Error as exc:
             raise RecordStoreError(f"record file {self.path}: {exc}") from exc
-        if row is not None and row[0] != str(SCHEMA_VERSION):
+        if row is None:
+            return SCHEMA_VERSION
+        if row[0] not in {str(v) for v in READABLE_VERSIONS}:
             raise RecordStoreError(
                 f"record file {self.path} has schema version {row[0]};"
-                f" this daemon reads version {SCHEMA_VERSION}"
+                f" this daemon reads versions {', '.join(map(str, READABLE_VERSIONS))}"
             )
+        return int(row[0])
+
+    def _check_file(self) -> None:
+        """Raise RecordFileGone unless the path still names the file the writer has open."""
+        try:
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            raise RecordFileGone(f"record file {self.path} deleted under the writer") from None
+        except OSError as exc:
+            raise RecordFileGone(f"record file {self.path} cannot be checked: {exc}") from None
+        if (st.st_dev, st.st_ino) != self._identity:
+            raise RecordFileGone(f"record file {self.path} replaced under the writer (another file is there)")
 
     def _reader(self) -> sqlite3.Connection:
         conn = getattr(self._local, "conn", None)
@@ -403,16 +514,17 @@ class RecordStore:
         stopping = False
         retry_at = 0
         backoff = self._retry_ns[0]
+        next_check = time.monotonic_ns() + FILE_CHECK_NS
         while True:
-            # Block for work only when nothing is waiting to be written.
-            if not pending and not stopping:
-                item = self._queue.get()
-            elif self._writer_error is not None and not stopping:
-                try:
+            # Block for work only when nothing is waiting to be written, and never for longer than
+            # the file check's period: a file deleted while idle is noticed before the next stroke.
+            item: Any = None
+            try:
+                if not pending and not stopping:
+                    item = self._queue.get(timeout=FILE_CHECK_NS / 1e9)
+                elif self._writer_error is not None and not stopping:
                     item = self._queue.get(timeout=max(0, retry_at - time.monotonic_ns()) / 1e9)
-                except queue.Empty:
-                    item = None
-            else:
+            except queue.Empty:
                 item = None
             while True:
                 if item is _STOP:
@@ -437,23 +549,49 @@ class RecordStore:
                 log.error(
                     "record writer backlog full: oldest records dropped", dropped=lost, path=str(self.path)
                 )
-            if pending and (self._writer_error is None or time.monotonic_ns() >= retry_at or stopping):
+            now = time.monotonic_ns()
+            if not pending and self._writer_error is None and now >= next_check:
+                next_check = now + FILE_CHECK_NS
+                try:
+                    self._check_file()
+                except RecordFileGone as exc:
+                    self._fail(conn, exc)
+                    retry_at = now + backoff
+            if pending and (self._writer_error is None or now >= retry_at or stopping):
                 while pending:
                     batch = [pending.popleft() for _ in range(min(self._max_batch, len(pending)))]
                     try:
-                        self._write(conn, batch)
-                    except sqlite3.Error as exc:
+                        self._check_file()
+                        counts = self._write(conn, batch)
+                        # Committed into the file we opened: is that still the file at the path?
+                        # If not, the batch went to an unlinked (or moved) file: keep it.
+                        self._check_file()
+                    except (sqlite3.Error, RecordFileGone) as exc:
                         pending.extendleft(reversed(batch))
                         self._fail(conn, exc)
                         retry_at = time.monotonic_ns() + backoff
                         backoff = min(2 * backoff, self._retry_ns[1])
                         break
+                    self._count(counts)
+                    next_check = time.monotonic_ns() + FILE_CHECK_NS
                     done += len(batch)
                     batch = []  # the records are on disk: hold none of them while idle
                     if self._writer_error is not None:
                         log.info("record writer recovered", path=str(self.path), after=self._writer_error)
                         self._writer_error = None
                         backoff = self._retry_ns[0]
+            elif not pending and self._writer_error is not None and now >= retry_at:
+                # Failing with nothing to write (the file vanished while idle): recovered only
+                # if the path names our file again.
+                try:
+                    self._check_file()
+                except RecordFileGone:
+                    retry_at = now + backoff
+                    backoff = min(2 * backoff, self._retry_ns[1])
+                else:
+                    log.info("record writer recovered", path=str(self.path), after=self._writer_error)
+                    self._writer_error = None
+                    backoff = self._retry_ns[0]
             still = []
             for n, marker in waiters:
                 if n <= done:
@@ -471,7 +609,10 @@ class RecordStore:
                     marker.done.set()
                 return
 
-    def _write(self, conn: sqlite3.Connection, batch: list[Any]) -> None:
+    def _write(
+        self, conn: sqlite3.Connection, batch: list[Any]
+    ) -> tuple[int, int, int, list[tuple[int, str]]]:
+        """Commit one batch; returns (written, rejected, events, unconvertible) for `_count`."""
         cycles = []
         events = []
         unconvertible: list[tuple[int, str]] = []
@@ -503,13 +644,17 @@ class RecordStore:
             if conn.in_transaction:
                 conn.execute("ROLLBACK")
             raise
-        # Counted once the batch is in: a failed commit retries the whole batch.
+        return len(cycles) - rejected, rejected, len(events), unconvertible
+
+    def _count(self, counts: tuple[int, int, int, list[tuple[int, str]]]) -> None:
+        """Counted once the batch is in the file at our path: a failed batch is retried whole."""
+        written, rejected, events, unconvertible = counts
         for cycle, reason in unconvertible:
             self.last_error = f"cycle {cycle} rejected: {reason}"
             log.error("cycle record rejected: a field is not a plain value", cycle=cycle, reason=reason)
-        self.written += len(cycles) - rejected
+        self.written += written
         self.rejected += rejected + len(unconvertible)
-        self.events_written += len(events)
+        self.events_written += events
 
     def _insert_one_by_one(self, conn: sqlite3.Connection, rows: list[tuple[Any, ...]]) -> int:
         rejected = 0
@@ -522,8 +667,8 @@ class RecordStore:
                 log.error("cycle record rejected by the database", cycle=row[0], reason=str(exc))
         return rejected
 
-    def _fail(self, conn: sqlite3.Connection, exc: sqlite3.Error) -> None:
-        message = f"{type(exc).__name__}: {exc}"
+    def _fail(self, conn: sqlite3.Connection, exc: sqlite3.Error | RecordFileGone) -> None:
+        message = str(exc) if isinstance(exc, RecordFileGone) else f"{type(exc).__name__}: {exc}"
         self.error_count += 1
         self.last_error = message
         if conn.in_transaction:

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
+import errno
 import io
 import os
 import signal
 import sqlite3
+import stat
 import subprocess
 import sys
 import textwrap
@@ -90,7 +93,7 @@ def test_from_row_names_the_bad_field():
 def test_flag_bits_are_distinct_and_unusable_covers_lost_strokes():
     values = [f.value for f in Flag]
     assert len(set(values)) == len(values) and all(v & (v - 1) == 0 for v in values)
-    assert UNUSABLE == Flag.STALL | Flag.FAULT | Flag.ESTOP
+    assert UNUSABLE == Flag.STALL | Flag.FAULT | Flag.ESTOP | Flag.ABORTED | Flag.PARTIAL
 
 
 # -- RecordStore -------------------------------------------------------------------------------------
@@ -333,3 +336,210 @@ def test_100k_records_are_all_written(tmp_path: Path):
         f" all committed after {t2 - t0:.2f} s; RSS {rss0 // 1024} -> {rss1 // 1024} MiB;"
         f" file {path.stat().st_size // 1024} KiB"
     )
+
+
+# -- where a record came from (schema 2) ----------------------------------------------------------
+def test_store_stamps_driver_and_rig_and_the_warm_start_uses_only_its_own(tmp_path: Path):
+    path = tmp_path / "r.sqlite"
+    with RecordStore(path, driver="sim", rig="bench") as sim:
+        for i in range(1, 7):
+            rec = make_record(i, operating_ns=9_000_000 + i)
+            sim.submit(rec)
+            assert (rec.driver, rec.rig) == ("sim", "bench")  # stamped at submit: subscribers see it
+        assert sim.flush()
+    with RecordStore(path, driver="serial", rig="bench") as real:
+        real.submit(make_record(7, operating_ns=10_000_007))
+        # A record that says where it came from keeps it.
+        real.submit(dataclasses.replace(make_record(9, operating_ns=10_000_009), rig="other"))
+        assert real.flush()
+        assert real.last_strokes(0, 100, driver="serial", rig="bench") == [10_000_007]
+        assert real.last_strokes(0, 100, driver="sim", rig="bench") == [9_000_001, 9_000_003, 9_000_005]
+        assert real.last_strokes(0, 100, driver="serial") == [10_000_007, 10_000_009]
+        assert real.last_strokes(0, 100, driver="usb", rig="bench") == []
+        assert len(real.last_strokes(0, 100)) == 5  # no filter: every usable stroke
+        hist = real.history(4)
+        assert [(r.cycle, r.driver, r.rig) for r in hist] == [
+            (5, "sim", "bench"),
+            (6, "sim", "bench"),
+            (7, "serial", "bench"),
+            (9, "serial", "other"),
+        ]
+        assert [r.to_dict()["driver"] for r in real.iter_records(first=6)] == ["sim", "serial", "serial"]
+    con = sqlite3.connect(path)
+    assert con.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone() == ("2",)
+    con.close()
+
+
+SCHEMA_V1 = """
+CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID;
+CREATE TABLE cycles (
+    cycle INTEGER PRIMARY KEY CHECK (cycle >= 1),
+    direction INTEGER NOT NULL CHECK (direction IN (0, 1)),
+    mode TEXT NOT NULL CHECK (mode IN ('closed', 'open')),
+    target_ns INTEGER NOT NULL, "order" INTEGER NOT NULL, coefficients TEXT NOT NULL,
+    t_hat_ns INTEGER NOT NULL, delay_ns INTEGER NOT NULL CHECK (delay_ns >= 0), t_cmd_ns INTEGER NOT NULL,
+    t_start_ns INTEGER, t_depart_ns INTEGER, t_arrive_ns INTEGER,
+    operating_ns INTEGER, total_ns INTEGER, error_ns INTEGER, dead_ns INTEGER, lateness_ns INTEGER,
+    temperature_c REAL, frequency_hz REAL, flags INTEGER NOT NULL DEFAULT 0, wall_ns INTEGER NOT NULL
+);
+CREATE INDEX cycles_direction ON cycles (direction, cycle);
+CREATE TABLE events (id INTEGER PRIMARY KEY, wall_ns INTEGER NOT NULL, after_cycle INTEGER,
+    kind TEXT NOT NULL, data TEXT NOT NULL);
+CREATE INDEX events_kind ON events (kind, id);
+INSERT INTO meta VALUES ('schema_version', '1'), ('created_wall_ns', '1');
+"""
+
+
+def test_a_schema_1_file_is_read_as_is_and_migrated_keeping_every_row(tmp_path: Path):
+    path = tmp_path / "old.sqlite"
+    con = sqlite3.connect(path)
+    con.executescript(SCHEMA_V1)
+    old = [make_record(i, operating_ns=10_000_000 + i) for i in range(1, 301)]
+    v1_fields = [f for f in FIELDS if f not in ("driver", "rig")]
+    columns, marks = ", ".join(f'"{f}"' for f in v1_fields), ", ".join("?" * len(v1_fields))
+    con.executemany(
+        f"INSERT INTO cycles ({columns}) VALUES ({marks})", [r.to_row()[: len(v1_fields)] for r in old]
+    )
+    con.execute("INSERT INTO events (wall_ns, after_cycle, kind, data) VALUES (1, 300, 'stop', '{}')")
+    con.commit()
+    con.close()
+    # Read-only (usmswitchctl export from an old file): read as it is, the source unknown.
+    ro = RecordStore(path, readonly=True)
+    assert ro.schema_version == 1 and list(ro.iter_records()) == old
+    assert ro.last_strokes(0, 5, driver="sim") == []
+    ro.close()
+    # A writer migrates it: every row kept, source NULL, new rows stamped.
+    with RecordStore(path, driver="serial", rig="bench") as store:
+        assert store.count() == 300 and store.last_cycle() == 300
+        assert list(store.iter_records(last=300)) == old  # driver and rig None: unknown
+        assert store.last_strokes(0, 5, driver="serial", rig="bench") == []  # unknown never warms
+        assert store.last_strokes(0, 2) == [10_000_297, 10_000_299]
+        store.submit(make_record(301))
+        assert store.flush()
+        assert store.history(1)[0].driver == "serial"
+        assert store.events("stop")[0]["after_cycle"] == 300
+    con = sqlite3.connect(path)
+    assert con.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone() == ("2",)
+    assert con.execute("SELECT count(*), count(driver) FROM cycles").fetchone() == (301, 1)
+    assert con.execute("PRAGMA integrity_check").fetchone() == ("ok",)
+    con.close()
+
+
+# -- permissions ---------------------------------------------------------------------------------
+def _mode(p: Path) -> int:
+    return stat.S_IMODE(os.stat(p).st_mode)
+
+
+def test_record_files_are_not_world_readable(tmp_path: Path):
+    old = os.umask(0o022)  # a permissive umask: the store must not rely on the caller's
+    try:
+        path = tmp_path / "r.sqlite"
+        with RecordStore(path) as store:
+            store.submit(make_record(1))
+            assert store.flush()
+            for suffix in ("", "-wal", "-shm"):
+                assert _mode(Path(f"{path}{suffix}")) == 0o640, suffix
+        private = tmp_path / "p.sqlite"
+        with RecordStore(private, file_mode=0o600) as store:
+            store.submit(make_record(1))
+            assert store.flush()
+            assert {_mode(Path(f"{private}{s}")) for s in ("", "-wal", "-shm")} == {0o600}
+        # A file left world-readable by an older version is tightened at open.
+        os.chmod(path, 0o644)
+        with RecordStore(path) as store:
+            assert _mode(path) == 0o640 and _mode(Path(f"{path}-wal")) == 0o640
+        with pytest.raises(ValueError, match="beyond read and write"):
+            RecordStore(tmp_path / "x.sqlite", file_mode=0o750)
+    finally:
+        os.umask(old)
+
+
+# -- the file deleted or replaced under the writer ----------------------------------------------------
+def test_a_deleted_file_is_a_writer_error_and_the_records_stay_pending(tmp_path: Path):
+    path = tmp_path / "r.sqlite"
+    store = RecordStore(path, retry_ns=(10_000_000, 50_000_000))
+    for i in range(1, 11):
+        store.submit(make_record(i))
+    assert store.flush()
+    path.unlink()
+    # Idle, the writer notices within its check period, before anything more is submitted.
+    assert wait_for(lambda: store.writer_error is not None, timeout_s=2.0)
+    assert "deleted" in store.writer_error and str(path) in store.writer_error
+    for i in range(11, 21):
+        store.submit(make_record(i))
+    time.sleep(0.2)
+    assert store.backlog == 10 and store.written == 10  # kept in memory, not written into the void
+    assert not store.flush(timeout_ns=100_000_000)
+    assert not store.close(timeout_ns=300_000_000)  # close says records were left
+    assert store.backlog == 10 and store.dropped == 0
+
+
+def test_a_replaced_file_is_a_writer_error_and_a_commit_into_the_old_one_is_not_counted(tmp_path: Path):
+    path = tmp_path / "r.sqlite"
+    store = RecordStore(path, retry_ns=(10_000_000, 50_000_000))
+    store.submit(make_record(1))
+    assert store.flush()
+    path.rename(tmp_path / "moved.sqlite")
+    path.write_bytes(b"")  # another file where ours was
+    for i in range(2, 6):
+        store.submit(make_record(i))  # may land in the moved file; still counted unwritten
+    assert wait_for(lambda: store.writer_error is not None, timeout_s=2.0)
+    assert "replaced" in store.writer_error
+    time.sleep(0.1)
+    assert store.written == 1 and store.backlog == 4
+    assert not store.close(timeout_ns=200_000_000)
+
+
+# -- a real full file system (tmpfs) ------------------------------------------------------------------
+@pytest.fixture
+def small_fs(tmp_path: Path):
+    """A 1 MiB tmpfs mounted under tmp_path (needs root and mount permission)."""
+    mnt = tmp_path / "fs"
+    mnt.mkdir()
+    r = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", "size=1m,mode=0755", "tmpfs", str(mnt)], capture_output=True, text=True
+    )
+    if r.returncode != 0:
+        if os.environ.get("CI") == "true":
+            pytest.fail(f"CI must allow a tmpfs mount for the full-disk test: {r.stderr.strip()}")
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip() or r.returncode}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+def fill(directory: Path) -> Path:
+    """Write a file until the file system is full; returns it (delete it to make room again)."""
+    filler = directory / "filler"
+    chunk = b"\0" * 4096
+    with filler.open("wb", buffering=0) as f:
+        while True:
+            try:
+                f.write(chunk)
+            except OSError as exc:
+                if exc.errno != errno.ENOSPC:
+                    raise
+                return filler
+
+
+def test_a_full_disk_is_a_writer_error_and_nothing_is_lost_when_space_returns(small_fs: Path):
+    path = small_fs / "r.sqlite"
+    store = RecordStore(path, retry_ns=(10_000_000, 50_000_000))
+    for i in range(1, 6):
+        store.submit(make_record(i))
+    assert store.flush()
+    filler = fill(small_fs)
+    i = 5
+    while store.writer_error is None and i < 5000:  # the WAL grows by a page or two per commit
+        i += 1
+        store.submit(make_record(i))
+        store.flush(timeout_ns=20_000_000)
+    assert store.writer_error is not None and "full" in store.writer_error.lower()
+    for j in range(i + 1, i + 21):
+        store.submit(make_record(j))
+    assert not store.flush(timeout_ns=100_000_000) and store.backlog >= 20
+    filler.unlink()
+    assert store.flush()
+    assert store.writer_error is None and store.backlog == 0 and store.dropped == 0
+    assert store.count() == i + 20 and store.close()
