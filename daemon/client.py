@@ -25,6 +25,7 @@ from urllib.parse import parse_qs, urlsplit
 import msgpack
 
 from .rpc import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, RpcError
+from .sockdir import UntrustedSocketError, check_peer, check_socket_owner
 
 __all__ = [
     "Client",
@@ -38,6 +39,7 @@ __all__ = [
     "Status",
     "Subscription",
     "Targets",
+    "UntrustedSocketError",
 ]
 
 DEFAULT_TIMEOUT_NS = 10_000_000_000
@@ -225,10 +227,14 @@ class Client:
             sock = socket.create_connection(self.address, timeout=self._timeout_s())
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         else:
+            # Trust only a socket this user or root owns, or one in a private directory root placed
+            # (docs/config.md): in a directory another user can write, the socket may be theirs.
+            owner = check_socket_owner(self.address)
             sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             sock.settimeout(self._timeout_s())
             try:
                 sock.connect(self.address)
+                check_peer(sock, owner)
             except OSError:
                 sock.close()
                 raise
