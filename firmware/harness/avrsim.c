@@ -1,0 +1,743 @@
+/* usmswitch-avrsim: the usmswitch firmware in simavr, its UART on a pty, its sensors driven by
+ * the project's rig model (firmware/harness/rig_helper.py, a child process on a pipe).
+ *
+ *   usmswitch-avrsim --elf ELF --link PATH [--truth CSV] [--seed N] [--ppm N]
+ *                    [--clock-start-us N] [--start-at A|B] [--python PY] [--helper SCRIPT]
+ *   usmswitch-avrsim --elf ELF --lockstep [...]     UART over stdin/stdout, time on command
+ *
+ * Real time (--link): emulated time is paced to the wall clock (scaled by --ppm, the crystal's
+ * error); the UART is bridged to a pty whose slave gets a symlink at PATH.
+ * Lockstep: as fast as the CPU goes, time advancing only on command; the UART's bytes are
+ * exchanged on stdin/stdout. Commands on stdin (both modes, one a line):
+ *   send HEX     bytes to the firmware's UART (lockstep)
+ *   run US       run US microseconds of emulated time, print "uart HEX" (lockstep) and "ran CYCLE"
+ *   stall        the next stroke jams half way       bounce   the next arrival bounces
+ *   unplug       close the pty, remove the symlink   replug   new pty (and a power-on reset)
+ *   quit
+ * --truth CSV gets a row per stroke: stroke,direction,start_us,depart_us,arrive_us,off_us,
+ * cut_ns (arrival edge to drive off), on the firmware's microsecond clock, from emulator cycles.
+ *
+ * simavr 1.6 (Debian bookworm) gets four corrections here, none in the firmware (--emulator-bugs
+ * leaves them out, for the test that shows each one):
+ *  1. a write to TIFRn cleared every pending flag of the timer, not only the bits written as 1;
+ *  2. SEI and RETI enabled interrupts two instructions late instead of one;
+ *  3. FOCnx (force output compare) was ignored;
+ *  4. in normal mode the OCnx pin was set or cleared at every overflow as in PWM modes: the
+ *     drive pin here is the harness's own model of the OC4A latch and the COM4A mux.
+ */
+#define _GNU_SOURCE
+#include <errno.h>
+#include <fcntl.h>
+#include <gelf.h>
+#include <libelf.h>
+#include <math.h>
+#include <poll.h>
+#include <signal.h>
+#include <stdarg.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/wait.h>
+#include <termios.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "avr_ioport.h"
+#include "avr_timer.h"
+#include "avr_uart.h"
+#include "sim_avr.h"
+#include "sim_elf.h"
+#include "sim_interrupts.h"
+#include "sim_io.h"
+
+#define F_CPU 16000000.0
+/* ATmega2560 data addresses */
+#define A_PORTH 0x102
+#define A_TCCR4A 0xA0
+#define A_TCCR4C 0xA2
+#define A_TCNT4L 0xA4
+#define A_GTCCR 0x43
+#define BIT_FOC4A 7
+
+static avr_t *avr;
+static int fix_bugs = 1;
+static int lockstep;
+static double ppm;
+static uint32_t clock_start_us;
+static uint16_t clock_ovf_addr;
+static avr_cycle_count_t origin_cycle; /* cycle of the firmware's TCNT4 = 0 */
+static int origin_set;
+
+static void die(const char *fmt, ...)
+{
+    va_list ap;
+    va_start(ap, fmt);
+    fprintf(stderr, "usmswitch-avrsim: ");
+    vfprintf(stderr, fmt, ap);
+    fprintf(stderr, "\n");
+    va_end(ap);
+    exit(2);
+}
+
+/* ---- time ---- */
+static double f_eff(void) { return F_CPU * (1.0 + ppm * 1e-6); } /* the crystal's real rate */
+
+static uint64_t cycles_to_ns(avr_cycle_count_t c) { return (uint64_t)((double)c * 1e9 / f_eff()); }
+
+static avr_cycle_count_t ns_to_cycles(uint64_t ns) { return (avr_cycle_count_t)ceil((double)ns * f_eff() / 1e9); }
+
+/* The firmware's microsecond clock at cycle c: (clock_ovf << 15) + TCNT4 / 2, TCNT4 at clk/8. */
+static uint32_t fw_us(avr_cycle_count_t c)
+{
+    if (!origin_set || c < origin_cycle)
+        return 0;
+    uint64_t ticks = (c - origin_cycle) / 8;
+    return (uint32_t)(((uint64_t)(clock_start_us / 32768u) << 15) + ticks / 2);
+}
+
+/* ---- the rig helper ---- */
+static FILE *helper_in, *helper_out;
+static pid_t helper_pid;
+
+struct edge {
+    avr_cycle_count_t at;
+    int ch, level;
+};
+#define MAX_EDGES 16
+static struct edge pending[MAX_EDGES];
+static int npending;
+static int sensor_active[2];
+static avr_irq_t *sensor_irq[2];
+
+static void helper_start(const char *python, const char *script, int seed, char start_at)
+{
+    int to_child[2], from_child[2];
+    if (pipe(to_child) || pipe(from_child))
+        die("pipe: %s", strerror(errno));
+    helper_pid = fork();
+    if (helper_pid < 0)
+        die("fork: %s", strerror(errno));
+    if (helper_pid == 0) {
+        dup2(to_child[0], 0);
+        dup2(from_child[1], 1);
+        close(to_child[1]);
+        close(from_child[0]);
+        char seed_s[32], at_s[2] = {start_at, 0};
+        snprintf(seed_s, sizeof seed_s, "%d", seed);
+        execlp(python, python, script, "--seed", seed_s, "--start-at", at_s, (char *)NULL);
+        fprintf(stderr, "usmswitch-avrsim: exec %s: %s\n", python, strerror(errno));
+        _exit(127);
+    }
+    close(to_child[0]);
+    close(from_child[1]);
+    helper_in = fdopen(to_child[1], "w");
+    helper_out = fdopen(from_child[0], "r");
+}
+
+static void add_edge(avr_cycle_count_t at, int ch, int level)
+{
+    if (npending >= MAX_EDGES)
+        die("too many pending sensor edges");
+    pending[npending++] = (struct edge){at, ch, level};
+}
+
+/* Send a request, read "edge" lines until "end" (or the "sensors" answer to init). */
+static void helper_ask(const char *fmt, ...)
+{
+    char line[256];
+    va_list ap;
+    va_start(ap, fmt);
+    vfprintf(helper_in, fmt, ap);
+    va_end(ap);
+    fputc('\n', helper_in);
+    fflush(helper_in);
+    for (;;) {
+        if (!fgets(line, sizeof line, helper_out))
+            die("rig helper exited");
+        unsigned long long t;
+        int ch, level, a, b;
+        if (sscanf(line, "edge %llu %d %d", &t, &ch, &level) == 3)
+            add_edge(ns_to_cycles(t), ch, level);
+        else if (sscanf(line, "sensors %d %d", &a, &b) == 2) {
+            sensor_active[0] = a;
+            sensor_active[1] = b;
+            return;
+        } else if (strncmp(line, "end", 3) == 0)
+            return;
+        else
+            die("rig helper said: %s", line);
+    }
+}
+
+/* ---- truth ---- */
+static FILE *truth;
+static int stroke_no;
+static struct {
+    int on, direction, departed, arrived;
+    avr_cycle_count_t start, depart, arrive;
+} cur;
+
+static void set_sensor(int ch, int active)
+{
+    sensor_active[ch] = active;
+    avr_raise_irq(sensor_irq[ch], active ? 0 : 1); /* active low */
+    if (!cur.on)
+        return;
+    int source = cur.direction == 0 ? 0 : 1;
+    if (ch == source && !active && !cur.departed) {
+        cur.departed = 1;
+        cur.depart = avr->cycle;
+    }
+    if (ch == (source ^ 1) && active && !cur.arrived) {
+        cur.arrived = 1;
+        cur.arrive = avr->cycle;
+    }
+}
+
+/* ---- the drive pin: OC4A latch and COM4A mux, modelled here (simavr's is wrong) ---- */
+static int oc4a_latch, drive_pin;
+static avr_timer_t *timer4, *timer5;
+
+static void drive_update(void)
+{
+    uint8_t com = (avr->data[A_TCCR4A] >> 6) & 3;
+    int pin = com ? oc4a_latch : (avr->data[A_PORTH] >> 3) & 1;
+    if (pin == drive_pin)
+        return;
+    drive_pin = pin;
+    avr_cycle_count_t c = avr->cycle;
+    if (lockstep)
+        printf("drive %d %llu %lu\n", pin, (unsigned long long)c, (unsigned long)fw_us(c));
+    if (pin) {
+        cur.on = 1;
+        cur.direction = (avr->data[A_PORTH] >> 4) & 1;
+        cur.departed = cur.arrived = 0;
+        cur.start = c;
+        stroke_no++;
+        npending = 0;
+        helper_ask("on %llu %d", (unsigned long long)cycles_to_ns(c), cur.direction);
+        /* Already at the destination: the far sensor is active as the drive goes on. */
+        if (sensor_active[cur.direction == 0 ? 1 : 0] && !cur.arrived) {
+            cur.arrived = 1;
+            cur.arrive = c;
+        }
+    } else {
+        /* Edges not yet due end here; the helper may send bounce edges. */
+        int keep = 0;
+        for (int i = 0; i < npending; i++)
+            if (pending[i].at <= c)
+                pending[keep++] = pending[i];
+        npending = keep;
+        helper_ask("off %llu", (unsigned long long)cycles_to_ns(c));
+        if (truth && cur.on) {
+            fprintf(truth, "%d,%d,%lu,", stroke_no, cur.direction, (unsigned long)fw_us(cur.start));
+            if (cur.departed)
+                fprintf(truth, "%lu", (unsigned long)fw_us(cur.depart));
+            fputc(',', truth);
+            if (cur.arrived)
+                fprintf(truth, "%lu", (unsigned long)fw_us(cur.arrive));
+            fprintf(truth, ",%lu,", (unsigned long)fw_us(c));
+            if (cur.arrived)
+                fprintf(truth, "%.0f", (double)(c - cur.arrive) * 1e9 / F_CPU);
+            fputc('\n', truth);
+            fflush(truth);
+        }
+        cur.on = 0;
+    }
+}
+
+static void apply_com(uint8_t com)
+{
+    if (com == 1)
+        oc4a_latch ^= 1;
+    else if (com == 2)
+        oc4a_latch = 0;
+    else if (com == 3)
+        oc4a_latch = 1;
+}
+
+/* Compare match A of timer 4 (the interrupt flag rises): the hardware's pin action. */
+static void on_compa(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (!value)
+        return;
+    apply_com((avr->data[A_TCCR4A] >> 6) & 3);
+    drive_update();
+}
+
+static void w_tccr4c(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
+{
+    (void)a;
+    (void)addr;
+    (void)param;
+    if (fix_bugs && (v & (1 << BIT_FOC4A))) /* FOC bits read as zero: nothing stored */
+        apply_com((avr->data[A_TCCR4A] >> 6) & 3);
+    drive_update();
+}
+
+static void w_watch(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
+{
+    (void)a;
+    (void)addr;
+    (void)v;
+    (void)param;
+    drive_update(); /* simavr's own handler has stored the value */
+}
+
+/* The firmware zeroes TCNT4 (its clock's origin) and releases the prescaler. */
+static void w_tcnt4l(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
+{
+    (void)a;
+    (void)addr;
+    (void)param;
+    if (v == 0 && avr->data[A_TCNT4L + 1] == 0) {
+        origin_cycle = avr->cycle;
+        origin_set = 1;
+    }
+}
+
+static void w_gtccr(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
+{
+    (void)a;
+    (void)param;
+    avr->data[addr] = v;
+    if (!(v & 0x80) && clock_ovf_addr) { /* TSM released: the clock starts; preset its high part */
+        uint32_t ovf = clock_start_us / 32768u;
+        for (int i = 0; i < 4; i++)
+            avr->data[clock_ovf_addr + i] = (uint8_t)(ovf >> (8 * i));
+    }
+}
+
+/* Correction 1: clear only the TIFR bits written as one. */
+static void clear_if(avr_int_vector_t *vec, avr_io_addr_t addr, uint8_t v)
+{
+    if (vec->raised.reg == addr && (v & (1 << vec->raised.bit)) && avr_regbit_get(avr, vec->raised))
+        avr_clear_interrupt(avr, vec);
+}
+
+static void w_tifr_fixed(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
+{
+    (void)a;
+    avr_timer_t *t = param;
+    clear_if(&t->overflow, addr, v);
+    clear_if(&t->icr, addr, v);
+    for (int i = 0; i < AVR_TIMER_COMP_COUNT; i++)
+        clear_if(&t->comp[i].interrupt, addr, v);
+}
+
+static avr_timer_t *find_timer(char name)
+{
+    for (avr_io_t *io = avr->io_port; io; io = io->next)
+        if (io->kind && !strcmp(io->kind, "timer") && ((avr_timer_t *)io)->name == name)
+            return (avr_timer_t *)io;
+    die("no timer %c in this core", name);
+    return NULL;
+}
+
+static void fix_tifr(avr_timer_t *t)
+{
+    avr_io_addr_t a = AVR_DATA_TO_IO(t->overflow.raised.reg);
+    if (avr->io[a].w.param != t)
+        die("timer %c: TIFR write handler is not simavr's own (shared register?)", t->name);
+    avr->io[a].w.c = w_tifr_fixed;
+}
+
+/* ---- ELF symbol lookup (clock_ovf) ---- */
+static uint16_t elf_symbol(const char *path, const char *name)
+{
+    if (elf_version(EV_CURRENT) == EV_NONE)
+        die("libelf: %s", elf_errmsg(-1));
+    int fd = open(path, O_RDONLY);
+    if (fd < 0)
+        die("%s: %s", path, strerror(errno));
+    Elf *e = elf_begin(fd, ELF_C_READ, NULL);
+    Elf_Scn *scn = NULL;
+    uint16_t addr = 0;
+    while ((scn = elf_nextscn(e, scn))) {
+        GElf_Shdr sh;
+        gelf_getshdr(scn, &sh);
+        if (sh.sh_type != SHT_SYMTAB)
+            continue;
+        Elf_Data *d = elf_getdata(scn, NULL);
+        for (size_t i = 0; i < sh.sh_size / sh.sh_entsize; i++) {
+            GElf_Sym s;
+            gelf_getsym(d, (int)i, &s);
+            if (!strcmp(elf_strptr(e, sh.sh_link, s.st_name), name))
+                addr = (uint16_t)(s.st_value & 0xFFFF); /* data addresses carry 0x800000 */
+        }
+    }
+    elf_end(e);
+    close(fd);
+    return addr;
+}
+
+/* ---- UART ---- */
+static avr_irq_t *uart_irq;
+static uint8_t to_avr[65536];
+static size_t to_avr_head, to_avr_len;
+static int xon;
+static uint8_t from_avr[65536];
+static size_t from_avr_len;
+
+static void feed_uart(void)
+{
+    while (xon && to_avr_len) {
+        uint8_t b = to_avr[to_avr_head];
+        to_avr_head = (to_avr_head + 1) % sizeof to_avr;
+        to_avr_len--;
+        avr_raise_irq(uart_irq + UART_IRQ_INPUT, b);
+    }
+}
+
+static void queue_to_avr(const uint8_t *b, size_t n)
+{
+    for (size_t i = 0; i < n && to_avr_len < sizeof to_avr; i++) {
+        to_avr[(to_avr_head + to_avr_len) % sizeof to_avr] = b[i];
+        to_avr_len++;
+    }
+    feed_uart();
+}
+
+static void on_uart_out(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (from_avr_len < sizeof from_avr)
+        from_avr[from_avr_len++] = (uint8_t)value;
+}
+
+static void on_xon(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (value) {
+        xon = 1;
+        feed_uart();
+    }
+}
+
+static void on_xoff(avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq;
+    (void)param;
+    if (value)
+        xon = 0;
+}
+
+/* ---- pty ---- */
+static int pty_master = -1;
+static char link_path[1024];
+
+static void pty_plug(void)
+{
+    pty_master = posix_openpt(O_RDWR | O_NOCTTY);
+    if (pty_master < 0 || grantpt(pty_master) || unlockpt(pty_master))
+        die("pty: %s", strerror(errno));
+    struct termios tio;
+    tcgetattr(pty_master, &tio);
+    cfmakeraw(&tio);
+    tcsetattr(pty_master, TCSANOW, &tio);
+    fcntl(pty_master, F_SETFL, O_NONBLOCK);
+    const char *slave = ptsname(pty_master);
+    /* The slave raw too: the host may not set it up before the first bytes. */
+    int s = open(slave, O_RDWR | O_NOCTTY);
+    if (s >= 0) {
+        tcgetattr(s, &tio);
+        cfmakeraw(&tio);
+        tcsetattr(s, TCSANOW, &tio);
+        close(s);
+    }
+    char tmp[1100];
+    snprintf(tmp, sizeof tmp, "%s.new", link_path);
+    unlink(tmp);
+    if (symlink(slave, tmp) || rename(tmp, link_path))
+        die("symlink %s: %s", link_path, strerror(errno));
+    printf("avrsim on %s via %s\n", slave, link_path);
+    fflush(stdout);
+}
+
+static void pty_unplug(void)
+{
+    if (pty_master >= 0)
+        close(pty_master);
+    pty_master = -1;
+    unlink(link_path);
+    to_avr_len = 0;
+}
+
+static void pty_io(void)
+{
+    if (pty_master < 0) {
+        from_avr_len = 0;
+        return;
+    }
+    uint8_t buf[4096];
+    ssize_t n;
+    while ((n = read(pty_master, buf, sizeof buf)) > 0)
+        queue_to_avr(buf, (size_t)n);
+    size_t off = 0;
+    while (off < from_avr_len) {
+        n = write(pty_master, from_avr + off, from_avr_len - off);
+        if (n <= 0)
+            break; /* nobody reading (EAGAIN) or hung up: the bytes are lost, as on a wire */
+        off += (size_t)n;
+    }
+    from_avr_len = 0;
+}
+
+/* ---- running ---- */
+static void run_until(avr_cycle_count_t end)
+{
+    while (avr->cycle < end) {
+        /* the next sensor edge due */
+        int next = -1;
+        for (int i = 0; i < npending; i++)
+            if (next < 0 || pending[i].at < pending[next].at)
+                next = i;
+        if (next >= 0 && pending[next].at <= avr->cycle) {
+            struct edge e = pending[next];
+            pending[next] = pending[--npending];
+            set_sensor(e.ch, e.level);
+            continue;
+        }
+        avr_cycle_count_t stop = end;
+        if (next >= 0 && pending[next].at < stop)
+            stop = pending[next].at;
+        while (avr->cycle < stop) {
+            int st = avr_run(avr);
+            if (st == cpu_Done || st == cpu_Crashed)
+                die("the AVR stopped (state %d) at pc 0x%x", st, avr->pc);
+            /* Correction 2: after SEI/RETI one instruction runs, then interrupts are taken. */
+            if (fix_bugs && avr->interrupt_state == -1)
+                avr->interrupt_state = avr_has_pending_interrupts(avr);
+        }
+    }
+}
+
+static void hexline(const char *tag, const uint8_t *b, size_t n)
+{
+    printf("%s ", tag);
+    for (size_t i = 0; i < n; i++)
+        printf("%02x", b[i]);
+    printf("\n");
+}
+
+static int stdin_command(char *line)
+{
+    unsigned long long us;
+    if (strncmp(line, "send ", 5) == 0) {
+        uint8_t b[2048];
+        size_t n = 0;
+        for (char *p = line + 5; p[0] && p[1] && n < sizeof b; p += 2) {
+            unsigned v;
+            if (sscanf(p, "%2x", &v) != 1)
+                break;
+            b[n++] = (uint8_t)v;
+        }
+        queue_to_avr(b, n);
+    } else if (sscanf(line, "run %llu", &us) == 1) {
+        if (lockstep) {
+            run_until(avr->cycle + (avr_cycle_count_t)(us * 16));
+            if (from_avr_len)
+                hexline("uart", from_avr, from_avr_len);
+            from_avr_len = 0;
+        }
+        printf("ran %llu %lu\n", (unsigned long long)avr->cycle, (unsigned long)fw_us(avr->cycle));
+    } else if (strncmp(line, "stall", 5) == 0) {
+        helper_ask("stall");
+    } else if (strncmp(line, "bounce", 6) == 0) {
+        helper_ask("bounce");
+    } else if (strncmp(line, "unplug", 6) == 0) {
+        pty_unplug();
+        printf("unplugged\n");
+    } else if (strncmp(line, "replug", 6) == 0) {
+        avr_reset(avr);
+        oc4a_latch = 0;
+        origin_set = 0;
+        drive_update();
+        if (link_path[0])
+            pty_plug();
+        else
+            printf("replugged\n");
+    } else if (strncmp(line, "quit", 4) == 0) {
+        return 0;
+    }
+    fflush(stdout);
+    return 1;
+}
+
+static volatile sig_atomic_t stopping;
+static void on_signal(int sig)
+{
+    (void)sig;
+    stopping = 1;
+}
+
+static double wall_s(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    return (double)ts.tv_sec + ts.tv_nsec * 1e-9;
+}
+
+int main(int argc, char **argv)
+{
+    const char *elf = NULL, *truth_path = NULL, *python = "python3", *helper = NULL;
+    int seed = 0;
+    char start_at = 'A';
+    for (int i = 1; i < argc; i++) {
+        const char *a = argv[i];
+        const char *v = i + 1 < argc ? argv[i + 1] : NULL;
+#define ARG(name) (!strcmp(a, name) && v && ++i)
+        if (ARG("--elf"))
+            elf = v;
+        else if (ARG("--link"))
+            snprintf(link_path, sizeof link_path, "%s", v);
+        else if (ARG("--truth"))
+            truth_path = v;
+        else if (ARG("--python"))
+            python = v;
+        else if (ARG("--helper"))
+            helper = v;
+        else if (ARG("--seed"))
+            seed = atoi(v);
+        else if (ARG("--ppm"))
+            ppm = atof(v);
+        else if (ARG("--clock-start-us"))
+            clock_start_us = (uint32_t)strtoul(v, NULL, 0);
+        else if (ARG("--start-at"))
+            start_at = v[0];
+        else if (!strcmp(a, "--lockstep"))
+            lockstep = 1;
+        else if (!strcmp(a, "--emulator-bugs"))
+            fix_bugs = 0;
+        else
+            die("usage: %s --elf ELF (--link PATH | --lockstep) [--truth CSV] [--seed N] [--ppm N] "
+                "[--clock-start-us N] [--start-at A|B] [--python PY] [--helper SCRIPT] [--emulator-bugs]",
+                argv[0]);
+    }
+    if (!elf || (!link_path[0] && !lockstep))
+        die("--elf and one of --link or --lockstep are required");
+    if (clock_start_us % 32768u)
+        fprintf(stderr, "usmswitch-avrsim: --clock-start-us rounded down to a timer period (32768 us)\n");
+
+    elf_firmware_t fw;
+    memset(&fw, 0, sizeof fw);
+    fflush(stdout);
+    int saved_stdout = dup(1);
+    dup2(2, 1); /* simavr's loader talks on stdout, which is the UART in lockstep */
+    if (elf_read_firmware(elf, &fw))
+        die("cannot read %s", elf);
+    avr = avr_make_mcu_by_name("atmega2560");
+    if (!avr)
+        die("simavr has no atmega2560");
+    avr_init(avr);
+    avr->frequency = (uint32_t)F_CPU;
+    avr->log = LOG_ERROR;
+    avr_load_firmware(avr, &fw);
+    fflush(stdout);
+    dup2(saved_stdout, 1);
+    close(saved_stdout);
+    clock_ovf_addr = elf_symbol(elf, "clock_ovf");
+
+    timer4 = find_timer('4');
+    timer5 = find_timer('5');
+    if (fix_bugs) {
+        fix_tifr(timer4);
+        fix_tifr(timer5);
+    }
+    avr_irq_register_notify(timer4->comp[0].interrupt.irq + AVR_INT_IRQ_PENDING, on_compa, NULL);
+    avr_register_io_write(avr, A_TCCR4C, w_tccr4c, NULL);
+    avr_register_io_write(avr, A_TCCR4A, w_watch, NULL);
+    avr_register_io_write(avr, A_PORTH, w_watch, NULL);
+    avr_register_io_write(avr, A_TCNT4L, w_tcnt4l, NULL);
+    avr_register_io_write(avr, A_GTCCR, w_gtccr, NULL);
+
+    uint32_t flags = 0;
+    avr_ioctl(avr, AVR_IOCTL_UART_SET_FLAGS('0'), &flags);
+    uart_irq = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), 0);
+    avr_irq_register_notify(uart_irq + UART_IRQ_OUTPUT, on_uart_out, NULL);
+    avr_irq_register_notify(uart_irq + UART_IRQ_OUT_XON, on_xon, NULL);
+    avr_irq_register_notify(uart_irq + UART_IRQ_OUT_XOFF, on_xoff, NULL);
+    sensor_irq[0] = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('L'), 0);
+    sensor_irq[1] = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('L'), 1);
+
+    if (!helper) {
+        static char path[2048];
+        ssize_t n = readlink("/proc/self/exe", path, sizeof path - 64);
+        if (n < 0)
+            die("readlink: %s", strerror(errno));
+        path[n] = 0;
+        char *slash = strrchr(path, '/');
+        strcpy(slash ? slash + 1 : path, "../harness/rig_helper.py");
+        helper = path;
+    }
+    signal(SIGPIPE, SIG_IGN);
+    signal(SIGTERM, on_signal);
+    signal(SIGINT, on_signal);
+    helper_start(python, helper, seed, start_at);
+    helper_ask("init");
+    for (int ch = 0; ch < 2; ch++)
+        avr_raise_irq(sensor_irq[ch], sensor_active[ch] ? 0 : 1);
+    if (truth_path) {
+        truth = fopen(truth_path, "w");
+        if (!truth)
+            die("%s: %s", truth_path, strerror(errno));
+        fprintf(truth, "stroke,direction,start_us,depart_us,arrive_us,off_us,cut_ns\n");
+        fflush(truth);
+    }
+
+    char line[8192];
+    if (lockstep) {
+        printf("avrsim lockstep\n");
+        fflush(stdout);
+        while (!stopping && fgets(line, sizeof line, stdin))
+            if (!stdin_command(line))
+                break;
+    } else {
+        pty_plug();
+        fcntl(0, F_SETFL, O_NONBLOCK);
+        double w0 = wall_s();
+        avr_cycle_count_t c0 = avr->cycle;
+        size_t stdin_len = 0;
+        int stdin_open = 1;
+        while (!stopping) {
+            double now = wall_s();
+            avr_cycle_count_t target = c0 + (avr_cycle_count_t)((now - w0) * f_eff());
+            /* At most 200 us of emulated time between two looks at the pty. */
+            avr_cycle_count_t chunk = avr->cycle + 3200;
+            run_until(target < chunk ? target : chunk);
+            pty_io();
+            if (avr->cycle >= target) {
+                struct pollfd pf[2] = {{0, POLLIN, 0}, {pty_master, POLLIN, 0}};
+                poll(pf, pty_master >= 0 ? 2 : 1, 0);
+                if (!(pf[1].revents & POLLIN))
+                    usleep(100);
+            }
+            ssize_t n = stdin_open ? read(0, line + stdin_len, sizeof line - 1 - stdin_len) : -1;
+            if (n == 0)
+                stdin_open = 0; /* no more commands: run until SIGTERM */
+            if (n > 0) {
+                stdin_len += (size_t)n;
+                line[stdin_len] = 0;
+                char *nl;
+                while ((nl = strchr(line, '\n'))) {
+                    *nl = 0;
+                    if (!stdin_command(line))
+                        stopping = 1;
+                    memmove(line, nl + 1, stdin_len - (size_t)(nl + 1 - line) + 1);
+                    stdin_len -= (size_t)(nl + 1 - line);
+                }
+            }
+        }
+        pty_unplug();
+    }
+    if (truth)
+        fclose(truth);
+    fclose(helper_in);
+    waitpid(helper_pid, NULL, 0);
+    return 0;
+}

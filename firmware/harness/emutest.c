@@ -1,0 +1,73 @@
+/* A self-test image for the simavr harness: shows whether the emulator has simavr 1.6's bugs.
+ * Prints over USART0 at 1,000,000 baud, then sleeps with interrupts off (simavr then stops):
+ *   "tifr ok" if a pending TOV4 survives the write TIFR4 = ICF4 (the datasheet), "tifr bug" if not;
+ *   "sei N": N = bits of GPIOR0 set before a pending interrupt was taken after SEI (1 is right:
+ *   exactly one instruction after SEI runs first);
+ *   "foc done" after FOC4A with COM4A = set, which must drive OC4A high (the harness reports
+ *   the drive pin: "drive 1").
+ */
+#include <avr/interrupt.h>
+#include <avr/io.h>
+#include <avr/sleep.h>
+#include <stdint.h>
+
+static volatile uint8_t seen;
+
+ISR(TIMER4_OVF_vect)
+{
+    seen = GPIOR0;
+    TIMSK4 = 0;
+}
+
+static void put(const char *s)
+{
+    while (*s) {
+        while (!(UCSR0A & _BV(UDRE0)))
+            ;
+        UDR0 = (uint8_t)*s++;
+    }
+}
+
+int main(void)
+{
+    UBRR0 = 0;
+    UCSR0C = _BV(UCSZ01) | _BV(UCSZ00);
+    UCSR0B = _BV(TXEN0);
+
+    /* 1. TIFR: wait for an overflow with interrupts off, clear only the capture flag. */
+    TCCR4A = 0;
+    TCCR4B = _BV(CS40);
+    while (!(TIFR4 & _BV(TOV4)))
+        ;
+    TIFR4 = _BV(ICF4);
+    put((TIFR4 & _BV(TOV4)) ? "tifr ok\n" : "tifr bug\n");
+
+    /* 2. SEI latency: TOV4 pending and enabled; count the instructions run after SEI. */
+    GPIOR0 = 0;
+    TIMSK4 = _BV(TOIE4);
+    TIFR4 = 0xFF;
+    while (!(TIFR4 & _BV(TOV4)))
+        ;
+    __asm__ __volatile__("sei\n\t"
+                         "sbi %0, 0\n\t"
+                         "sbi %0, 1\n\t"
+                         "sbi %0, 2\n\t"
+                         "cli\n\t" ::"I"(_SFR_IO_ADDR(GPIOR0)));
+    uint8_t n = (uint8_t)((seen & 1) + ((seen >> 1) & 1) + ((seen >> 2) & 1));
+    char msg[] = "sei 0\n";
+    msg[4] = (char)('0' + n);
+    put(msg);
+
+    /* 3. FOC: force a "set" compare action on OC4A, the timer stopped (no real match). */
+    TCCR4B = 0;
+    PORTH &= (uint8_t)~_BV(PH3);
+    DDRH |= _BV(PH3);
+    TCCR4A = _BV(COM4A1) | _BV(COM4A0);
+    TCCR4C = _BV(FOC4A);
+    put("foc done\n"); /* the harness prints "drive 1" if OC4A went high */
+
+    while (!(UCSR0A & _BV(TXC0)))
+        ;
+    for (;;)
+        ;
+}

@@ -1,0 +1,84 @@
+"""The simavr harness in lockstep: UART over stdin/stdout, emulated time advanced on command."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+from usmswitch.drivers.mcu_protocol import FrameDecoder, Message, encode_frame
+
+
+class Lockstep:
+    """usmswitch-avrsim --lockstep as a child; `run(us)` returns the UART bytes of that stretch."""
+
+    def __init__(self, binary: Path, elf: Path, *args: str) -> None:
+        cmd = [str(binary), "--elf", str(elf), "--lockstep", "--python", sys.executable, *args]
+        self.proc = subprocess.Popen(
+            cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1
+        )
+        assert self.proc.stdout
+        line = self.proc.stdout.readline()
+        assert line.startswith("avrsim lockstep"), line + self._stderr()
+        #: (level, cycle, firmware us) of every drive pin change.
+        self.drive: list[tuple[int, int, int]] = []
+        self.cycle = 0
+        self.fw_us = 0
+
+    def _stderr(self) -> str:
+        if self.proc.poll() is not None and self.proc.stderr:
+            return self.proc.stderr.read()
+        return ""
+
+    def command(self, line: str) -> None:
+        assert self.proc.stdin
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
+
+    def send_bytes(self, data: bytes) -> None:
+        self.command("send " + data.hex())
+
+    def run(self, us: int) -> bytes:
+        """Run `us` microseconds of emulated time; returns what the firmware sent meanwhile."""
+        assert self.proc.stdout
+        self.command(f"run {us}")
+        out = b""
+        while True:
+            line = self.proc.stdout.readline()
+            assert line, "usmswitch-avrsim exited: " + self._stderr()
+            word, _, rest = line.strip().partition(" ")
+            if word == "uart":
+                out += bytes.fromhex(rest)
+            elif word == "drive":
+                level, cycle, fw_us = (int(x) for x in rest.split())
+                self.drive.append((level, cycle, fw_us))
+            elif word == "ran":
+                cycle, fw_us = rest.split()
+                self.cycle, self.fw_us = int(cycle), int(fw_us)
+                return out
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.command("quit")
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+class FirmwareDevice:
+    """The firmware under the harness as a protocol peer: frames in, frames out, time on command."""
+
+    def __init__(self, sim: Lockstep) -> None:
+        self.sim = sim
+        self.decoder = FrameDecoder()
+
+    def write(self, data: bytes) -> None:
+        self.sim.send_bytes(data)
+
+    def send(self, msg: Message, seq: int) -> None:
+        self.write(encode_frame(msg, seq))
+
+    def run(self, us: int) -> list[tuple[int, Message]]:
+        return self.decoder.feed(self.sim.run(us))
