@@ -9,7 +9,11 @@ import sys
 from .config import ConfigError, load_config
 
 EXIT_CONFIG = 2  # a bad config or flag: nothing was started
-EXIT_START = 3  # a part could not start (driver missing, socket in use, state dir unwritable)
+# A part could not start: driver missing, socket in use, state dir unwritable or in use by another
+# daemon (the message names the directory and the pid holding it), socket directory not private.
+EXIT_START = 3
+# 4: the daemon ran and stopped, but records were left unwritten, dropped or rejected
+# (service.EXIT_RECORDS_LOST, returned by Daemon.run).
 
 
 def build_parser() -> argparse.ArgumentParser:

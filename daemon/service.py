@@ -2,12 +2,18 @@
 
 The loop runs in the main thread (signals arrive there); the record writer and the socket bridge
 are threads off the timing path, the socket server a process of its own.
+
+Nothing is lost silently: one daemon per state directory (a lock held for its life), a records
+file that cannot be written latches FAULT and stops cycling, and the exit status says when a
+record was left unwritten (EXIT_RECORDS_LOST). Exit statuses: docs/service.md.
 """
 
 from __future__ import annotations
 
+import fcntl
 import os
 import signal
+import stat
 import sys
 import time
 from concurrent.futures import Future
@@ -26,11 +32,21 @@ from .logsetup import configure_logging
 from .loop import ControlLoop, State, direction_from_levels
 from .realtime import apply_realtime
 from .record import CycleRecord, Flag
-from .records import RecordStore
+from .records import RecordStore, RecordStoreError
 from .sdnotify import Notifier
+from .sockdir import ensure_private_dir, prepare_socket_dir
 from .units import format_ns
 
 RECORDS_FILE = "records.sqlite"
+LOCK_FILE = "usmswitchd.lock"
+#: Exit status when the daemon stopped with records unwritten, dropped or rejected (cli.py's too).
+EXIT_RECORDS_LOST = 4
+#: The signals that end the daemon: drive off, records flushed (SIGHUP: the terminal closed).
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
+# How long stop() waits for the record writer: a healthy one is done in milliseconds; a failing
+# one gets a few retries (space may come back) before the loss is counted and reported.
+CLOSE_TIMEOUT_NS = 10_000_000_000
+CLOSE_TIMEOUT_FAILING_NS = 3_000_000_000
 SWITCH_INTERVAL_S = 0.0002
 # The live line in a terminal is redrawn at most this often.
 LIVE_LINE_NS = 250_000_000
@@ -42,6 +58,45 @@ def make_predictor(config: Config) -> ARPredictor:
     return ARPredictor(
         order=c.order, window=c.window, model=c.model, nominal_ns=c.nominal_ns, max_order=c.max_order
     )
+
+
+class StateDirBusyError(RuntimeError):
+    """Another daemon holds the state directory's lock; the message names the directory and its pid."""
+
+
+def prepare_state_dir(state_dir: Path, group: str | None) -> Path:
+    """The state directory, created 0700 (0750 with a group) if missing; an existing one we own
+    loses any permission for others (records are nobody else's business)."""
+    ensure_private_dir(state_dir, group)
+    st = os.stat(state_dir)
+    if st.st_uid == os.geteuid() and stat.S_IMODE(st.st_mode) & 0o007:
+        os.chmod(state_dir, stat.S_IMODE(st.st_mode) & ~0o007)
+    return state_dir
+
+
+def lock_state_dir(state_dir: Path) -> int:
+    """Take the state directory's lock (flock, held while the fd is open); returns the fd.
+
+    Raises StateDirBusyError naming the directory and the holder's pid when another daemon has it.
+    The lock goes with the process: kill -9 releases it, no stale lock file to clean.
+    """
+    path = state_dir / LOCK_FILE
+    fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o640)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        raise StateDirBusyError(
+            f"state directory {state_dir} is in use by another usmswitchd (pid {holder}, lock"
+            f" {path}); stop it first, or give this one its own --state-dir"
+        ) from None
+    except BaseException:
+        os.close(fd)
+        raise
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    return fd
 
 
 def first_direction(daq: Daq, last: CycleRecord | None) -> Direction:
@@ -68,23 +123,40 @@ class Daemon:
         self._next_summary_ns = 0
         self._next_live_ns = 0
         self._live = self.log_format == "console" and self.stream.isatty()
+        self._lock_fd: int | None = None
+        self._records_fault: str | None = None
 
     # -- start-up --------------------------------------------------------------------------------
     def start(self) -> None:
         """Open everything in dependency order; raises with a clear message if a part cannot start."""
         cfg = self.config
-        state_dir = Path(cfg.daemon.state_dir)
-        state_dir.mkdir(parents=True, exist_ok=True)
-        self.store = RecordStore(state_dir / RECORDS_FILE)
+        group = cfg.socket.group or None
+        state_dir = prepare_state_dir(Path(cfg.daemon.state_dir), group)
+        self._lock_fd = lock_state_dir(state_dir)
+        daq = make_daq(cfg)  # built, not opened: its name stamps the records
+        self.store = RecordStore(
+            state_dir / RECORDS_FILE,
+            driver=daq.name,
+            rig=cfg.daemon.rig,
+            file_mode=0o640 if group else 0o600,
+        )
         predictors = [make_predictor(cfg), make_predictor(cfg)]
         for d in (Direction.ON, Direction.OFF):
-            samples = self.store.last_strokes(int(d), cfg.control.warm_start)
+            # Only this driver's strokes on this rig: never a real rig from simulated strokes.
+            samples = self.store.last_strokes(
+                int(d), cfg.control.warm_start, driver=daq.name, rig=cfg.daemon.rig
+            )
             predictors[d].extend(samples)
             self.log.info(
-                "warm start", direction=d.name.lower(), strokes=len(samples), ready=predictors[d].ready
+                "warm start",
+                direction=d.name.lower(),
+                strokes=len(samples),
+                ready=predictors[d].ready,
+                driver=daq.name,
+                rig=cfg.daemon.rig,
             )
-        self.daq = make_daq(cfg)
-        self.daq.open()
+        daq.open()
+        self.daq = daq
         conditions = None
         if cfg.modbus.enabled:
             store = self.store
@@ -109,12 +181,17 @@ class Daemon:
             next_direction=first_direction(self.daq, last_rec),
             conditions=conditions,
         )
+        self.loop.slack_hooks.append(self._watch_records)
         self.loop.slack_hooks.append(self._housekeeping)
         self.loop.listeners.append(self._on_record)
         self._start_socket()
         self.refresh_snapshot()
         self.store.record_event(
-            "start", driver=self.daq.name, pid=os.getpid(), config=cfg.to_dict(redact=True)
+            "start",
+            driver=self.daq.name,
+            rig=cfg.daemon.rig,
+            pid=os.getpid(),
+            config=cfg.to_dict(redact=True),
         )
         self.log.info(
             "started",
@@ -134,16 +211,19 @@ class Daemon:
         from .methods import start_rpc
 
         assert self.loop is not None and self.store is not None
+        # A private directory, checked: whoever can write it could swap the socket (sockdir.py).
+        prepare_socket_dir(self.config.socket.path, self.config.socket.group or None)
         self.rpc = start_rpc(self)
 
     # -- running -----------------------------------------------------------------------------------
     def run(self) -> int:
-        """Serve until SIGTERM/SIGINT; returns the exit status (0 on a clean stop)."""
+        """Serve until SIGTERM, SIGINT or SIGHUP; returns the exit status: 0 on a clean stop,
+        EXIT_RECORDS_LOST when any record was left unwritten, dropped or rejected."""
         assert self.loop is not None
         cfg = self.config
         rt = cfg.realtime
         apply_realtime(rt.sched_fifo_priority, rt.cpu_affinity, rt.mlockall)
-        for sig in (signal.SIGTERM, signal.SIGINT):
+        for sig in STOP_SIGNALS:
             signal.signal(sig, self._on_signal)
         # Other threads (record writer, socket bridge) give the GIL back within this bound when
         # the loop wants it; at the default 5 ms a busy thread would land in the start lateness.
@@ -157,19 +237,25 @@ class Daemon:
             )
         self._next_summary_ns = time.monotonic_ns() + cfg.daemon.summary_interval_ns
         self.notifier.ready(status=self._status_line())
+        status = 0
         try:
             self.loop.run()
         finally:
-            self.stop()
-        return 0
+            status = self.stop()
+        return status
 
     def _on_signal(self, signum: int, frame: object) -> None:
         # Drive off at once; the loop returns at its next check and stop() flushes the records.
         assert self.loop is not None
         self.loop.shutdown()
 
-    def stop(self) -> None:
-        """Drive off, socket closed, every record flushed, the driver released. Safe to call twice."""
+    def stop(self) -> int:
+        """Drive off, socket closed, every record flushed, the driver released. Safe to call twice.
+
+        Returns the exit status: EXIT_RECORDS_LOST if any record could not be written (still
+        unwritten at close, dropped, or rejected by the database), else 0.
+        """
+        status = 0
         self.notifier.stopping(status="stopping: drive off, flushing records")
         if self.daq is not None:
             try:
@@ -185,14 +271,57 @@ class Daemon:
             self.board.stop()
             self.board = None
         if self.store is not None:
+            store = self.store
             if self.loop is not None:
-                self.store.record_event("stop", cycle=self.loop.cycle - 1)
-            flushed = self.store.close()
+                store.record_event("stop", cycle=self.loop.cycle - 1)
+            failing = store.writer_error is not None
+            flushed = store.close(CLOSE_TIMEOUT_FAILING_NS if failing else CLOSE_TIMEOUT_NS)
+            try:
+                records: int | None = store.count()
+            except RecordStoreError:
+                records = None  # the file is gone: what it held cannot be counted
+            lost = {"unwritten": store.backlog, "dropped": store.dropped, "rejected": store.rejected}
+            if not flushed or any(lost.values()):
+                status = EXIT_RECORDS_LOST
+                self.log.error(
+                    "records lost",
+                    **lost,
+                    submitted=store.submitted,
+                    written=store.written,
+                    writer_error=store.writer_error or store.last_error,
+                    path=str(store.path),
+                    exit_status=status,
+                )
             self.log.info(
-                "stopped", records=self.store.count(), flushed=flushed, writer_error=self.store.last_error
+                "stopped",
+                records=records,
+                flushed=flushed,
+                writer_error=store.last_error,
+                **lost,
             )
             self.store = None
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)  # the lock goes with it
+            self._lock_fd = None
         self._summary(final=True)
+        return status
+
+    def records_status(self) -> dict[str, Any]:
+        """The record writer's counters for the status reply (any thread; plain values)."""
+        store = self.store
+        if store is None:
+            return {"writer_error": None, "backlog": 0, "dropped": 0, "rejected": 0, "written": 0}
+        return {
+            "path": str(store.path),
+            "driver": store.driver,
+            "rig": store.rig,
+            "writer_error": store.writer_error,
+            "backlog": store.backlog,
+            "dropped": store.dropped,
+            "rejected": store.rejected,
+            "written": store.written,
+            "error_count": store.error_count,
+        }
 
     def refresh_snapshot(self) -> None:
         """Hand the server process the statistics as of now (answered without waking the loop)."""
@@ -229,6 +358,32 @@ class Daemon:
             )
         else:
             self.log.debug("stroke", **rec.to_dict())
+
+    def _watch_records(self) -> None:
+        """A records file that cannot be written is a fault: stop cycling before strokes pile up
+        unrecorded (those already made wait in memory, retried, until the writer recovers)."""
+        store, loop = self.store, self.loop
+        if store is None or loop is None:
+            return
+        error = store.writer_error
+        if error is None:
+            if self._records_fault is not None:
+                self.log.info("records writable again", after=self._records_fault, backlog=store.backlog)
+                self._records_fault = None
+            return
+        if loop.state is State.FAULT:
+            return  # latched already (this or another fault); after a reset it latches again
+        reason = f"records: {error}"
+        loop.stop_cycling()
+        loop.latch_fault(reason)
+        self._records_fault = error
+        self.log.error(
+            "records cannot be written: cycling stopped, FAULT latched",
+            error=error,
+            backlog=store.backlog,
+            path=str(store.path),
+        )
+        store.record_event("fault", reason=reason)
 
     def _housekeeping(self) -> None:
         now = time.monotonic_ns()
