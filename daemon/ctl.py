@@ -393,6 +393,8 @@ def cmd_target(client: Client, args: argparse.Namespace) -> int:
         except argparse.ArgumentTypeError as exc:
             raise UsageError(f"target: {exc}") from None
         result = client.set_target(target_ns, args.direction)
+        for warning in result.get("warnings", []):
+            print(f"warning: {warning}", file=sys.stderr)
     if args.json:
         print_json(result)
     else:

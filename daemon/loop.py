@@ -176,6 +176,13 @@ class ControlLoop:
         targets = list(self.targets)
         for d in dirs:
             targets[d] = target_ns
+        return self.set_targets(targets)
+
+    def set_targets(self, targets: Sequence[int]) -> list[str]:
+        """Both targets (on, off) in one change: one check, one re-arm; returns warnings."""
+        targets = [check_ns("target_ns", t, minimum=1) for t in targets]
+        if len(targets) != 2:
+            raise ValueError(f"set_targets takes (on, off), got {len(targets)} values")
         if self.state is State.CYCLING:
             self._check_period(self._period_ns, targets, self.mode, self.open_delay_ns)
         self.targets = targets

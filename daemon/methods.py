@@ -2,11 +2,14 @@
 
 Handlers run on the RPC bridge thread and stay short: what touches the driver or the predictors is
 handed to the loop thread with `ControlLoop.call` and answered when the loop has done it, in its
-slack. `stats` is served by the server process from a snapshot the loop publishes after every stroke.
+slack. `stats` is served by the server process from a snapshot the loop publishes after every stroke,
+`history` by the server process from the records file, and `estop` by a thread of its own that no
+other call can hold up (`RpcServer`'s urgent channel).
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -18,7 +21,7 @@ from usmswitch.drivers import DaqError, Direction
 from .config import parse_host_port
 from .loop import LoopError, Mode, State
 from .record import CycleRecord
-from .rpc import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, RpcServer
+from .rpc import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, RpcServer, estop_socket_path
 
 if TYPE_CHECKING:
     from .service import Daemon
@@ -44,6 +47,9 @@ class Methods:
         self.server: RpcServer | None = None
         self._targets_from_cycle = self.loop.cycle
         self._last_state: tuple[Any, ...] = ()
+        # set_target calls waiting for the loop: folded into one change (bridge and loop threads).
+        self._target_lock = threading.Lock()
+        self._target_batch: list[tuple[int, str, Future[Any]]] | None = None
 
     def table(self) -> dict[str, Callable[[list[Any]], object]]:
         """Method name -> handler(params), params already checked by the server."""
@@ -51,15 +57,17 @@ class Methods:
             "status": self.status,
             "get_target": self.get_target,
             "set_target": self.set_target,
-            "history": self.history,
             "switch": self.switch,
             "start_cycling": self.start_cycling,
             "stop_cycling": self.stop_cycling,
             "set_mode": self.set_mode,
             "reset_fault": self.reset_fault,
-            "estop": self.estop,
             "set_drive": self.set_drive,
         }
+
+    def urgent(self) -> dict[str, Callable[[list[Any]], object]]:
+        """Methods no other call may hold up: answered by a thread of their own."""
+        return {"estop": self.estop}
 
     # -- read-only ---------------------------------------------------------------------------
     def status(self, params: list[Any]) -> dict[str, Any]:
@@ -70,6 +78,7 @@ class Methods:
             "fault": loop.fault_reason,
             "driver": self.daq.name,
             "driver_ok": self.daq.ping(),
+            "driver_counters": self.daq.counters(),
             "protocol_version": PROTOCOL_VERSION,
             "version": PACKAGE_VERSION,
             "uptime_ns": time.monotonic_ns() - self.daemon.started_ns,
@@ -89,13 +98,6 @@ class Methods:
             "from_cycle": self._targets_from_cycle,
         }
 
-    def history(self, params: list[Any]) -> list[dict[str, Any]]:
-        (n,) = params
-        # Strokes finished a moment ago may still be on their way to the file: wait for them.
-        if not self.store.flush(2_000_000_000):
-            raise RpcError(ErrorCode.TIMEOUT, "history: the record writer is behind; try again")
-        return [rec.to_dict() for rec in self.store.history(n)]
-
     # -- on the loop thread -----------------------------------------------------------------------
     def _on_loop(self, fn: Callable[[], Any]) -> Future[Any]:
         """Run `fn` on the loop thread; loop refusals become protocol errors with their codes."""
@@ -114,19 +116,38 @@ class Methods:
         return self.loop.call(guarded)
 
     def set_target(self, params: list[Any]) -> Future[Any]:
+        """Targets are folded: calls that pile up before the loop's slack are one change."""
         target_ns, which = params
+        done: Future[Any] = Future()
+        with self._target_lock:
+            batch = self._target_batch
+            first = batch is None
+            if batch is None:
+                batch = self._target_batch = []
+            batch.append((target_ns, which, done))
+        if first:
+            applied = self._on_loop(lambda: self._apply_targets(batch))
+            applied.add_done_callback(lambda fut: _resolve_all(batch, fut))
+        return done
 
-        def apply() -> dict[str, int]:
+    def _apply_targets(self, batch: list[tuple[int, str, Future[Any]]]) -> dict[str, Any]:
+        with self._target_lock:
+            self._target_batch = None  # later calls start a batch of their own
+        targets = list(self.loop.targets)
+        for target_ns, which, _ in batch:
             for d in DIRECTIONS[which]:
-                self.loop.set_target(target_ns, d)
-            self._targets_from_cycle = self.loop.cycle
-            self.store.record_event(
-                "target", target_ns=target_ns, direction=which, from_cycle=self.loop.cycle
-            )
-            self.daemon.refresh_snapshot()
-            return self._targets()
-
-        return self._on_loop(apply)
+                targets[d] = target_ns
+        warnings = self.loop.set_targets(targets)
+        self._targets_from_cycle = self.loop.cycle
+        self.store.record_event(
+            "target",
+            target_on_ns=targets[Direction.ON],
+            target_off_ns=targets[Direction.OFF],
+            calls=len(batch),
+            from_cycle=self.loop.cycle,
+        )
+        self.daemon.refresh_snapshot()
+        return {**self._targets(), "warnings": warnings}
 
     def set_mode(self, params: list[Any]) -> Future[Any]:
         mode, open_delay_ns = params
@@ -185,7 +206,8 @@ class Methods:
         return self._on_loop(run)
 
     def estop(self, params: list[Any]) -> dict[str, Any]:
-        # Not queued behind anything: the drive goes off from this thread, now.
+        # Not queued behind anything: on the urgent thread, the drive goes off and the driver is
+        # halted before this returns, so the reply means "drive off, nothing scheduled".
         self.loop.estop(ESTOP_REASON)
         self.store.record_event("estop", source="socket")
         return {"state": str(State.FAULT), "fault": ESTOP_REASON}
@@ -238,6 +260,16 @@ class Methods:
             self.daemon.refresh_snapshot()
 
 
+def _resolve_all(batch: list[tuple[int, str, Future[Any]]], fut: Future[Any]) -> None:
+    """Every call folded into one change gets that change's outcome."""
+    exc = fut.exception()
+    for _, _, done in batch:
+        if exc is not None:
+            done.set_exception(exc)
+        else:
+            done.set_result(fut.result())
+
+
 def start_rpc(daemon: Daemon) -> RpcServer:
     """Bind the configured sockets, start the server process and hook it to the loop."""
     cfg = daemon.config.socket
@@ -250,9 +282,12 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         group=cfg.group or None,
         tcp=parse_host_port(cfg.tcp) if cfg.tcp else None,
         tcp_token=cfg.tcp_token or None,
+        urgent=methods.urgent(),
+        urgent_path=estop_socket_path(cfg.path),
+        records_path=daemon.store.path,
         topics=("stroke", "state"),
         snapshot_methods=("stats",),
-        limits=Limits(max_connections=cfg.max_clients),
+        limits=Limits(max_connections=cfg.max_clients, max_tcp_connections=cfg.max_tcp_clients),
     )
     server.start()
     methods.server = server

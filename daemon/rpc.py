@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import concurrent.futures
 import contextlib
 import grp
 import hmac
@@ -92,12 +93,18 @@ class Limits:
     max_bin_len: int = 4_096
     max_array_len: int = 1_024
     max_map_len: int = 64
-    max_connections: int = 64
+    max_connections: int = 64  # Unix socket
+    max_tcp_connections: int = 8  # TCP, apart: unauthenticated peers cannot take Unix slots
+    max_urgent_connections: int = 16  # the estop socket, apart from both
     max_outstanding: int = 32  # per connection: calls waiting for the daemon
     max_forwarded: int = 256  # all connections: calls waiting for the daemon
+    max_reads: int = 2  # history reads served from the records file at once (the rest wait)
     max_bad_frames: int = 8  # invalid requests on one connection before it is closed
     idle_timeout_ns: int = 600_000_000_000  # no request, no subscription, nothing outstanding
     auth_timeout_ns: int = 5_000_000_000  # TCP: time to send `auth`
+    first_frame_timeout_ns: int = 2_000_000_000  # a new connection that sends no whole frame
+    frame_timeout_ns: int = 2_000_000_000  # a frame begun and not finished
+    urgent_timeout_ns: int = 250_000_000  # the estop socket: time to send the request
     call_timeout_ns: int = 30_000_000_000  # a forwarded call the daemon does not answer
     subscriber_buffer_bytes: int = 262_144  # unsent bytes above which notifications are dropped
     max_write_buffer_bytes: int = 16_777_216  # unsent bytes above which a connection is aborted
@@ -122,6 +129,17 @@ _MAX_TARGET_NS = 10_000_000_000
 _MAX_PERIOD_NS = 3_600_000_000_000
 _MAX_COUNT = 1_000_000_000
 MAX_HISTORY = 10_000
+
+
+def estop_socket_path(path: str | os.PathLike[str]) -> Path:
+    """The estop socket beside the main one: `usmswitchd.sock` -> `usmswitchd.estop.sock`."""
+    p = Path(path)
+    return p.with_name(f"{p.stem}.estop{p.suffix}")
+
+
+def _s(ns: int) -> str:
+    """A timeout for people: 2 s, 250 ms."""
+    return f"{ns / 1e9:g} s" if ns >= 1_000_000_000 else f"{ns / 1e6:g} ms"
 
 
 def _show(value: object) -> str:
@@ -299,6 +317,37 @@ def _note(topic: str, payload: object) -> bytes:
 _PONG = _packb("pong")
 _TRUE = _packb(True)
 
+#: Listener kinds: the Unix socket, TCP, and the estop socket (urgent methods and ping only).
+_KINDS = ("unix", "tcp", "urgent")
+# A refused or timed-out connection is half-closed and kept this long (at most this many at once)
+# so that the client reads the reason instead of a reset.
+_LINGER_S = 0.5
+_MAX_LINGERING = 256
+_HISTORY_CHUNK = 200
+_readers = threading.local()
+
+
+def _history_reply(records_path: str, n: int) -> bytes:
+    """The last `n` records packed as a msgpack array (a worker thread of the server process).
+
+    Packed a chunk of records per call, so the event loop's thread gets the GIL between chunks
+    and an estop or a ping is answered while a large history is being packed.
+    """
+    from .records import RecordStore, RecordStoreError  # the server process only
+
+    store = getattr(_readers, "store", None)
+    if store is None or str(store.path) != records_path:
+        try:
+            store = _readers.store = RecordStore(records_path, readonly=True)
+        except RecordStoreError as exc:
+            raise RpcError(ErrorCode.UNAVAILABLE, f"history: {exc}") from None
+    records = store.history(n)
+    packer = msgpack.Packer(use_bin_type=True, autoreset=True)
+    parts = [packer.pack_array_header(len(records))]
+    for i in range(0, len(records), _HISTORY_CHUNK):
+        parts.append(b"".join(packer.pack(r.to_dict()) for r in records[i : i + _HISTORY_CHUNK]))
+    return b"".join(parts)
+
 
 # -- the server process ----------------------------------------------------------------------------
 
@@ -311,17 +360,32 @@ class _Hub:
         self.limits = Limits(**cfg["limits"])
         self.token: str | None = cfg["token"]
         self.handlers = frozenset(cfg["handlers"])
+        self.urgent = frozenset(cfg["urgent"])
         self.snapshot_methods = frozenset(cfg["snapshot_methods"])
         self.topics = tuple(cfg["topics"])
-        self.known = frozenset(BUILTIN_METHODS) | self.handlers | self.snapshot_methods
+        self.known = frozenset(BUILTIN_METHODS) | self.handlers | self.urgent | self.snapshot_methods
+        if cfg["records_path"]:
+            self.known |= {"history"}
         self.snaps: dict[str, bytes] = dict(cfg["snaps"])
         self.subs: dict[str, set[_Conn]] = {t: set() for t in self.topics}
         self.conns: set[_Conn] = set()
+        self.counts = dict.fromkeys(_KINDS, 0)  # open connections per listener kind
+        self.lingering = 0  # closed connections still draining their client's last bytes
         self.pending: dict[int, tuple[_Conn, int, int]] = {}  # fid -> (conn, msgid, deadline_ns)
+        self.urgent_pending: dict[int, tuple[_Conn, int, int]] = {}
         self.next_fid = 1
         self.lost_seen: int = cfg["lost"]
         self.channel: _Channel | None = None
+        self.urgent_channel: _Channel | None = None
         self.done: asyncio.Future[None] = loop.create_future()
+        # History is read from the records file here, not in the daemon: the loop's process never
+        # reads or packs a large reply. The pool bounds how many reads run at once.
+        self.records_path: str | None = cfg["records_path"]
+        self.reads = (
+            concurrent.futures.ThreadPoolExecutor(self.limits.max_reads, thread_name_prefix="rpc-read")
+            if self.records_path
+            else None
+        )
 
     def forward(self, conn: _Conn, msgid: int, method: str, params: list[Any]) -> bytes | None:
         """Send a call to the daemon, or return an error response when a bound says no."""
@@ -343,16 +407,54 @@ class _Hub:
         self.channel.send(["call", fid, method, params])
         return None
 
-    def on_daemon(self, msg: list[Any]) -> None:
-        """A message from the daemon over the channel."""
+    def forward_urgent(self, conn: _Conn, msgid: int, method: str, params: list[Any]) -> bytes | None:
+        """An estop: straight to the daemon's urgent thread, behind nothing, refused by no call limit."""
+        if self.urgent_channel is None:
+            return _err(msgid, ErrorCode.UNAVAILABLE, f"{method}: the daemon is not connected")
+        fid = self.next_fid
+        self.next_fid += 1
+        self.urgent_pending[fid] = (conn, msgid, time.monotonic_ns() + self.limits.call_timeout_ns)
+        self.urgent_channel.send(["call", fid, method, params])
+        return None
+
+    def read(self, conn: _Conn, msgid: int, method: str, params: list[Any]) -> bytes | None:
+        """A history read, served from the records file by a worker thread of this process."""
+        if conn.outstanding >= self.limits.max_outstanding:
+            return _err(
+                msgid,
+                ErrorCode.BUSY,
+                f"{method}: {conn.outstanding} requests outstanding on this connection "
+                f"(max {self.limits.max_outstanding}); read the responses first",
+            )
+        assert self.reads is not None and self.records_path is not None
+        conn.outstanding += 1
+        fut = self.loop.run_in_executor(self.reads, _history_reply, self.records_path, params[0])
+
+        def done(fut: asyncio.Future[bytes]) -> None:
+            conn.outstanding -= 1
+            exc = fut.exception()
+            if exc is None:
+                conn.write(_ok(msgid, fut.result()))
+            elif isinstance(exc, RpcError):
+                conn.write(_err(msgid, exc.code, exc.message))
+            else:
+                log.error("rpc: history read failed: %s", exc)
+                conn.write(_err(msgid, ErrorCode.INTERNAL, f"{method}: {type(exc).__name__}: {exc}"))
+
+        fut.add_done_callback(done)
+        return None
+
+    def on_daemon(self, msg: list[Any], urgent: bool = False) -> None:
+        """A message from the daemon over the channel (or the urgent channel)."""
         kind = msg[0]
         if kind == "resp":
             _, fid, error, result_bytes = msg
-            entry = self.pending.pop(fid, None)
+            entry = (self.urgent_pending if urgent else self.pending).pop(fid, None)
             if entry is None:  # timed out already
                 return
             conn, msgid, _ = entry
-            conn.outstanding -= 1
+            if not urgent:
+                conn.outstanding -= 1
             if error is None:
                 conn.write(_ok(msgid, result_bytes))
             else:
@@ -374,39 +476,60 @@ class _Hub:
         """Time out calls the daemon does not answer, TCP clients that never authenticate, idlers."""
         now = time.monotonic_ns()
         lim = self.limits
-        for fid, (conn, msgid, deadline) in list(self.pending.items()):
-            if deadline < now:
-                del self.pending[fid]
-                conn.outstanding -= 1
-                conn.write(
-                    _err(msgid, ErrorCode.TIMEOUT, f"no answer from the daemon in {lim.call_timeout_ns} ns")
-                )
+        for table in (self.pending, self.urgent_pending):
+            for fid, (conn, msgid, deadline) in list(table.items()):
+                if deadline < now:
+                    del table[fid]
+                    if table is self.pending:
+                        conn.outstanding -= 1
+                    conn.write(
+                        _err(
+                            msgid,
+                            ErrorCode.TIMEOUT,
+                            f"no answer from the daemon in {_s(lim.call_timeout_ns)}",
+                        )
+                    )
         for conn in list(self.conns):
-            if not conn.authed and now - conn.born_ns > lim.auth_timeout_ns:
-                conn.fatal(ErrorCode.UNAUTHORIZED, f"no auth within {lim.auth_timeout_ns} ns")
+            if conn.partial_since_ns is not None and now - conn.partial_since_ns > lim.frame_timeout_ns:
+                conn.fatal(
+                    ErrorCode.TIMEOUT, f"a frame begun and not finished within {_s(lim.frame_timeout_ns)}"
+                )
+            elif not conn.frames and now - conn.born_ns > conn.first_frame_timeout_ns:
+                conn.fatal(
+                    ErrorCode.TIMEOUT, f"no request within {_s(conn.first_frame_timeout_ns)} of connecting"
+                )
+            elif not conn.authed and now - conn.born_ns > lim.auth_timeout_ns:
+                conn.fatal(ErrorCode.UNAUTHORIZED, f"no auth within {_s(lim.auth_timeout_ns)}")
             elif not conn.topics and not conn.outstanding and now - conn.last_req_ns > lim.idle_timeout_ns:
-                conn.fatal(ErrorCode.TIMEOUT, f"idle for more than {lim.idle_timeout_ns} ns")
+                conn.fatal(ErrorCode.TIMEOUT, f"idle for more than {_s(lim.idle_timeout_ns)}")
 
 
 class _Channel(asyncio.Protocol):
     """The server process's end of the daemon channel (trusted: the daemon is our parent)."""
 
-    def __init__(self, hub: _Hub) -> None:
+    def __init__(self, hub: _Hub, urgent: bool = False) -> None:
         self.hub = hub
+        self.urgent = urgent
         self.unpacker = msgpack.Unpacker(raw=False, max_buffer_size=1 << 30)
         self.transport: asyncio.Transport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
-        self.hub.channel = self
+        if self.urgent:
+            self.hub.urgent_channel = self
+        else:
+            self.hub.channel = self
 
     def data_received(self, data: bytes) -> None:
         self.unpacker.feed(data)
         for msg in self.unpacker:
-            self.hub.on_daemon(msg)
+            self.hub.on_daemon(msg, self.urgent)
 
     def connection_lost(self, exc: Exception | None) -> None:
+        if self.urgent:
+            self.hub.urgent_channel = None
+            return
         self.hub.channel = None
         if not self.hub.done.done():
             self.hub.done.set_result(None)
@@ -419,14 +542,24 @@ class _Channel(asyncio.Protocol):
 class _Conn(asyncio.Protocol):
     """One client connection: decode, validate, dispatch, and throttle its notifications."""
 
-    def __init__(self, hub: _Hub, tcp: bool) -> None:
+    def __init__(self, hub: _Hub, kind: str) -> None:
         self.hub = hub
-        self.tcp = tcp
+        self.kind = kind
+        self.tcp = kind == "tcp"
         self.unpacker = unpacker(hub.limits)
         self.transport: asyncio.Transport | None = None
         self.closed = False
-        self.authed = not tcp
+        self.counted = False
+        self.authed = not self.tcp
         self.born_ns = self.last_req_ns = time.monotonic_ns()
+        self.fed = 0  # bytes fed to the unpacker; those past the last frame's end are a partial frame
+        self.frames = 0
+        self.frames_end = 0
+        self.partial_since_ns: int | None = None
+        lim = hub.limits
+        self.first_frame_timeout_ns = (
+            lim.urgent_timeout_ns if kind == "urgent" else lim.first_frame_timeout_ns
+        )
         self.outstanding = 0
         self.bad_frames = 0
         self.topics: set[str] = set()
@@ -439,15 +572,23 @@ class _Conn(asyncio.Protocol):
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
         limits = self.hub.limits
-        if len(self.hub.conns) >= limits.max_connections:
-            self.fatal(ErrorCode.BUSY, f"too many connections (max {limits.max_connections})")
+        most = {
+            "unix": limits.max_connections,
+            "tcp": limits.max_tcp_connections,
+            "urgent": limits.max_urgent_connections,
+        }[self.kind]
+        if self.hub.counts[self.kind] >= most:
+            where = {"unix": "Unix socket", "tcp": "TCP", "urgent": "estop socket"}[self.kind]
+            self.fatal(ErrorCode.BUSY, f"too many connections on the {where} (max {most}); try again later")
             return
         self.hub.conns.add(self)
+        self.hub.counts[self.kind] += 1
+        self.counted = True
         transport.set_write_buffer_limits(high=limits.subscriber_buffer_bytes)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.closed = True
-        self.hub.conns.discard(self)
+        self._uncount()
         for topic in self.topics:
             self.hub.subs[topic].discard(self)
 
@@ -472,9 +613,12 @@ class _Conn(asyncio.Protocol):
         except msgpack.BufferFull:
             self.fatal(ErrorCode.TOO_LARGE, f"frame larger than {self.hub.limits.max_frame_bytes} bytes")
             return
+        self.fed += len(data)
         out: list[bytes] = []
         try:
             for msg in self.unpacker:
+                self.frames += 1
+                self.frames_end = self.unpacker.tell()  # exact here; past a partial frame after
                 reply = self.handle(msg)
                 if reply is not None:
                     out.append(reply)
@@ -487,6 +631,11 @@ class _Conn(asyncio.Protocol):
             return
         if out:
             self.write(b"".join(out))
+        if self.frames_end < self.fed:
+            if self.partial_since_ns is None:
+                self.partial_since_ns = time.monotonic_ns()
+        else:
+            self.partial_since_ns = None
 
     # dispatch
     def handle(self, msg: object) -> bytes | None:
@@ -508,10 +657,20 @@ class _Conn(asyncio.Protocol):
                     ErrorCode.UNKNOWN_METHOD,
                     f"unknown method {_show(method)}; known: {', '.join(sorted(self.hub.known))}",
                 )
+            if self.kind == "urgent" and method not in self.hub.urgent and method != "ping":
+                raise RpcError(
+                    ErrorCode.UNKNOWN_METHOD,
+                    f"the estop socket takes only {', '.join(sorted(self.hub.urgent))} and ping, "
+                    f"got {_show(method)}",
+                )
             if method in PARAMS:
                 params = check_params(method, params)
             if method == "ping":
                 return _ok(msgid, _PONG)
+            if method in self.hub.urgent:
+                return self.hub.forward_urgent(self, msgid, method, params)
+            if method == "history" and self.hub.reads is not None:
+                return self.hub.read(self, msgid, method, params)
             snap = self.hub.snaps.get(method)
             if snap is not None and not params:
                 return _ok(msgid, snap)
@@ -612,9 +771,30 @@ class _Conn(asyncio.Protocol):
         if self.closed or self.transport is None:
             return
         frame = _note("error", [int(code), message]) if msgid is None else _err(msgid, code, message)
-        self.transport.write(frame)
+        transport = self.transport
+        transport.write(frame)
         self.closed = True
-        self.transport.close()  # flushes what is buffered, then closes
+        self._uncount()
+        hub = self.hub
+        if transport.can_write_eof() and hub.lingering < _MAX_LINGERING:
+            # Half-close and read on for a moment: closing outright with the client's request
+            # unread makes the kernel send a reset, and the client would never see why.
+            transport.write_eof()
+            hub.lingering += 1
+
+            def finish() -> None:
+                hub.lingering -= 1
+                transport.close()
+
+            hub.loop.call_later(_LINGER_S, finish)
+        else:
+            transport.close()  # flushes what is buffered, then closes
+
+    def _uncount(self) -> None:
+        if self.counted:
+            self.counted = False
+            self.hub.conns.discard(self)
+            self.hub.counts[self.kind] -= 1
 
 
 def _recv_exact(sock: socket.socket, n: int) -> bytes | None:
@@ -628,22 +808,26 @@ def _recv_exact(sock: socket.socket, n: int) -> bytes | None:
 
 
 async def _serve(
-    chan: socket.socket, listeners: list[tuple[socket.socket, bool]], cfg: dict[str, Any]
+    chan: socket.socket,
+    urgent_chan: socket.socket,
+    listeners: list[tuple[socket.socket, str]],
+    cfg: dict[str, Any],
 ) -> None:
     loop = asyncio.get_running_loop()
     hub = _Hub(cfg, loop)
     await loop.connect_accepted_socket(lambda: _Channel(hub), sock=chan)
+    await loop.connect_accepted_socket(lambda: _Channel(hub, urgent=True), sock=urgent_chan)
     servers = []
-    for sock, tcp in listeners:
+    for sock, kind in listeners:
         # create_server, not create_unix_server: the latter unlinks the path on close (3.13+),
         # and the socket file belongs to the daemon, which outlives this process.
-        servers.append(await loop.create_server(lambda tcp=tcp: _Conn(hub, tcp), sock=sock))
+        servers.append(await loop.create_server(lambda kind=kind: _Conn(hub, kind), sock=sock))
     assert hub.channel is not None
     hub.channel.send(["ready", os.getpid()])
 
     async def sweeper() -> None:
         while True:
-            await asyncio.sleep(0.25)
+            await asyncio.sleep(0.05)
             hub.sweep()
 
     task = loop.create_task(sweeper())
@@ -656,9 +840,11 @@ async def _serve(
         for conn in list(hub.conns):
             if conn.transport is not None:
                 conn.transport.abort()
+        if hub.reads is not None:
+            hub.reads.shutdown(wait=False, cancel_futures=True)
 
 
-def serve(chan_fd: int, listeners: list[tuple[int, bool]], nice: int = 0) -> None:
+def serve(chan_fd: int, urgent_fd: int, listeners: list[tuple[int, str]], nice: int = 0) -> None:
     """The server process's body: read the config from the channel, then serve until told to stop."""
     chan = socket.socket(fileno=chan_fd)
     chan.setblocking(True)
@@ -672,11 +858,15 @@ def serve(chan_fd: int, listeners: list[tuple[int, bool]], nice: int = 0) -> Non
     cfg = msgpack.unpackb(body, raw=False)
     if nice:
         os.nice(nice)
-    socks = [(socket.socket(fileno=fd), tcp) for fd, tcp in listeners]
+    socks = [(socket.socket(fileno=fd), kind) for fd, kind in listeners]
     for sock, _ in socks:
         sock.setblocking(False)
     chan.setblocking(False)
-    asyncio.run(_serve(chan, socks, cfg))
+    urgent = socket.socket(fileno=urgent_fd)
+    urgent.setblocking(False)
+    # A reader thread packing a long history gives the GIL back to the event loop this often.
+    sys.setswitchinterval(0.0005)
+    asyncio.run(_serve(chan, urgent, socks, cfg))
 
 
 # -- the daemon side -------------------------------------------------------------------------------
@@ -688,6 +878,7 @@ class _Link:
 
     gen: int
     sock: socket.socket
+    urgent: socket.socket  # estop and the like: served by a thread of their own, behind nothing
     feed: msgpack.Unpacker
     proc: subprocess.Popen[bytes] | None
     thread: threading.Thread | None
@@ -701,6 +892,12 @@ class RpcServer:
     validated against docs/protocol.md (defaults filled). It returns a msgpack-able result, raises
     `RpcError`, or returns a `concurrent.futures.Future` the loop resolves later (e.g. `switch`:
     the record of the stroke). Keep handlers short: they share the GIL with the control loop.
+
+    `urgent[method](params)` (estop) runs in a thread of its own, reached over a channel of its own:
+    no other call, however many or slow, is ahead of it, and no call limit refuses it. It must
+    return its result directly. `urgent_path` binds a socket that takes only these and ping, with
+    its own connection limit, so a flood on the main socket cannot lock an estop out.
+    `records_path` lets the server process answer `history` from the records file itself.
     """
 
     def __init__(
@@ -708,6 +905,9 @@ class RpcServer:
         handlers: Mapping[str, Callable[[list[Any]], object]],
         *,
         unix_path: str | os.PathLike[str],
+        urgent: Mapping[str, Callable[[list[Any]], object]] | None = None,
+        urgent_path: str | os.PathLike[str] | None = None,
+        records_path: str | os.PathLike[str] | None = None,
         mode: int = 0o660,
         group: str | int | None = None,
         tcp: tuple[str, int] | None = None,
@@ -719,11 +919,16 @@ class RpcServer:
         nice: int = 5,
         max_restarts: int = 5,
     ) -> None:
-        for name, handler in handlers.items():
+        urgent = dict(urgent or {})
+        for name, handler in [*handlers.items(), *urgent.items()]:
             if type(name) is not str or not callable(handler):
                 raise ValueError(f"handlers must map method names to callables, got {name!r}: {handler!r}")
             if name in BUILTIN_METHODS:
                 raise ValueError(f"handler {name!r} clashes with a method the server answers itself")
+        if set(urgent) & set(handlers):
+            raise ValueError(f"methods {sorted(set(urgent) & set(handlers))} are both urgent and not")
+        if urgent_path is not None and not urgent:
+            raise ValueError("urgent_path needs urgent handlers to serve")
         if isinstance(mode, bool) or not isinstance(mode, int) or not 0 <= mode <= 0o777:
             raise ValueError(f"mode must be permission bits in [0, 0o777], got {mode!r}")
         if tcp is not None:
@@ -744,8 +949,11 @@ class RpcServer:
             if type(topic) is not str or topic in SERVER_TOPICS:
                 raise ValueError(f"topic {topic!r} is not a name the daemon may publish")
         self.handlers = dict(handlers)
+        self.urgent = urgent
         self.snapshot_methods = frozenset(snapshot_methods)
         self.unix_path = Path(unix_path)
+        self.urgent_path = None if urgent_path is None else Path(urgent_path)
+        self.records_path = None if records_path is None else Path(records_path)
         self.mode = mode
         self.gid = _resolve_group(group)
         self.tcp = tcp
@@ -760,8 +968,8 @@ class RpcServer:
         self.published = 0
         self.lost = 0  # notifications dropped because the backlog to the server process was full
         self.restarts = 0
-        self._listeners: list[tuple[socket.socket, bool]] = []
-        self._unix_ino: int | None = None
+        self._listeners: list[tuple[socket.socket, str]] = []
+        self._unix_inos: dict[Path, int] = {}
         self._out: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
         self._snaps: dict[str, object] = {}
         self._snap_pending: set[str] = set()
@@ -769,7 +977,8 @@ class RpcServer:
         self._gen = 0
         self._stopping = False
         self._started = False
-        self._restart_times: deque[int] = deque(maxlen=max(1, max_restarts))
+        # One longer than the limit, so that "more than max_restarts in a minute" can be seen.
+        self._restart_times: deque[int] = deque(maxlen=max_restarts + 1)
         self._threads: list[threading.Thread] = []
 
     # -- public API, called by the daemon --------------------------------------------------------
@@ -779,11 +988,13 @@ class RpcServer:
             raise RuntimeError("RpcServer already started")
         self._started = True
         try:
-            self._listeners.append((self._bind_unix(), False))
+            self._listeners.append((self._bind_unix(self.unix_path), "unix"))
+            if self.urgent_path is not None:
+                self._listeners.append((self._bind_unix(self.urgent_path), "urgent"))
             if self.tcp is not None:
                 tsock = socket.create_server(self.tcp, backlog=128)
                 self.tcp_address = tsock.getsockname()[:2]
-                self._listeners.append((tsock, True))
+                self._listeners.append((tsock, "tcp"))
             self._link = self._spawn()
         except BaseException:
             self._close_listeners()
@@ -851,6 +1062,7 @@ class RpcServer:
             thread.join(timeout=5)
         if link is not None:
             link.sock.close()
+            link.urgent.close()
         self._close_listeners()
 
     def __enter__(self) -> RpcServer:
@@ -861,8 +1073,7 @@ class RpcServer:
         self.stop()
 
     # -- sockets ---------------------------------------------------------------------------------
-    def _bind_unix(self) -> socket.socket:
-        path = self.unix_path
+    def _bind_unix(self, path: Path) -> socket.socket:
         if path.is_symlink() or path.exists():
             if not stat.S_ISSOCK(os.lstat(path).st_mode):
                 raise RuntimeError(f"{path} exists and is not a socket; refusing to replace it")
@@ -892,18 +1103,18 @@ class RpcServer:
             sock.close()
             path.unlink(missing_ok=True)
             raise OSError(exc.errno, f"cannot set up the RPC socket {path}: {exc.strerror}") from exc
-        self._unix_ino = os.stat(path).st_ino
+        self._unix_inos[path] = os.stat(path).st_ino
         return sock
 
     def _close_listeners(self) -> None:
         for sock, _ in self._listeners:
             sock.close()
         self._listeners.clear()
-        if self._unix_ino is not None:
+        for path, ino in self._unix_inos.items():
             with contextlib.suppress(OSError):
-                if os.stat(self.unix_path).st_ino == self._unix_ino:
-                    self.unix_path.unlink()
-            self._unix_ino = None
+                if os.stat(path).st_ino == ino:  # still ours: not replaced by a newer daemon
+                    path.unlink()
+        self._unix_inos.clear()
 
     # -- the server process ------------------------------------------------------------------------
     def _config(self) -> dict[str, Any]:
@@ -911,6 +1122,8 @@ class RpcServer:
             "limits": asdict(self.limits),
             "token": self.tcp_token if self.tcp is not None else None,
             "handlers": sorted(self.handlers),
+            "urgent": sorted(self.urgent),
+            "records_path": None if self.records_path is None else str(self.records_path),
             "snapshot_methods": sorted(self.snapshot_methods),
             "topics": list(self.topics),
             "lost": self.lost,
@@ -920,21 +1133,27 @@ class RpcServer:
 
     def _spawn(self) -> _Link:
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        u_ours, u_theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
         self._gen += 1
         proc = thread = None
         try:
             if self.isolation == "process":
                 cmd = [sys.executable, "-m", "usmswitch.daemon.rpc", "--channel", str(theirs.fileno())]
-                for sock, tcp in self._listeners:
-                    cmd += ["--listen", f"{sock.fileno()}:{'tcp' if tcp else 'unix'}"]
+                cmd += ["--urgent-channel", str(u_theirs.fileno())]
+                for sock, kind in self._listeners:
+                    cmd += ["--listen", f"{sock.fileno()}:{kind}"]
                 cmd += ["--nice", str(self.nice)]
-                fds = [theirs.fileno()] + [sock.fileno() for sock, _ in self._listeners]
+                fds = [theirs.fileno(), u_theirs.fileno()] + [sock.fileno() for sock, _ in self._listeners]
                 proc = subprocess.Popen(cmd, pass_fds=fds, stdin=subprocess.DEVNULL)
                 theirs.close()
+                u_theirs.close()
             else:
-                listeners = [(os.dup(sock.fileno()), tcp) for sock, tcp in self._listeners]
+                listeners = [(os.dup(sock.fileno()), kind) for sock, kind in self._listeners]
                 thread = threading.Thread(
-                    target=serve, args=(theirs.detach(), listeners), name="rpc-server", daemon=True
+                    target=serve,
+                    args=(theirs.detach(), u_theirs.detach(), listeners),
+                    name="rpc-server",
+                    daemon=True,
                 )
                 thread.start()
             cfg = _packb(self._config())
@@ -942,6 +1161,7 @@ class RpcServer:
             link = _Link(
                 self._gen,
                 ours,
+                u_ours,
                 msgpack.Unpacker(raw=False, max_buffer_size=1 << 24),
                 proc,
                 thread,
@@ -950,6 +1170,7 @@ class RpcServer:
             self._await_ready(link)
         except BaseException:
             ours.close()
+            u_ours.close()
             if proc is not None and proc.poll() is None:
                 proc.kill()
                 proc.wait()
@@ -959,6 +1180,8 @@ class RpcServer:
             if method not in self._snap_pending:
                 self._snap_pending.add(method)
                 self._out.put(("snap", method))
+        urgent = threading.Thread(target=self._serve_urgent, args=(link,), name="rpc-urgent", daemon=True)
+        urgent.start()
         return link
 
     def _await_ready(self, link: _Link) -> None:
@@ -995,6 +1218,7 @@ class RpcServer:
         if old.proc is not None:
             old.proc.wait()
         old.sock.close()
+        old.urgent.close()
         now = time.monotonic_ns()
         self._restart_times.append(now)
         recent = [t for t in self._restart_times if now - t < 60_000_000_000]
@@ -1073,6 +1297,35 @@ class RpcServer:
                 if msg[0] == "call":
                     self._call(link.gen, msg[1], msg[2], msg[3])
 
+    def _serve_urgent(self, link: _Link) -> None:
+        """One link's urgent calls, each answered from this thread as soon as it is done."""
+        feed = msgpack.Unpacker(raw=False, max_buffer_size=1 << 20)
+        packer = msgpack.Packer(use_bin_type=True, autoreset=True)
+        while True:
+            try:
+                data = link.urgent.recv(65_536)
+            except OSError:
+                return
+            if not data:
+                return
+            feed.feed(data)
+            for msg in feed:
+                if msg[0] != "call":
+                    continue
+                _, fid, method, params = msg
+                error = result = None
+                try:
+                    result = self.urgent[method](params)
+                except RpcError as exc:
+                    error = exc.to_wire()
+                except Exception as exc:
+                    log.exception("rpc: urgent handler %s failed", method)
+                    error = [int(ErrorCode.INTERNAL), f"{method}: internal error: {type(exc).__name__}"]
+                try:
+                    link.urgent.sendall(packer.pack(["resp", fid, error, packer.pack(result)]))
+                except OSError:
+                    return
+
     def _call(self, gen: int, fid: int, method: str, params: list[Any]) -> None:
         error = result = None
         try:
@@ -1120,7 +1373,10 @@ def main(argv: list[str] | None = None) -> int:
     """Entry of the server process the daemon spawns (not a command for people)."""
     parser = argparse.ArgumentParser(prog="usmswitch.daemon.rpc", description=__doc__.splitlines()[0])
     parser.add_argument("--channel", type=int, required=True, help="fd of the socketpair to the daemon")
-    parser.add_argument("--listen", action="append", default=[], help="FD:unix or FD:tcp, a listening socket")
+    parser.add_argument("--urgent-channel", type=int, required=True, help="fd of the estop socketpair")
+    parser.add_argument(
+        "--listen", action="append", default=[], help="FD:unix, FD:tcp or FD:urgent, a listening socket"
+    )
     parser.add_argument("--nice", type=int, default=0)
     args = parser.parse_args(argv)
     # The daemon owns shutdown: a Ctrl-C to the terminal's process group or systemd's SIGTERM to the
@@ -1130,10 +1386,10 @@ def main(argv: list[str] | None = None) -> int:
     listeners = []
     for spec in args.listen:
         fd, _, kind = spec.partition(":")
-        if kind not in ("unix", "tcp") or not fd.isdigit():
-            parser.error(f"--listen must be FD:unix or FD:tcp, got {spec!r}")
-        listeners.append((int(fd), kind == "tcp"))
-    serve(args.channel, listeners, args.nice)
+        if kind not in _KINDS or not fd.isdigit():
+            parser.error(f"--listen must be FD:unix, FD:tcp or FD:urgent, got {spec!r}")
+        listeners.append((int(fd), kind))
+    serve(args.channel, args.urgent_channel, listeners, args.nice)
     return 0
 
 

@@ -176,7 +176,10 @@ def test_target_takes_human_units(idle: Rig) -> None:
     t = json.loads(r.stdout)
     assert (t["target_on_ns"], t["target_off_ns"]) == (10_500_000, 13_000_000)
     got = json.loads(run(idle, "--json", "target", "get").stdout)
-    assert got == t
+    assert t.pop("warnings") == [] and got == t
+    short = run(idle, "target", "set", "5ms")  # below the ~10.5 ms stroke: taken, and said
+    assert short.returncode == 0 and "shorter than the predicted stroke" in short.stderr
+    assert run(idle, "target", "set", "13ms").returncode == 0
     plain = run(idle, "target")  # bare `target` reads
     assert plain.returncode == 0 and "13.000 ms" in plain.stdout
     rec = json.loads(run(idle, "--json", "switch", "off").stdout)

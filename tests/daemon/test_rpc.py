@@ -17,8 +17,8 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
-import msgpack
 import pytest
+from rawsock import Raw
 
 from usmswitch.daemon.rpc import ErrorCode, Limits, RpcError, RpcServer, check_params
 
@@ -123,50 +123,6 @@ def server(sockdir: Path, rig: Rig) -> Iterator[RpcServer]:
     srv.start()
     yield srv
     srv.stop()
-
-
-class Raw:
-    """A bare msgpack socket, to send exactly the bytes a test wants."""
-
-    def __init__(self, address: Any, family: int = socket.AF_UNIX) -> None:
-        self.sock = socket.socket(family, socket.SOCK_STREAM)
-        self.sock.settimeout(5)
-        self.sock.connect(address)
-        self.unpacker = msgpack.Unpacker(raw=False)
-        self.msgs: list[Any] = []
-
-    def send(self, *frames: Any) -> None:
-        self.sock.sendall(b"".join(msgpack.packb(f) for f in frames))
-
-    def read(self, n: int) -> list[Any]:
-        """The next n messages (responses and notifications) in arrival order."""
-        while len(self.msgs) < n:
-            data = self.sock.recv(1 << 16)
-            if not data:
-                raise ConnectionError(f"closed after {len(self.msgs)} of {n} messages: {self.msgs}")
-            self.unpacker.feed(data)
-            self.msgs.extend(self.unpacker)
-        out, self.msgs = self.msgs[:n], self.msgs[n:]
-        return out
-
-    def call(self, method: str, *params: Any, msgid: int = 1) -> list[Any]:
-        self.send([0, msgid, method, list(params)])
-        return self.read(1)[0]
-
-    def read_until_closed(self) -> list[Any]:
-        while True:
-            try:
-                data = self.sock.recv(1 << 16)
-            except ConnectionResetError:
-                data = b""
-            if not data:
-                out, self.msgs = self.msgs, []
-                return out
-            self.unpacker.feed(data)
-            self.msgs.extend(self.unpacker)
-
-    def close(self) -> None:
-        self.sock.close()
 
 
 def unix(server: RpcServer) -> Raw:
@@ -366,15 +322,20 @@ def test_tcp_needs_the_token_first(server: RpcServer) -> None:
 
 
 def test_auth_timeout_idle_timeout_and_connection_limit(sockdir: Path, rig: Rig) -> None:
-    limits = Limits(idle_timeout_ns=400_000_000, auth_timeout_ns=400_000_000, max_connections=3)
+    limits = Limits(
+        idle_timeout_ns=400_000_000, auth_timeout_ns=400_000_000, max_connections=2, max_tcp_connections=1
+    )
     with make_server(sockdir, rig, limits=limits, tcp=("127.0.0.1", 0), tcp_token=TOKEN) as srv:
         silent_tcp = Raw(srv.tcp_address, socket.AF_INET)
         idle = unix(srv)
         subscriber = unix(srv)
         assert subscriber.call("subscribe", ["stroke"])[2] is None
-        over = unix(srv)  # the fourth
+        over = unix(srv)  # the third on the Unix socket: TCP connections do not take its slots
         [note] = over.read_until_closed()
         assert note[:2] == [2, "error"] and note[2][0][0] == ErrorCode.BUSY
+        assert "Unix socket (max 2)" in note[2][0][1]
+        [note] = Raw(srv.tcp_address, socket.AF_INET).read_until_closed()
+        assert note[2][0][0] == ErrorCode.BUSY and "TCP (max 1)" in note[2][0][1]
         [note] = silent_tcp.read_until_closed()
         assert note[2][0][0] == ErrorCode.UNAUTHORIZED
         [note] = idle.read_until_closed()
