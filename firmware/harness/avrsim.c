@@ -135,11 +135,14 @@ static void helper_start(const char *python, const char *script, int seed, char 
     helper_out = fdopen(from_child[0], "r");
 }
 
+static int edges_changed;
+
 static void add_edge(avr_cycle_count_t at, int ch, int level)
 {
     if (npending >= MAX_EDGES)
         die("too many pending sensor edges");
     pending[npending++] = (struct edge){at, ch, level};
+    edges_changed = 1;
 }
 
 /* Send a request, read "edge" lines until "end" (or the "sensors" answer to init). */
@@ -178,10 +181,22 @@ static struct {
     avr_cycle_count_t start, depart, arrive;
 } cur;
 
+/* Drive the sensor lines (active low). Also as the port's "external" state: simavr 1.6 lets the
+ * internal pull-up (PORTL = 1 on an input) override a line the sensor pulls low; a real pin
+ * follows the stronger external driver. */
+static void drive_sensor_pins(void)
+{
+    avr_ioport_external_t ext = {.name = 'L', .mask = 3, .value = 0};
+    ext.value = (unsigned)((sensor_active[0] ? 0 : 1) | (sensor_active[1] ? 0 : 2));
+    avr_ioctl(avr, AVR_IOCTL_IOPORT_SET_EXTERNAL('L'), &ext);
+    for (int ch = 0; ch < 2; ch++)
+        avr_raise_irq(sensor_irq[ch], sensor_active[ch] ? 0 : 1);
+}
+
 static void set_sensor(int ch, int active)
 {
     sensor_active[ch] = active;
-    avr_raise_irq(sensor_irq[ch], active ? 0 : 1); /* active low */
+    drive_sensor_pins();
     if (!cur.on)
         return;
     int source = cur.direction == 0 ? 0 : 1;
@@ -506,7 +521,8 @@ static void run_until(avr_cycle_count_t end)
         avr_cycle_count_t stop = end;
         if (next >= 0 && pending[next].at < stop)
             stop = pending[next].at;
-        while (avr->cycle < stop) {
+        edges_changed = 0;
+        while (avr->cycle < stop && !edges_changed) {
             int st = avr_run(avr);
             if (st == cpu_Done || st == cpu_Crashed)
                 die("the AVR stopped (state %d) at pc 0x%x", st, avr->pc);
@@ -680,8 +696,7 @@ int main(int argc, char **argv)
     signal(SIGINT, on_signal);
     helper_start(python, helper, seed, start_at);
     helper_ask("init");
-    for (int ch = 0; ch < 2; ch++)
-        avr_raise_irq(sensor_irq[ch], sensor_active[ch] ? 0 : 1);
+    drive_sensor_pins();
     if (truth_path) {
         truth = fopen(truth_path, "w");
         if (!truth)
