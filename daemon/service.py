@@ -288,6 +288,7 @@ class Daemon:
                     **lost,
                     submitted=store.submitted,
                     written=store.written,
+                    flushed=flushed,  # False: events (or records) were still waiting at exit
                     writer_error=store.writer_error or store.last_error,
                     path=str(store.path),
                     exit_status=status,

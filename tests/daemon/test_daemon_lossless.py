@@ -310,3 +310,62 @@ def test_sim_strokes_do_not_warm_start_a_serial_daemon(tmp_path: Path) -> None:
     assert serial.returncode == 0, err.decode()[-2000:]
     warm = [e for e in logs(err) if e.get("event") == "warm start"]
     assert len(warm) == 2 and all(e["strokes"] == 0 and e["driver"] == "serial" for e in warm)
+
+
+# -- the counters the status reply carries ----------------------------------------------------------
+def test_records_status_reports_the_writer_and_stop_returns_4_when_a_stroke_is_unwritten(
+    tmp_path: Path,
+) -> None:
+    """In-process, on the loop's own thread: what `Daemon.records_status()` gives the status reply."""
+    import io
+
+    from usmswitch.daemon.config import load_config
+    from usmswitch.daemon.service import EXIT_RECORDS_LOST, Daemon
+
+    cfg = load_config(
+        None,
+        {
+            "state_dir": str(tmp_path / "state"),
+            "socket": str(tmp_path / "d.sock"),
+            "sim_clock": "virtual",
+            "autostart": False,
+            "log_format": "json",
+        },
+    )
+    d = Daemon(cfg, stream=io.StringIO())
+    try:
+        d.start()
+        rec = d.loop.switch(d.loop.next_direction)
+        assert (rec.driver, rec.rig) == ("sim", socket.gethostname())  # stamped at submit
+        assert d.store.flush()
+        rs = d.records_status()
+        assert rs["writer_error"] is None and rs["written"] == 1
+        assert (rs["backlog"], rs["dropped"], rs["rejected"]) == (0, 0, 0)
+        assert (rs["driver"], rs["rig"]) == ("sim", socket.gethostname())
+        (tmp_path / "state" / "records.sqlite").unlink()
+        wait_until(lambda: d.records_status()["writer_error"], timeout_s=2, what="the writer error")
+        assert "deleted" in d.records_status()["writer_error"]
+        for hook in d.loop.slack_hooks:  # slack hooks run on the loop thread; this test is that thread
+            hook()
+        assert d.loop.state.name == "FAULT" and "records:" in d.loop.fault_reason
+        d.loop.reset_fault()
+        for hook in d.loop.slack_hooks:
+            hook()
+        assert d.loop.state.name == "FAULT"  # latched again while the file is gone
+    finally:
+        status = d.stop()
+    # No stroke after the deletion, but the fault and stop events could not be written either.
+    assert status == EXIT_RECORDS_LOST
+    d = Daemon(cfg, stream=io.StringIO())
+    try:
+        d.start()
+        d.loop.switch(d.loop.next_direction)
+        assert d.store.flush()
+        (tmp_path / "state" / "records.sqlite").unlink()
+        wait_until(lambda: d.records_status()["writer_error"], timeout_s=2, what="the writer error")
+        d.loop.switch(d.loop.next_direction)  # before the slack hook ran: kept in memory
+        time.sleep(0.1)
+        assert d.records_status()["backlog"] == 1
+    finally:
+        status = d.stop()
+    assert status == EXIT_RECORDS_LOST
