@@ -79,7 +79,8 @@ static volatile uint8_t cmp_phase;
 static volatile uint32_t cmp_pre_ticks; /* 32-bit tick instant of the pre-arm match */
 static volatile uint16_t cmp_due_low;
 static volatile uint32_t cmp_due_us;
-static volatile uint8_t stop_mask, dest_mask; /* bit 0 sensor A, bit 1 sensor B */
+volatile uint8_t stop_mask __attribute__((used, externally_visible)); /* read by the capture stubs */
+static volatile uint8_t dest_mask; /* bit 0 sensor A, bit 1 sensor B */
 static volatile uint8_t drive_on;
 
 static inline void drive_cut(void) /* interrupts off */
@@ -177,19 +178,52 @@ uint8_t hal_sensors(void)
     return (uint8_t)((pins & _BV(PL0) ? 0 : 1) | (pins & _BV(PL1) ? 0 : 2));
 }
 
-/* ---- input capture: sensor A on ICP4, sensor B on ICP5 ---- */
-ISR(TIMER4_CAPT_vect)
+/* ---- input capture: sensor A on ICP4, sensor B on ICP5 ----
+ * Each vector is a naked stub that cuts the drive in its first instructions when the edge is
+ * the armed arrival (about 25 cycles, 1.6 us, from the edge), then jumps to the full handler,
+ * which stamps and queues the edge (and finishes the cut's bookkeeping). */
+#define CAPTURE_STUB(vec, tccrb, ices, maskbit, tail)                                            \
+    ISR(vec, ISR_NAKED)                                                                         \
+    {                                                                                            \
+        __asm__ __volatile__("push r24\n\t"                                                      \
+                             "in r24, __SREG__\n\t"                                             \
+                             "push r24\n\t"                                                      \
+                             "lds r24, %[tb]\n\t"                                                \
+                             "sbrc r24, %[ic]\n\t"                                               \
+                             "rjmp 1f\n\t" /* rising: released, not an arrival */               \
+                             "lds r24, stop_mask\n\t"                                            \
+                             "sbrs r24, %[mb]\n\t"                                               \
+                             "rjmp 1f\n\t"                                                       \
+                             "ldi r24, %[clr]\n\t"                                               \
+                             "sts %[ta], r24\n\t"                                                \
+                             "ldi r24, %[foc]\n\t"                                               \
+                             "sts %[tc], r24\n\t" /* OC4A low now */                           \
+                             "1: pop r24\n\t"                                                    \
+                             "out __SREG__, r24\n\t"                                             \
+                             "pop r24\n\t"                                                       \
+                             "jmp " #tail "\n\t" ::[tb] "n"(_SFR_MEM_ADDR(tccrb)),               \
+                             [ic] "n"(ices), [mb] "n"(maskbit), [clr] "n"(COM4A_CLEAR),          \
+                             [ta] "n"(_SFR_MEM_ADDR(TCCR4A)), [foc] "n"(_BV(FOC4A)),             \
+                             [tc] "n"(_SFR_MEM_ADDR(TCCR4C)));                                  \
+    }
+
+void __vector_capt4_tail(void) __attribute__((signal, used, externally_visible));
+void __vector_capt5_tail(void) __attribute__((signal, used, externally_visible));
+CAPTURE_STUB(TIMER4_CAPT_vect, TCCR4B, ICES4, 0, __vector_capt4_tail)
+CAPTURE_STUB(TIMER5_CAPT_vect, TCCR5B, ICES5, 1, __vector_capt5_tail)
+
+void __vector_capt4_tail(void)
 {
     uint8_t active = !(TCCR4B & _BV(ICES4)); /* falling edge captured: the sensor went active */
     if (active && (stop_mask & 1))
-        drive_cut(); /* STOP_ON_ARRIVAL, first thing */
+        drive_cut(); /* STOP_ON_ARRIVAL: the stub has cut the pin, this the state */
     uint16_t icr = ICR4;
     TCCR4B ^= _BV(ICES4);
     TIFR4 = _BV(ICF4); /* required after changing the edge (datasheet 17.6.3) */
     ev_push(active ? EV_EDGE_A1 : EV_EDGE_A0, us_of(hi_for(icr), icr));
 }
 
-ISR(TIMER5_CAPT_vect)
+void __vector_capt5_tail(void)
 {
     uint8_t active = !(TCCR5B & _BV(ICES5));
     if (active && (stop_mask & 2))

@@ -1,0 +1,94 @@
+"""End to end: usmswitchd --driver serial on the firmware in simavr, 300 closed-loop strokes.
+
+The harness bridges the emulated ATmega2560's UART to a pty and drives its sensor pins from the
+project's rig model; its truth CSV holds every stroke's start, depart and arrive as the pins
+changed, on the firmware's clock, from emulator cycles. The firmware's stamps, as the daemon
+recorded them, must equal the truth within 1 us; the arrival edge must cut the drive within 5 us.
+The device clock starts 3 s before its 32-bit wrap, so the run crosses it.
+"""
+
+from __future__ import annotations
+
+import csv
+import sqlite3
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+import daemonproc
+import pytest
+
+from usmswitch.daemon.client import Client
+
+MS = 1_000_000
+STROKES = 300
+U32 = 1 << 32
+
+pytestmark = pytest.mark.realtime
+
+
+def test_closed_loop_on_the_firmware_in_simavr(avrsim: Path, firmware_elf: Path, tmp_path: Path) -> None:
+    link = tmp_path / "usmswitch"
+    truth_csv = tmp_path / "truth.csv"
+    clock_start = (U32 // 32768 - 92) * 32768  # 3.01 s before the wrap, a whole timer period
+    sim = subprocess.Popen(
+        [str(avrsim), "--elf", str(firmware_elf), "--link", str(link), "--truth", str(truth_csv),
+         "--python", sys.executable, "--seed", "3", "--clock-start-us", str(clock_start)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    daemon = None
+    try:
+        assert sim.stdout is not None
+        line = sim.stdout.readline().decode()
+        assert line.startswith("avrsim on"), line
+        sock = tmp_path / "d.sock"
+        args = ["--driver", "serial", "--port", str(link), "--target", "12ms", "--period", "24ms"]
+        daemon = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False))
+        daemonproc.wait_serving(sock, daemon)
+        with Client(str(sock), timeout_ns=30_000 * MS) as c:
+            assert c.status()["state"] == "idle"
+            c.start_cycling(24 * MS, STROKES)
+            with c.subscribe("stroke", timeout_ns=5_000 * MS) as sub:
+                for rec in sub:
+                    if rec["cycle"] >= STROKES:
+                        break
+            stats = c.stats()
+    finally:
+        if daemon is not None:
+            err = daemonproc.stop(daemon)
+            assert daemon.returncode == 0, err.decode()[-3000:]
+        sim.terminate()
+        sim.communicate(timeout=10)
+    con = sqlite3.connect(tmp_path / "state" / "records.sqlite")
+    rows = list(
+        con.execute(
+            "SELECT cycle, t_start_ns, t_depart_ns, t_arrive_ns, error_ns, flags FROM cycles ORDER BY cycle"
+        )
+    )
+    con.close()
+    with truth_csv.open() as f:
+        truth = list(csv.DictReader(f))
+    assert [r[0] for r in rows] == list(range(1, STROKES + 1))
+    assert len(truth) == STROKES  # one drive-on per recorded stroke, none unasked
+    assert stats["all"]["stalls"] == 0 and stats["all"]["faults"] == 0
+
+    def us_diff(a: str, b: str) -> int:
+        return (int(a) - int(b)) % U32
+
+    worst = 0
+    for (_, t_start, t_depart, t_arrive, _, _), tr in zip(rows, truth, strict=True):
+        assert t_arrive is not None and tr["arrive_us"]
+        op_truth = us_diff(tr["arrive_us"], tr["start_us"]) * 1000
+        dep_truth = us_diff(tr["depart_us"], tr["start_us"]) * 1000
+        worst = max(worst, abs((t_arrive - t_start) - op_truth), abs((t_depart - t_start) - dep_truth))
+    assert worst <= 1000, f"a recorded stamp is {worst} ns from the emulator's truth"
+    cut = [int(tr["cut_ns"]) for tr in truth]
+    assert max(cut) <= 5000, f"arrival edge to drive off up to {max(cut)} ns"
+    errs = [r[4] for r in rows[100:]]
+    std = statistics.pstdev(errs)
+    late = sum(1 for r in rows if r[5] & 1)
+    print(f"\nfirmware e2e: {len(rows)} strokes, error std {std / 1e3:.1f} us, late {late}, "
+          f"stamp error max {worst} ns, cut max {max(cut)} ns")  # fmt: skip
+    assert std < 200_000  # as on the Python emulator (~90 us)
+    assert late <= STROKES // 20
