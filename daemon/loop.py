@@ -584,8 +584,13 @@ class ControlLoop:
             while self.daq.recv(0) is not None:
                 self.stale_events += 1
 
-    def _serve_requests(self, block_ns: int = 0) -> None:
-        """Run queued requests, first waiting up to `block_ns` of wall time for one (idle)."""
+    def _serve_requests(self, block_ns: int = 0, until_ns: int | None = None) -> None:
+        """Run queued requests, first waiting up to `block_ns` of wall time for one (idle).
+
+        `until_ns` (on the driver's clock) is the slack window's end: no request is begun after
+        it, so however many are queued, the next command is not held up; the rest wait for the
+        next window.
+        """
         try:
             if block_ns > 0:  # idle waits on wall time, whatever the clock: nothing to simulate
                 item = self._requests.get(timeout=block_ns / 1e9)
@@ -593,6 +598,7 @@ class ControlLoop:
                 item = self._requests.get_nowait()
         except queue.Empty:
             return
+        clock = self.clock
         while True:
             fn, fut = item
             if fut.set_running_or_notify_cancel():
@@ -600,6 +606,8 @@ class ControlLoop:
                     fut.set_result(fn())
                 except BaseException as exc:  # the caller gets every failure, the loop carries on
                     fut.set_exception(exc)
+            if until_ns is not None and clock.now_ns() >= until_ns:
+                return
             try:
                 item = self._requests.get_nowait()
             except queue.Empty:
@@ -608,14 +616,16 @@ class ControlLoop:
     def _slack_until(self, t_ns: int) -> None:
         """Serve requests and housekeeping until shortly before `t_ns` (not in virtual time)."""
         self._slack()
-        self._serve_requests()
         if self.clock.virtual:
+            self._serve_requests()  # virtual time does not pass while requests run
             return
+        end = t_ns - COMMAND_LEAD_NS
+        self._serve_requests(until_ns=end)
         while not self._shutdown.is_set() and self.state is State.CYCLING:
-            left = t_ns - COMMAND_LEAD_NS - self.clock.now_ns()
+            left = end - self.clock.now_ns()
             if left <= 0:
                 return
-            self._serve_requests(block_ns=left)
+            self._serve_requests(block_ns=left, until_ns=end)
 
     def _slack(self) -> None:
         # GC runs here, where the automatic collector would have run, but never mid-stroke.

@@ -50,6 +50,10 @@ class Methods:
         # set_target calls waiting for the loop: folded into one change (bridge and loop threads).
         self._target_lock = threading.Lock()
         self._target_batch: list[tuple[int, str, Future[Any]]] | None = None
+        # switch replies wait for their record's commit (loop and record writer threads).
+        self._commit_lock = threading.Lock()
+        self._committed_cycle = self.store.last_cycle()
+        self._commit_waiters: list[tuple[CycleRecord, Future[Any]]] = []
 
     def table(self) -> dict[str, Callable[[list[Any]], object]]:
         """Method name -> handler(params), params already checked by the server."""
@@ -167,14 +171,29 @@ class Methods:
         return self._on_loop(apply)
 
     def switch(self, params: list[Any]) -> Future[Any]:
+        """One stroke; answered once its record is in the file (history then holds it)."""
         (which,) = params
 
-        def run() -> dict[str, Any]:
+        def run() -> CycleRecord:
             d = self.loop.next_direction if which == "next" else DIRECTIONS[which][0]
-            rec: CycleRecord = self.loop.switch(d)
-            return rec.to_dict()
+            return self.loop.switch(d)
 
-        return self._on_loop(run)
+        done: Future[Any] = Future()
+
+        def stroked(fut: Future[Any]) -> None:
+            exc = fut.exception()
+            if exc is not None:
+                done.set_exception(exc)
+                return
+            rec: CycleRecord = fut.result()
+            with self._commit_lock:
+                if rec.cycle > self._committed_cycle:
+                    self._commit_waiters.append((rec, done))
+                    return
+            done.set_result(rec.to_dict())
+
+        self._on_loop(run).add_done_callback(stroked)
+        return done
 
     def start_cycling(self, params: list[Any]) -> Future[Any]:
         period_ns, count = params
@@ -231,14 +250,26 @@ class Methods:
         self.daemon.set_drive(settings).add_done_callback(finished)
         return done
 
+    # -- from the record writer, once records are committed --------------------------------------
+    def on_commit(self, records: list[CycleRecord]) -> None:
+        """Notify subscribers of strokes now in the file, never before: a subscriber's log and the
+        records agree even if the daemon is killed the next instant."""
+        server = self.server
+        if server is not None:
+            for rec in records:
+                server.publish("stroke", rec.to_dict())
+        with self._commit_lock:
+            top = self._committed_cycle = max(self._committed_cycle, records[-1].cycle)
+            ready = [(r, f) for r, f in self._commit_waiters if r.cycle <= top]
+            self._commit_waiters = [(r, f) for r, f in self._commit_waiters if r.cycle > top]
+        for rec, fut in ready:
+            fut.set_result(rec.to_dict())
+
     # -- from the loop, in its slack ---------------------------------------------------------------
     def on_record(self, rec: CycleRecord) -> None:
-        """Notify subscribers of the stroke and refresh the stats snapshot."""
-        server = self.server
-        if server is None:
-            return
-        server.publish("stroke", rec.to_dict())
-        self.daemon.refresh_snapshot()
+        """Refresh the stats snapshot (the stroke itself is published once committed)."""
+        if self.server is not None:
+            self.daemon.refresh_snapshot()
 
     def on_slack(self) -> None:
         """Tell subscribers when state, mode, fault or a target changes."""
@@ -293,5 +324,6 @@ def start_rpc(daemon: Daemon) -> RpcServer:
     methods.server = server
     assert daemon.loop is not None
     daemon.loop.listeners.append(methods.on_record)
+    daemon.store.on_commit = methods.on_commit
     daemon.loop.slack_hooks.append(methods.on_slack)
     return server

@@ -29,7 +29,7 @@ import sqlite3
 import threading
 import time
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
@@ -184,6 +184,9 @@ class RecordStore:
         self.error_count = 0
         self._writer_error: str | None = None
         self.last_error: str | None = None
+        #: Called on the writer thread with each batch of records once committed (and not
+        #: rejected): what the daemon publishes, so a subscriber never sees a stroke the file lacks.
+        self.on_commit: Callable[[list[CycleRecord]], None] | None = None
         self._thread: threading.Thread | None = None
         if readonly:
             if not self.path.exists():
@@ -573,6 +576,8 @@ class RecordStore:
                         backoff = min(2 * backoff, self._retry_ns[1])
                         break
                     self._count(counts)
+                    if self.on_commit is not None:
+                        self._tell_committed(batch, {*counts[4], *(c for c, _ in counts[3])})
                     next_check = time.monotonic_ns() + FILE_CHECK_NS
                     done += len(batch)
                     batch = []  # the records are on disk: hold none of them while idle
@@ -611,8 +616,8 @@ class RecordStore:
 
     def _write(
         self, conn: sqlite3.Connection, batch: list[Any]
-    ) -> tuple[int, int, int, list[tuple[int, str]]]:
-        """Commit one batch; returns (written, rejected, events, unconvertible) for `_count`."""
+    ) -> tuple[int, int, int, list[tuple[int, str]], list[int]]:
+        """Commit one batch; (written, rejected, events, unconvertible, rejected cycles) for `_count`."""
         cycles = []
         events = []
         unconvertible: list[tuple[int, str]] = []
@@ -629,7 +634,7 @@ class RecordStore:
             conn.execute("SAVEPOINT batch")
             try:
                 conn.executemany(_INSERT_CYCLE, cycles)
-                rejected = 0
+                rejected: list[int] = []
             except (sqlite3.IntegrityError, OverflowError):
                 # One bad row (a duplicate cycle, a CHECK, an int past 64 bits) fails the statement
                 # after the rows before it went in: undo them and go row by row, so the good rows
@@ -644,11 +649,11 @@ class RecordStore:
             if conn.in_transaction:
                 conn.execute("ROLLBACK")
             raise
-        return len(cycles) - rejected, rejected, len(events), unconvertible
+        return len(cycles) - len(rejected), len(rejected), len(events), unconvertible, rejected
 
-    def _count(self, counts: tuple[int, int, int, list[tuple[int, str]]]) -> None:
+    def _count(self, counts: tuple[int, int, int, list[tuple[int, str]], list[int]]) -> None:
         """Counted once the batch is in the file at our path: a failed batch is retried whole."""
-        written, rejected, events, unconvertible = counts
+        written, rejected, events, unconvertible, _ = counts
         for cycle, reason in unconvertible:
             self.last_error = f"cycle {cycle} rejected: {reason}"
             log.error("cycle record rejected: a field is not a plain value", cycle=cycle, reason=reason)
@@ -656,13 +661,23 @@ class RecordStore:
         self.rejected += rejected + len(unconvertible)
         self.events_written += events
 
-    def _insert_one_by_one(self, conn: sqlite3.Connection, rows: list[tuple[Any, ...]]) -> int:
-        rejected = 0
+    def _tell_committed(self, batch: list[Any], rejected: set[int]) -> None:
+        """Hand the records now in the file to `on_commit` (a subscriber sees only what is kept)."""
+        records = [r for r in batch if type(r) is CycleRecord and r.cycle not in rejected]
+        if not records:
+            return
+        try:
+            self.on_commit(records)  # type: ignore[misc]
+        except Exception:  # a listener's bug must not stop the writing
+            log.exception("record commit listener failed", path=str(self.path))
+
+    def _insert_one_by_one(self, conn: sqlite3.Connection, rows: list[tuple[Any, ...]]) -> list[int]:
+        rejected: list[int] = []
         for row in rows:
             try:
                 conn.execute(_INSERT_CYCLE, row)
             except (sqlite3.IntegrityError, OverflowError) as exc:
-                rejected += 1
+                rejected.append(row[0])
                 self.last_error = f"cycle {row[0]} rejected: {exc}"
                 log.error("cycle record rejected by the database", cycle=row[0], reason=str(exc))
         return rejected

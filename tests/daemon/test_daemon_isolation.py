@@ -180,3 +180,24 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def test_every_stroke_a_subscriber_saw_survives_a_kill(tmp_path: Path) -> None:
+    """kill -9 right after a stroke notification: the records hold it, with the same fields."""
+    for attempt in range(3):
+        rig = Rig(tmp_path / str(attempt))
+        seen = []
+        with rig.client() as c:
+            for rec in c.subscribe("stroke"):
+                seen.append(rec)
+                if len(seen) == 20 + 7 * attempt:
+                    rig.proc.kill()
+                    break
+        rig.proc.wait(10)
+        db = sqlite3.connect(rig.tmp / "state" / "records.sqlite")
+        db.row_factory = sqlite3.Row
+        rows = {r["cycle"]: dict(r) for r in db.execute("SELECT * FROM cycles")}
+        for rec in seen:
+            row = rows.get(rec["cycle"])
+            assert row is not None, f"stroke {rec['cycle']} was published but is not in the records"
+            assert (row["t_arrive_ns"], row["error_ns"]) == (rec["t_arrive_ns"], rec["error_ns"])
