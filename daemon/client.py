@@ -24,7 +24,7 @@ from urllib.parse import parse_qs, urlsplit
 
 import msgpack
 
-from .rpc import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, RpcError
+from .rpc import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, RpcError, estop_socket_path
 from .sockdir import UntrustedSocketError, check_peer, check_socket_owner
 
 __all__ = [
@@ -444,7 +444,20 @@ class Client:
         return self.call("reset_fault")
 
     def estop(self) -> dict[str, Any]:
-        """Stop the drive now and latch FAULT until reset_fault."""
+        """Stop the drive now and latch FAULT until reset_fault.
+
+        The reply means the drive is off and nothing is scheduled. Over a Unix socket the call goes
+        through the estop socket beside it (`<name>.estop.sock`): a connection and slots of its own,
+        so no flood on the main socket holds it up; this connection is the fallback.
+        """
+        if self.family == "unix":
+            urgent = estop_socket_path(self.address)
+            if urgent.exists():
+                try:
+                    with Client(urgent, timeout_ns=self.timeout_ns, retry=False) as c:
+                        return c.call("estop")
+                except (ConnectionClosed, OSError):
+                    pass  # busy or gone: the main connection still carries it
         return self.call("estop")
 
     def set_drive(

@@ -28,8 +28,9 @@ from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import IO, Any, NoReturn
 
-from .client import Client, ConnectionClosed, CycleRecord, ErrorCode, RpcError
+from .client import Client, ConnectionClosed, CycleRecord, ErrorCode, RpcError, parse_address
 from .record import FIELDS, UNUSABLE, Flag
+from .rpc import estop_socket_path
 from .stats import Running
 from .units import format_ns, parse_duration_ns
 
@@ -847,6 +848,15 @@ def _code_name(code: int) -> str:
         return "UNKNOWN"
 
 
+def estop_address(address: str) -> str:
+    """The estop socket beside a Unix socket when it is there (its own slots: a flood on the main
+    socket cannot lock an estop out), else the address itself."""
+    family, path, _ = parse_address(address)
+    if family == "unix" and estop_socket_path(path).exists():
+        return str(estop_socket_path(path))
+    return address
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of `usmswitchctl`."""
     parser = build_parser()
@@ -861,6 +871,8 @@ def main(argv: list[str] | None = None) -> int:
         def connect() -> Client:
             nonlocal address
             address = resolve_address(args)  # only when needed: export from the file has no socket
+            if args.command == "estop":
+                address = estop_address(address)
             try:
                 return Client(address, timeout_ns=timeout_ns, token=args.token)
             except ValueError as exc:  # a malformed address, a TCP connection without a token

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import socket
 import sqlite3
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -201,3 +203,19 @@ def test_every_stroke_a_subscriber_saw_survives_a_kill(tmp_path: Path) -> None:
             row = rows.get(rec["cycle"])
             assert row is not None, f"stroke {rec['cycle']} was published but is not in the records"
             assert (row["t_arrive_ns"], row["error_ns"]) == (rec["t_arrive_ns"], rec["error_ns"])
+
+
+def test_usmswitchctl_estop_gets_through_a_full_main_socket(rig: Rig) -> None:
+    silent = [Raw(str(rig.sock)) for _ in range(64)]
+    time.sleep(0.1)
+    r = subprocess.run(
+        [sys.executable, "-m", "usmswitch.daemon.ctl", "--socket", str(rig.sock), "estop"],
+        capture_output=True,
+        text=True,
+        timeout=20,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "emergency stop" in r.stdout
+    for raw in silent:
+        raw.close()
+    _stopped_for_good(rig)
