@@ -228,6 +228,8 @@ class ModbusBoard:
         self.ok = True
         #: Requests that failed (no answer, exception response, connection refused).
         self.failures = 0
+        #: Replies that answered another request (late ones, after a timeout): dropped with the link.
+        self.stale_replies = 0
         self.last_error = ""
         self.last_reading: BoardReading | None = None
 
@@ -292,12 +294,20 @@ class ModbusBoard:
         self._write(self.registers.enable, 1 if enable else 0, "enable")
 
     def _write(self, reg: Reg, value: float, name: str) -> None:
+        """A write is done only when the board holds the value: the reply must echo it and a
+        read-back must find it (a late reply to an earlier request is never taken for the answer)."""
         raw = reg.to_raw(value, name)
+        what = f"write {name}={value:g} to holding register {reg.address}"
         with self._lock:
-            self._call(
-                lambda: self._client.write_register(reg.address, raw, device_id=self.spec.unit),
-                f"write {name}={value} to holding register {reg.address}",
+            rr = self._call(
+                lambda: self._client.write_register(reg.address, raw, device_id=self.spec.unit), what
             )
+            echo = list(getattr(rr, "registers", None) or [])
+            if getattr(rr, "address", None) != reg.address or echo[:1] != [raw]:
+                self._stale(f"{what}: the reply does not echo it ({rr})")
+            held = self._read_block("holding", reg.address, 1)[0]
+            if held != raw:
+                self._failed(f"{what}: the board holds {reg.to_value(held):g}, not {value:g}")
 
     # -- reading -----------------------------------------------------------------------------
     def read(self) -> BoardReading:
@@ -340,8 +350,10 @@ class ModbusBoard:
             f"read {count} {table} register(s) at {address}",
         )
         regs = list(rr.registers)
-        if len(regs) < count:
-            self._failed(f"read {table} {address}: got {len(regs)} register(s), asked {count}")
+        want_fc = 4 if table == "input" else 3
+        if getattr(rr, "function_code", want_fc) != want_fc or len(regs) != count:
+            self._stale(f"read {table} {address}: a reply of another request ({rr})")
+            self._failed(f"read {table} {address}: got a reply to another request; link reset")
         return regs
 
     def conditions(self) -> Conditions | None:
@@ -373,8 +385,13 @@ class ModbusBoard:
         try:
             rr = fn()
         except ModbusException as exc:
+            if "transaction id" in str(exc):
+                self._stale(f"{what}: {exc}")
+            else:
+                self._drop_link()  # its late reply must not be read as the next request's
             self._failed(f"{what}: {exc}")
         except OSError as exc:
+            self._drop_link()
             self._failed(f"{what}: {exc}")
         if rr.isError():
             self._failed(f"{what}: exception response {rr}")
@@ -382,6 +399,15 @@ class ModbusBoard:
             log.warning("%s: answering again", self.describe())
         self.ok = True
         return rr
+
+    def _stale(self, why: str) -> None:
+        self.stale_replies += 1
+        log.warning("%s: stale reply dropped, link reset: %s", self.describe(), why)
+        self._drop_link()
+
+    def _drop_link(self) -> None:
+        """Close the connection: replies still in flight die with it (the next request reconnects)."""
+        self._client.close()
 
     def _failed(self, why: str) -> None:
         self.failures += 1

@@ -24,6 +24,8 @@ class BoardState:
     enabled: int = 0
     temperature_c: float = 25.0
     hang: bool = False
+    delay_next_s: float = 0.0  # the next request is answered this late (once)
+    clamp_frequency_hz: int | None = None  # a board that takes only up to this frequency
     writes: int = 0
     reads: int = 0
 
@@ -32,11 +34,16 @@ def _device(state: BoardState, unit: int) -> SimDevice:
     async def action(fc: int, start: int, address: int, count: int, regs: list[int], values: object) -> None:
         if state.hang:
             await asyncio.sleep(2.0)  # longer than any client timeout in the tests
+        if state.delay_next_s:
+            delay, state.delay_next_s = state.delay_next_s, 0.0
+            await asyncio.sleep(delay)
         if fc in (6, 16) and isinstance(values, list):
             for i, v in enumerate(values):
                 a = address + i
                 if a == 0:
-                    state.frequency_hz = int(v)
+                    clamp = state.clamp_frequency_hz
+                    state.frequency_hz = int(v) if clamp is None else min(int(v), clamp)
+                    values[i] = state.frequency_hz  # what the board stores
                 elif a == 1:
                     state.voltage_vpp = int(v)
                 elif a == 2:

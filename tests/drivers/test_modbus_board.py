@@ -171,3 +171,25 @@ def test_spec_parsing() -> None:
     ]:
         with pytest.raises(ValueError, match=match):
             parse_modbus_spec(bad)
+
+
+def test_a_late_reply_is_never_taken_for_a_write(tcp_server: BoardServer) -> None:
+    """A read answered after its timeout: the write that follows is done only once the board holds it."""
+    with ModbusBoard(f"tcp:127.0.0.1:{tcp_server.port}?timeout_ms=100") as board:
+        board.set_frequency(40_000)
+        for attempt in range(3):
+            tcp_server.state.delay_next_s = 0.15  # the read's reply comes after the client gave up
+            with pytest.raises(BoardError):
+                board.read()
+            want = 40_100 + 100 * attempt
+            board.set_frequency(want)
+            assert tcp_server.state.frequency_hz == want  # held when set_frequency returned
+        assert board.ok
+
+
+def test_a_write_the_board_does_not_hold_is_an_error(tcp_server: BoardServer) -> None:
+    tcp_server.state.clamp_frequency_hz = 41_000
+    with ModbusBoard(f"tcp:127.0.0.1:{tcp_server.port}?timeout_ms=200") as board:
+        board.set_frequency(40_500)
+        with pytest.raises(BoardError, match="the board holds 41000, not 41500"):
+            board.set_frequency(41_500)
