@@ -88,6 +88,8 @@ class Status(TypedDict):
     cycle: int  # the number the next stroke will get
     target_on_ns: int
     target_off_ns: int
+    driver_counters: dict[str, int]  # what the driver dropped or repaired (bounces, link errors, ...)
+    records: dict[str, Any]  # the record writer: path, backlog, dropped, rejected, writer_error, ...
 
 
 class DirectionStats(TypedDict, total=False):
@@ -156,6 +158,8 @@ class CycleRecord(TypedDict):
     frequency_hz: float | None
     flags: int  # usmswitch.daemon.record.Flag bits
     wall_ns: int
+    driver: str | None  # the driver that made the stroke ("sim", "serial", "usb")
+    rig: str | None  # the rig's identity ([daemon] rig, the host name by default)
 
 
 class Notification(NamedTuple):

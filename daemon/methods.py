@@ -83,6 +83,7 @@ class Methods:
             "driver": self.daq.name,
             "driver_ok": self.daq.ping(),
             "driver_counters": self.daq.counters(),
+            "records": self.daemon.records_status(),
             "protocol_version": PROTOCOL_VERSION,
             "version": PACKAGE_VERSION,
             "uptime_ns": time.monotonic_ns() - self.daemon.started_ns,

@@ -1383,6 +1383,7 @@ def main(argv: list[str] | None = None) -> int:
     # cgroup must not kill the server under it mid-stop. It ends when the daemon's channel closes.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)  # a closed terminal: the daemon decides
     listeners = []
     for spec in args.listen:
         fd, _, kind = spec.partition(":")

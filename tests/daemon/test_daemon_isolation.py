@@ -219,3 +219,12 @@ def test_usmswitchctl_estop_gets_through_a_full_main_socket(rig: Rig) -> None:
     for raw in silent:
         raw.close()
     _stopped_for_good(rig)
+
+
+def test_status_shows_the_record_writer_and_the_driver_counters(rig: Rig) -> None:
+    time.sleep(0.2)
+    with rig.client() as c:
+        st = c.status()
+    assert st["records"]["writer_error"] is None and st["records"]["dropped"] == 0
+    assert st["records"]["driver"] == "sim" and st["records"]["written"] >= 1
+    assert {"bounces", "glitches", "out_of_order"} <= set(st["driver_counters"])

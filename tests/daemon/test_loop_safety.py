@@ -201,5 +201,3 @@ def test_estop_disarms_a_hardware_timed_stroke_before_it_is_acknowledged(mcu) ->
         assert emu.strokes_started == 0
     finally:
         run.stop()
-
-
