@@ -300,8 +300,12 @@ class ControlLoop:
         return self._next_dir
 
     # -- statistics ---------------------------------------------------------------------------------
-    def snapshot(self) -> dict[str, Any]:
-        """Statistics per direction and combined, plus the models, as plain types."""
+    def snapshot(self, raw: bool = False) -> dict[str, Any]:
+        """Statistics per direction and combined, plus the models, as plain types.
+
+        `raw=True` (the daemon's path, on the loop thread) leaves the percentiles to
+        `stats.finish_snapshot`, which the socket's server process runs.
+        """
         out: dict[str, Any] = {
             "state": str(self.state),
             "mode": str(self.mode),
@@ -313,10 +317,10 @@ class ControlLoop:
             "overruns": self.overruns,
             "driver_bounces": self.daq.bounces,
             "driver": self.daq.counters(),
-            "all": self.stats_all.snapshot(),
+            "all": self.stats_all.snapshot(raw),
         }
         for d, name in ((Direction.ON, "on"), (Direction.OFF, "off")):
-            s = self.stats[d].snapshot()
+            s = self.stats[d].snapshot(raw)
             p = self.predictors[d]
             s["order"] = p.order
             s["coefficients"] = list(p.coefficients)

@@ -319,6 +319,7 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         records_path=daemon.store.path,
         topics=("stroke", "state"),
         snapshot_methods=("stats",),
+        snapshot_finishers={"stats": "usmswitch.daemon.stats:finish_snapshot"},
         limits=Limits(max_connections=cfg.max_clients, max_tcp_connections=cfg.max_tcp_clients),
     )
     server.start()

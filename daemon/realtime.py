@@ -17,6 +17,7 @@ import errno
 import os
 import platform
 import resource
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -86,6 +87,30 @@ def apply_realtime(
     for name, why in refused.items():
         log.warning("realtime refused, carrying on without it", option=name, reason=why)
     return result
+
+
+def lift_helpers(priority: int) -> list[str]:
+    """SCHED_FIFO `priority` for every other thread of this process; the names of those lifted.
+
+    The helper threads (record writer, socket bridge) share the GIL with the loop. At SCHED_OTHER
+    an ordinary process on the machine can preempt one while it holds the GIL, and the loop then
+    waits for a whole timeslice of someone else (milliseconds of start lateness): a priority
+    inversion. One step below the loop they are never preempted by ordinary processes, never by
+    the loop's core's own work, and give the GIL back within the switch interval. Threads they
+    start later inherit the policy.
+    """
+    lifted = []
+    me = threading.get_native_id()
+    for t in threading.enumerate():
+        tid = t.native_id
+        if tid is None or tid == me or not t.is_alive():
+            continue
+        try:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            lifted.append(t.name)
+        except OSError as exc:  # gone meanwhile, or no permission: carry on at SCHED_OTHER
+            log.warning("helper thread stays at SCHED_OTHER", thread=t.name, reason=_describe(exc))
+    return lifted
 
 
 def drop_realtime() -> bool:

@@ -20,6 +20,7 @@ import concurrent.futures
 import contextlib
 import grp
 import hmac
+import importlib
 import logging
 import os
 import queue
@@ -129,6 +130,12 @@ _MAX_TARGET_NS = 10_000_000_000
 _MAX_PERIOD_NS = 3_600_000_000_000
 _MAX_COUNT = 1_000_000_000
 MAX_HISTORY = 10_000
+
+
+def _import(ref: str) -> Callable[[Any], Any]:
+    """`package.module:function` -> the function (a snapshot finisher, in the server process)."""
+    module, _, name = ref.partition(":")
+    return getattr(importlib.import_module(module), name)  # type: ignore[no-any-return]
 
 
 def estop_socket_path(path: str | os.PathLike[str]) -> Path:
@@ -367,6 +374,10 @@ class _Hub:
         if cfg["records_path"]:
             self.known |= {"history"}
         self.snaps: dict[str, bytes] = dict(cfg["snaps"])
+        # Snapshots the daemon sends unfinished (the loop's stats without their percentiles):
+        # finished here, on the first request after each update, so the loop never pays for it.
+        self.finishers = {m: _import(ref) for m, ref in cfg["finishers"].items()}
+        self.raw_snaps = {m: self.snaps.pop(m) for m in self.finishers if m in self.snaps}
         self.subs: dict[str, set[_Conn]] = {t: set() for t in self.topics}
         self.conns: set[_Conn] = set()
         self.counts = dict.fromkeys(_KINDS, 0)  # open connections per listener kind
@@ -386,6 +397,14 @@ class _Hub:
             if self.records_path
             else None
         )
+
+    def snapshot(self, method: str) -> bytes | None:
+        """The packed result of a snapshot method, finished from its raw form when it has to be."""
+        snap = self.snaps.get(method)
+        if snap is None and method in self.raw_snaps:
+            finished = self.finishers[method](msgpack.unpackb(self.raw_snaps[method], raw=False))
+            snap = self.snaps[method] = _packb(finished)
+        return snap
 
     def forward(self, conn: _Conn, msgid: int, method: str, params: list[Any]) -> bytes | None:
         """Send a call to the daemon, or return an error response when a bound says no."""
@@ -468,7 +487,11 @@ class _Hub:
             for conn in tuple(self.subs.get(topic, ())):
                 conn.notify(frame)
         elif kind == "snap":
-            self.snaps[msg[1]] = msg[2]
+            if msg[1] in self.finishers:
+                self.raw_snaps[msg[1]] = msg[2]
+                self.snaps.pop(msg[1], None)  # finished again at the next request
+            else:
+                self.snaps[msg[1]] = msg[2]
         elif kind == "stop" and not self.done.done():
             self.done.set_result(None)
 
@@ -671,7 +694,7 @@ class _Conn(asyncio.Protocol):
                 return self.hub.forward_urgent(self, msgid, method, params)
             if method == "history" and self.hub.reads is not None:
                 return self.hub.read(self, msgid, method, params)
-            snap = self.hub.snaps.get(method)
+            snap = self.hub.snapshot(method)
             if snap is not None and not params:
                 return _ok(msgid, snap)
             if method == "auth":
@@ -864,8 +887,6 @@ def serve(chan_fd: int, urgent_fd: int, listeners: list[tuple[int, str]], nice: 
     chan.setblocking(False)
     urgent = socket.socket(fileno=urgent_fd)
     urgent.setblocking(False)
-    # A reader thread packing a long history gives the GIL back to the event loop this often.
-    sys.setswitchinterval(0.0005)
     asyncio.run(_serve(chan, urgent, socks, cfg))
 
 
@@ -915,6 +936,7 @@ class RpcServer:
         limits: Limits | None = None,
         topics: Iterable[str] = ("stroke", "state"),
         snapshot_methods: Iterable[str] = (),
+        snapshot_finishers: Mapping[str, str] | None = None,
         isolation: str = "process",
         nice: int = 5,
         max_restarts: int = 5,
@@ -951,6 +973,10 @@ class RpcServer:
         self.handlers = dict(handlers)
         self.urgent = urgent
         self.snapshot_methods = frozenset(snapshot_methods)
+        #: method -> "module:function" the server process applies to that snapshot before serving it.
+        self.snapshot_finishers = dict(snapshot_finishers or {})
+        if set(self.snapshot_finishers) - self.snapshot_methods:
+            raise ValueError("snapshot_finishers must name snapshot methods")
         self.unix_path = Path(unix_path)
         self.urgent_path = None if urgent_path is None else Path(urgent_path)
         self.records_path = None if records_path is None else Path(records_path)
@@ -1125,6 +1151,7 @@ class RpcServer:
             "urgent": sorted(self.urgent),
             "records_path": None if self.records_path is None else str(self.records_path),
             "snapshot_methods": sorted(self.snapshot_methods),
+            "finishers": self.snapshot_finishers,
             "topics": list(self.topics),
             "lost": self.lost,
             # Snapshots set so far are served from the first request (and after a restart).
@@ -1384,6 +1411,9 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     signal.signal(signal.SIGHUP, signal.SIG_IGN)  # a closed terminal: the daemon decides
+    # A reader thread packing a long history gives the GIL back to the event loop this often
+    # (set here, in the process of its own, not in serve(), which a test may run in a thread).
+    sys.setswitchinterval(0.0005)
     listeners = []
     for spec in args.listen:
         fd, _, kind = spec.partition(":")

@@ -30,7 +30,7 @@ from .config import Config
 from .daqfactory import make_daq
 from .logsetup import configure_logging
 from .loop import ControlLoop, State, direction_from_levels
-from .realtime import apply_realtime
+from .realtime import apply_realtime, lift_helpers
 from .record import CycleRecord, Flag
 from .records import RecordStore, RecordStoreError
 from .sdnotify import Notifier
@@ -222,7 +222,12 @@ class Daemon:
         assert self.loop is not None
         cfg = self.config
         rt = cfg.realtime
-        apply_realtime(rt.sched_fifo_priority, rt.cpu_affinity, rt.mlockall)
+        got = apply_realtime(rt.sched_fifo_priority, rt.cpu_affinity, rt.mlockall)
+        if "sched_fifo_priority" in got.applied and rt.sched_fifo_priority > 1:
+            lifted = lift_helpers(rt.sched_fifo_priority - 1)
+            self.log.info(
+                "helper threads below the loop", priority=rt.sched_fifo_priority - 1, threads=lifted
+            )
         for sig in STOP_SIGNALS:
             signal.signal(sig, self._on_signal)
         # Other threads (record writer, socket bridge) give the GIL back within this bound when
@@ -327,7 +332,7 @@ class Daemon:
     def refresh_snapshot(self) -> None:
         """Hand the server process the statistics as of now (answered without waking the loop)."""
         if self.rpc is not None and self.loop is not None:
-            self.rpc.snapshot("stats", self.loop.snapshot())
+            self.rpc.snapshot("stats", self.loop.snapshot(raw=True))
 
     def set_drive(self, settings: dict[str, Any]) -> Future[dict[str, Any]]:
         """Excitation frequency / voltage / enable: on the Modbus board, else on the sim's drive."""

@@ -1,7 +1,9 @@
 """Running statistics of strokes per direction, in fixed memory, for the socket and the summary log.
 
 The loop calls `add` in its slack (after the next stroke is armed); readers take `snapshot()`,
-a plain dict of integers and floats, from any thread.
+a plain dict of integers and floats, from any thread. Percentiles cost a millisecond or more (a
+sort of 4096 values, several times): the daemon takes `snapshot(raw=True)`, which carries the
+percentile windows as bytes, and the socket's server process `finish`es it, off the loop.
 """
 
 from __future__ import annotations
@@ -58,15 +60,47 @@ class Ring:
         self.buf[self.n % self.size] = x
         self.n += 1
 
+    def raw(self) -> bytes:
+        """The values held, as native int64 bytes (any order): what `percentiles_of` takes."""
+        return self.buf[: min(self.n, self.size)].tobytes()
+
     def percentiles(self, qs: tuple[float, ...]) -> list[int | None]:
         """Nearest-rank percentiles (q in 0..100) of the values held; None when empty."""
-        n = min(self.n, self.size)
-        if not n:
-            return [None] * len(qs)
-        import numpy as np  # here, not at import: usmswitchctl uses Running without it
+        return percentiles_of(self.raw(), qs)
 
-        values = np.frombuffer(self.buf, dtype=np.int64, count=n)
-        return [int(v) for v in np.percentile(values, qs, method="inverted_cdf")]
+
+def percentiles_of(raw: bytes, qs: tuple[float, ...]) -> list[int | None]:
+    """Nearest-rank percentiles (q in 0..100) of int64 values packed in `raw`; None when empty."""
+    if not raw:
+        return [None] * len(qs)
+    import numpy as np  # here, not at import: usmswitchctl uses Running without it
+
+    values = np.frombuffer(raw, dtype=np.int64)
+    return [int(v) for v in np.percentile(values, qs, method="inverted_cdf")]
+
+
+_ERROR_QS = (50, 95, 99)
+_LATENESS_QS = (50, 99, 99.9, 100)
+_RAW_KEYS = ("abs_error_raw", "abs_lateness_raw")
+
+
+def finish_direction(out: dict[str, object]) -> dict[str, object]:
+    """Replace a raw direction snapshot's percentile windows by the percentiles (in place)."""
+    if "abs_error_raw" in out:
+        p50, p95, p99 = percentiles_of(out.pop("abs_error_raw"), _ERROR_QS)  # type: ignore[arg-type]
+        out.update(abs_error_p50_ns=p50, abs_error_p95_ns=p95, abs_error_p99_ns=p99)
+    if "abs_lateness_raw" in out:
+        l50, l99, l999, lmax = percentiles_of(out.pop("abs_lateness_raw"), _LATENESS_QS)  # type: ignore[arg-type]
+        out.update(lateness_p50_ns=l50, lateness_p99_ns=l99, lateness_p99_9_ns=l999, lateness_max_ns=lmax)
+    return out
+
+
+def finish_snapshot(snapshot: dict[str, object]) -> dict[str, object]:
+    """A loop's raw stats snapshot made whole: every direction's percentiles computed (in place)."""
+    for value in snapshot.values():
+        if isinstance(value, dict) and any(k in value for k in _RAW_KEYS):
+            finish_direction(value)
+    return snapshot
 
 
 class DirectionStats:
@@ -116,16 +150,17 @@ class DirectionStats:
         self.bounces += bounce
         self.faults += fault
 
-    def snapshot(self) -> dict[str, object]:
-        """A plain-typed dict of this direction's figures (integers are ns)."""
+    def snapshot(self, raw: bool = False) -> dict[str, object]:
+        """A plain-typed dict of this direction's figures (integers are ns).
+
+        `raw=True` leaves the percentiles to `finish_direction`: the windows travel as bytes.
+        """
         out: dict[str, object] = {"count": self.operating.count, "strokes": self.error.count + self.stalls}
         out.update(self.operating.as_dict("operating"))
         out.update(self.total.as_dict("total"))
         out.update(self.error.as_dict("error"))
         out["max_abs_error_pct"] = round(self.max_abs_error_pct, 4)
-        p50, p95, p99 = self.abs_error.percentiles((50, 95, 99))
-        out.update(abs_error_p50_ns=p50, abs_error_p95_ns=p95, abs_error_p99_ns=p99)
-        l50, l99, l999, lmax = self.abs_lateness.percentiles((50, 99, 99.9, 100))
-        out.update(lateness_p50_ns=l50, lateness_p99_ns=l99, lateness_p99_9_ns=l999, lateness_max_ns=lmax)
+        out["abs_error_raw"] = self.abs_error.raw()
+        out["abs_lateness_raw"] = self.abs_lateness.raw()
         out.update(late=self.late, stalls=self.stalls, bounces=self.bounces, faults=self.faults)
-        return out
+        return out if raw else finish_direction(out)

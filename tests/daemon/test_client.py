@@ -140,17 +140,23 @@ def test_subscription_iterates_payloads_and_counts_drops(server: RpcServer) -> N
     with Client(server.unix_path) as c:
         sub = c.subscribe(timeout_ns=1_000_000_000)
         assert sub.topics == ["stroke"]
-        n = 2000
+        n = 3000  # 900 kB: past the 256 kB buffer and what the kernel holds (under the 4096 backlog)
         for i in range(n):
             while not server.publish("stroke", {"cycle": i, "pad": "y" * 300}):
                 time.sleep(0.001)
         server.publish("state", {"state": "idle"})  # not subscribed: never seen
+        # Read only once the server process has handled every stroke (the channel keeps order):
+        # until then this client would be reading while they are still being sent.
+        with Client(server.unix_path) as witness:
+            witness.subscribe("state", timeout_ns=5_000_000_000)
+            server.publish("state", {"state": "idle"})
+            assert witness.next_notification(5_000_000_000).topic == "state"
         seen: list[int] = []
         strokes = iter(sub)
         with contextlib.suppress(TimeoutError):  # when the last strokes were dropped
             while len(seen) + sub.dropped < n:
                 seen.append(next(strokes)["cycle"])
-        assert sub.dropped > 0, "this client never read while 600 kB were published: some must drop"
+        assert sub.dropped > 0, "this client never read while 900 kB were published: some must drop"
         assert len(seen) + sub.dropped == n and seen == sorted(seen)
         sub.close()
         assert c.unsubscribe() == []

@@ -85,7 +85,7 @@ def test_estop_is_not_queued_behind_heavy_pipelined_calls(rig: Rig) -> None:
     targets.send(*([0, i, "set_target", [12 * MS + i * 1000]] for i in range(32)))
     reply, took = rig.estop()
     assert reply[2] is None and reply[3]["state"] == "fault", reply
-    assert took < 1.0, f"estop took {took:.3f} s behind the load"
+    assert took < 2.0, f"estop took {took:.3f} s behind the load"
     _stopped_for_good(rig)
     # The pipelined set_target calls are all answered, folded into few changes, the last one winning.
     answers = targets.read(32)

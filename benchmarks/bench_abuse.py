@@ -1,0 +1,286 @@
+"""Estop latency and loop lateness under every abusive load of issue 10, beside the idle figures.
+
+One usmswitchd on the real-time sim (closed loop, T = 12 ms, period 15 ms, SCHED_FIFO when allowed)
+runs through the whole benchmark. Each load runs in processes of its own while
+- the loop's start lateness is read from the daemon's records for the strokes of that window
+  (p50, p99, max; target: p99 <= 1.2x idle in the same run), and
+- estops are sent on the estop socket at random instants: the time from the request's last byte
+  to the reply, which the daemon sends only once the drive is off and nothing is scheduled
+  (target: p99 <= 5 ms), each followed by reset and cycling again over a connection opened before
+  the load.
+RSS of the daemon and of its socket-server process is sampled at the end of each window (memory
+bounded under unread pipelined reads).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import random
+import signal
+import socket
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import msgpack
+
+from benchmarks.bench_loop import PRIORITY, fifo_allowed, percentiles
+from benchmarks.table import print_table
+from usmswitch.daemon.client import Client, RpcError
+from usmswitch.daemon.rpc import estop_socket_path
+
+MS = 1_000_000
+PERIOD_MS = 15
+WINDOW_S = float(os.environ.get("BENCH_ABUSE_WINDOW_S", "8"))
+ESTOPS = int(os.environ.get("BENCH_ABUSE_ESTOPS", "20"))
+# A comma-separated list of words: only the loads whose names contain one of them (and idle).
+ONLY = [w for w in os.environ.get("BENCH_ABUSE_ONLY", "").split(",") if w]
+
+
+# -- loads, each the body of a process that runs until `stop` is set ----------------------------------
+def _raw(path: str) -> socket.socket:
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.connect(path)
+    return s
+
+
+def _frames(method: str, params: list[Any], n: int) -> bytes:
+    return b"".join(msgpack.packb([0, i, method, params]) for i in range(n))
+
+
+def load_stats(path: str, stop: Any) -> None:
+    with Client(path) as c:
+        while not stop.is_set():
+            c.stats()
+
+
+def load_unread_history(path: str, stop: Any, conns: int = 1) -> None:
+    socks = [_raw(path) for _ in range(conns)]
+    for s in socks:
+        s.sendall(_frames("history", [10_000], 32))
+    stop.wait()
+
+
+def load_exports(path: str, stop: Any) -> None:
+    with Client(path, timeout_ns=60_000 * MS) as c:
+        while not stop.is_set():
+            c.history(10_000)
+
+
+def load_set_target(path: str, stop: Any) -> None:
+    s = _raw(path)
+    unpacker = msgpack.Unpacker()
+    k = 0
+    while not stop.is_set():
+        k += 1
+        s.sendall(_frames("set_target", [12 * MS + 1000 * (k % 2)], 32))
+        got = 0
+        while got < 32:
+            unpacker.feed(s.recv(65_536))
+            got += sum(1 for _ in unpacker)
+
+
+def load_connection_flood(path: str, stop: Any) -> None:
+    held: list[socket.socket] = []
+    while not stop.is_set():
+        while len(held) < 600:
+            try:
+                held.append(_raw(path))
+            except OSError:
+                break
+        time.sleep(0.05)
+        alive = []
+        for s in held:  # refused ones were closed by the server: open them again
+            s.setblocking(False)
+            try:
+                closed = s.recv(1 << 16) == b""
+            except BlockingIOError:
+                closed = False
+            except OSError:
+                closed = True
+            if closed:
+                s.close()
+            else:
+                alive.append(s)
+        held = alive
+
+
+def load_one_byte(path: str, stop: Any) -> None:
+    """32 connections on each socket that send one byte of a request and then nothing, renewed."""
+    targets = (path, str(estop_socket_path(path)))
+    held: list[socket.socket] = []
+    while not stop.is_set():
+        for target in targets:
+            while sum(1 for s in held if s.getpeername() == target) < 32:
+                try:
+                    s = _raw(target)
+                    s.sendall(b"\x94")
+                    held.append(s)
+                except OSError:
+                    break
+        time.sleep(0.05)
+        alive = []
+        for s in held:
+            s.setblocking(False)
+            try:
+                closed = s.recv(1 << 16) == b""
+            except BlockingIOError:
+                closed = False
+            except OSError:
+                closed = True
+            if closed:
+                s.close()
+            else:
+                alive.append(s)
+        held = alive
+
+
+LOADS: list[tuple[str, Callable[..., None], int, dict[str, Any]]] = [
+    ("idle", load_stats, 0, {}),
+    ("8 clients hammering stats", load_stats, 8, {}),
+    ("history 10000 x32 pipelined, unread", load_unread_history, 1, {}),
+    ("4 x 32 history 10000, unread", load_unread_history, 1, {"conns": 4}),
+    ("8 x 32 history 10000, unread", load_unread_history, 1, {"conns": 8}),
+    ("10 export clients (history 10000)", load_exports, 10, {}),
+    ("32 set_target pipelined, repeated", load_set_target, 1, {}),
+    ("600 connections, renewed", load_connection_flood, 1, {}),
+    ("32 one-byte connections per socket", load_one_byte, 1, {}),
+]
+
+
+# -- the daemon and the measurements ---------------------------------------------------------------
+def rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def server_pid(daemon_pid: int) -> int | None:
+    out = subprocess.run(["pgrep", "-P", str(daemon_pid)], capture_output=True, text=True).stdout.split()
+    return int(out[0]) if out else None
+
+
+class Estopper:
+    """Estops on a connection to the estop socket kept open, and a control connection for resets."""
+
+    def __init__(self, sock: Path, control: Client) -> None:
+        self.sock = _raw(str(estop_socket_path(sock)))
+        self.unpacker = msgpack.Unpacker()
+        self.control = control
+        self.msgid = 0
+        self.sock.sendall(msgpack.packb([0, 0, "ping", []]))  # within the estop socket's first-frame bound
+
+    def estop(self) -> float:
+        self.msgid += 1
+        frame = msgpack.packb([0, self.msgid, "estop", []])
+        t0 = time.perf_counter_ns()
+        self.sock.sendall(frame)
+        while True:
+            self.unpacker.feed(self.sock.recv(65_536))
+            for msg in self.unpacker:
+                if msg[1] == self.msgid:
+                    took = time.perf_counter_ns() - t0
+                    if msg[2] is not None:
+                        raise RuntimeError(f"estop refused: {msg[2]}")
+                    return took / 1e6
+
+    def resume(self) -> None:
+        self.control.reset_fault()
+        self.control.start_cycling(PERIOD_MS * MS)
+
+
+def lateness_between(db: Path, first: int, last: int) -> list[int]:
+    con = sqlite3.connect(db)
+    rows = con.execute(
+        "SELECT lateness_ns FROM cycles WHERE cycle > ? AND cycle <= ? AND lateness_ns IS NOT NULL",
+        (first, last),
+    ).fetchall()
+    con.close()
+    return [r[0] for r in rows]
+
+
+def main() -> int:
+    fifo = fifo_allowed()
+    tmp = Path(tempfile.mkdtemp(prefix="usm-abuse-"))
+    sock = tmp / "d.sock"
+    cmd = [
+        sys.executable, "-m", "usmswitch.daemon.cli", "--sim", "--state-dir", str(tmp / "state"),
+        "--socket", str(sock), "--log-format", "json", "--log-level", "warning", "--target", "12ms",
+        "--period", f"{PERIOD_MS}ms", "--priority", str(PRIORITY if fifo else 0),
+    ]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ctx = multiprocessing.get_context("spawn")
+    rng = random.Random(1)
+    rows = []
+    try:
+        end = time.monotonic() + 30
+        while True:
+            try:
+                with Client(str(sock), timeout_ns=5_000 * MS) as c:
+                    c.stats()
+                break
+            except (OSError, RpcError):
+                if proc.poll() is not None or time.monotonic() > end:
+                    raise RuntimeError("the daemon did not start") from None
+                time.sleep(0.05)
+        db = tmp / "state" / "records.sqlite"
+        control = Client(str(sock), timeout_ns=30_000 * MS)
+        control.ping()
+        estopper = Estopper(sock, control)
+        time.sleep(1.0)
+        policy = "SCHED_FIFO" if fifo else "SCHED_OTHER"
+        print(f"policy {policy}; window {WINDOW_S:g} s; {ESTOPS} estops per load")
+        loads = [x for x in LOADS if not ONLY or x[0] == "idle" or any(w in x[0] for w in ONLY)]
+        for name, body, procs, kw in loads:
+            stop = ctx.Event()
+            workers = [ctx.Process(target=body, args=(str(sock), stop), kwargs=kw) for _ in range(procs)]
+            for w in workers:
+                w.start()
+            time.sleep(1.0)  # the load builds up
+            first = control.status()["cycle"]
+            time.sleep(WINDOW_S)
+            last = control.status()["cycle"] - 1
+            rss = (rss_mb(proc.pid), rss_mb(server_pid(proc.pid) or proc.pid))
+            lat = lateness_between(db, first, last)
+            stops = []
+            for _ in range(ESTOPS):
+                time.sleep(rng.uniform(0.02, 0.1))
+                stops.append(estopper.estop())
+                estopper.resume()
+            stop.set()
+            for w in workers:
+                w.join(10)
+                if w.is_alive():
+                    w.kill()
+            p50, p99, _, mx = percentiles(lat)
+            e50, e99, _, emx = percentiles([round(s * 1000) for s in stops])
+            rows.append(
+                (name, len(lat), p50 / 1e3, p99 / 1e3, mx / 1e3, e50 / 1e3, e99 / 1e3, emx / 1e3, *rss)
+            )
+            time.sleep(2.5)  # connections the load left die on their timeouts
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
+    idle_p99 = rows[0][3]
+    print_table(
+        ["load", "strokes", "late p50 us", "late p99 us", "late max us", "x idle p99",
+         "estop p50 ms", "estop p99 ms", "estop max ms", "daemon MB", "server MB"],
+        [
+            (n, k, f"{a:.1f}", f"{b:.1f}", f"{c:.0f}", f"{b / max(idle_p99, 1.0):.2f}",
+             f"{d:.2f}", f"{e:.2f}", f"{f:.2f}", f"{g:.0f}", f"{h:.0f}")
+            for n, k, a, b, c, d, e, f, g, h in rows
+        ],
+        title="start lateness from the records, and estop request -> drive-off reply, per load",
+    )  # fmt: skip
+    checks = [(f"estop p99 <= 5 ms: {r[0]}", r[6] <= 5.0) for r in rows]
+    checks += [(f"late p99 <= 1.2x idle: {r[0]}", r[3] <= 1.2 * max(idle_p99, 1.0)) for r in rows[1:]]
+    for label, ok in checks:
+        print(f"  {'ok  ' if ok else 'MISS'} {label}")
+    return 0 if all(ok for _, ok in checks) else 1
