@@ -33,6 +33,9 @@ RECV_SLICE_NS = 2_000_000
 # In real time the loop stops waiting on its command queue this long before a command instant and
 # leaves the rest to the driver's sleep-then-spin.
 COMMAND_LEAD_NS = 2_000_000
+# A helper thread waits at most this long for its turn: with a long start delay (open loop, a
+# long target) it proceeds rather than stall the socket for the whole delay.
+HELPER_WAIT_MAX_S = 0.01
 
 
 class Mode(StrEnum):
@@ -131,6 +134,10 @@ class ControlLoop:
         self._plan: Plan | None = None
         self._requests: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]] = queue.SimpleQueue()
         self._estop = threading.Event()
+        # Cleared from the end of a slack window until the stroke has started: the daemon's other
+        # threads wait on it (`wait_turn`) so that none holds the GIL when the start is due.
+        self._helpers_may_run = threading.Event()
+        self._helpers_may_run.set()
         self._shutdown = threading.Event()
         self._cycling_left: int | None = None  # strokes still to run; -1 forever; None not cycling
         self._period_ns = 0
@@ -158,6 +165,10 @@ class ControlLoop:
         self._shutdown.set()
         self._halt("shutdown")
         self._requests.put((lambda: None, Future()))  # wake a blocked queue wait
+
+    def wait_turn(self, max_s: float = HELPER_WAIT_MAX_S) -> None:
+        """For helper threads: return when the loop is not about to start a stroke (or after `max_s`)."""
+        self._helpers_may_run.wait(max_s)
 
     def latch_fault(self, reason: str) -> None:
         """Drive off, stop cycling, FAULT until reset (loop thread: a slack hook's finding)."""
@@ -421,6 +432,7 @@ class ControlLoop:
         bounces_before = daq.bounces
         levels = daq.levels()
         partial = levels is not None and not levels[direction.source]
+        self._helpers_may_run.clear()
         try:
             if self._plan is None or self._plan.direction is not direction:
                 self._arm(direction)
@@ -441,6 +453,8 @@ class ControlLoop:
                 flags = flags_for_failure(plan)
                 self._latch_fault(f"command failed: {exc}")
             return self._finish(plan, t_cmd, None, None, None, None, None, flags)
+        finally:
+            self._helpers_may_run.set()  # started (or not at all): the rest is waiting for edges
         t_start = cmd.t_start_ns
         lateness = cmd.lateness_ns
         deadline = (cmd.t_cmd_ns + cmd.delay_ns if t_start is None else t_start) + self.stroke_timeout_ns

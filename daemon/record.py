@@ -247,6 +247,7 @@ _CONVERT = (
     | {
         name: _opt_int
         for name in (
+            "t_start_ns",
             "t_depart_ns",
             "t_arrive_ns",
             "operating_ns",

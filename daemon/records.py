@@ -187,6 +187,9 @@ class RecordStore:
         #: Called on the writer thread with each batch of records once committed (and not
         #: rejected): what the daemon publishes, so a subscriber never sees a stroke the file lacks.
         self.on_commit: Callable[[list[CycleRecord]], None] | None = None
+        #: Called before each batch is written: the daemon makes it wait while the loop is about
+        #: to start a stroke (the writer's Python work would hold the GIL the loop needs).
+        self.gate: Callable[[], object] = lambda: None
         self._thread: threading.Thread | None = None
         if readonly:
             if not self.path.exists():
@@ -562,6 +565,7 @@ class RecordStore:
                     retry_at = now + backoff
             if pending and (self._writer_error is None or now >= retry_at or stopping):
                 while pending:
+                    self.gate()
                     batch = [pending.popleft() for _ in range(min(self._max_batch, len(pending)))]
                     try:
                         self._check_file()

@@ -990,6 +990,9 @@ class RpcServer:
         self.max_restarts = max_restarts
         #: Where TCP listens once started (the port resolved when 0 was asked).
         self.tcp_address: tuple[str, int] | None = None
+        #: Called by the bridge and writer threads before each piece of work: the daemon makes it
+        #: wait while the loop is about to start a stroke (they share the GIL). Urgent calls never wait.
+        self.gate: Callable[[], object] = lambda: None
         #: Counters for status and logs.
         self.published = 0
         self.lost = 0  # notifications dropped because the backlog to the server process was full
@@ -1268,6 +1271,7 @@ class RpcServer:
         out = self._out
         while True:
             item = out.get()
+            self.gate()
             kind = item[0]
             link = self._link
             try:
@@ -1322,6 +1326,7 @@ class RpcServer:
             link.feed.feed(data)
             for msg in link.feed:
                 if msg[0] == "call":
+                    self.gate()
                     self._call(link.gen, msg[1], msg[2], msg[3])
 
     def _serve_urgent(self, link: _Link) -> None:

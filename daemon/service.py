@@ -181,6 +181,7 @@ class Daemon:
             next_direction=first_direction(self.daq, last_rec),
             conditions=conditions,
         )
+        self.store.gate = self.loop.wait_turn
         self.loop.slack_hooks.append(self._watch_records)
         self.loop.slack_hooks.append(self._housekeeping)
         self.loop.listeners.append(self._on_record)
@@ -214,6 +215,7 @@ class Daemon:
         # A private directory, checked: whoever can write it could swap the socket (sockdir.py).
         prepare_socket_dir(self.config.socket.path, self.config.socket.group or None)
         self.rpc = start_rpc(self)
+        self.rpc.gate = self.loop.wait_turn
 
     # -- running -----------------------------------------------------------------------------------
     def run(self) -> int:

@@ -78,6 +78,19 @@ def test_record_round_trips_through_dict_row_and_csv():
     assert CycleRecord.from_row(row) == r
 
 
+def test_a_stroke_that_never_started_round_trips():
+    """An estop or a shutdown before the start leaves every stamp after the command empty."""
+    r = dataclasses.replace(
+        make_record(4, operating_ns=None, flags=Flag.ESTOP | Flag.FAULT),
+        t_start_ns=None,
+        t_depart_ns=None,
+        dead_ns=None,
+        lateness_ns=None,
+    )
+    assert CycleRecord.from_row(r.to_dict()) == r
+    assert CycleRecord.from_row(r.to_row()) == r
+
+
 def test_from_row_names_the_bad_field():
     d = make_record(1).to_dict()
     with pytest.raises(ValueError, match="mode='sideways'"):
