@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 from usmswitch.drivers import DaqError, Direction
 
 from .config import parse_host_port
+from .estop_socket import EstopSocket
 from .loop import LoopError, Mode, State
 from .record import CycleRecord
 from .rpc import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, RpcServer, estop_socket_path
@@ -324,6 +325,10 @@ def start_rpc(daemon: Daemon) -> RpcServer:
     )
     server.start()
     methods.server = server
+    assert server.urgent_listener is not None
+    estop = EstopSocket(server.urgent_listener, methods.urgent(), server.limits, gate=daemon.loop.wait_turn)
+    estop.start()
+    server.companions.append(estop)
     assert daemon.loop is not None
     daemon.loop.listeners.append(methods.on_record)
     daemon.store.on_commit = methods.on_commit

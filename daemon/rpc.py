@@ -324,8 +324,8 @@ def _note(topic: str, payload: object) -> bytes:
 _PONG = _packb("pong")
 _TRUE = _packb(True)
 
-#: Listener kinds: the Unix socket, TCP, and the estop socket (urgent methods and ping only).
-_KINDS = ("unix", "tcp", "urgent")
+#: Listener kinds of the server process: the Unix socket and TCP (the estop socket is the daemon's).
+_KINDS = ("unix", "tcp")
 # A refused or timed-out connection is half-closed and kept this long (at most this many at once)
 # so that the client reads the reason instead of a reset.
 _LINGER_S = 0.5
@@ -580,9 +580,7 @@ class _Conn(asyncio.Protocol):
         self.frames_end = 0
         self.partial_since_ns: int | None = None
         lim = hub.limits
-        self.first_frame_timeout_ns = (
-            lim.urgent_timeout_ns if kind == "urgent" else lim.first_frame_timeout_ns
-        )
+        self.first_frame_timeout_ns = lim.first_frame_timeout_ns
         self.outstanding = 0
         self.bad_frames = 0
         self.topics: set[str] = set()
@@ -595,13 +593,9 @@ class _Conn(asyncio.Protocol):
         assert isinstance(transport, asyncio.Transport)
         self.transport = transport
         limits = self.hub.limits
-        most = {
-            "unix": limits.max_connections,
-            "tcp": limits.max_tcp_connections,
-            "urgent": limits.max_urgent_connections,
-        }[self.kind]
+        most = limits.max_tcp_connections if self.tcp else limits.max_connections
         if self.hub.counts[self.kind] >= most:
-            where = {"unix": "Unix socket", "tcp": "TCP", "urgent": "estop socket"}[self.kind]
+            where = "TCP" if self.tcp else "Unix socket"
             self.fatal(ErrorCode.BUSY, f"too many connections on the {where} (max {most}); try again later")
             return
         self.hub.conns.add(self)
@@ -679,12 +673,6 @@ class _Conn(asyncio.Protocol):
                 raise RpcError(
                     ErrorCode.UNKNOWN_METHOD,
                     f"unknown method {_show(method)}; known: {', '.join(sorted(self.hub.known))}",
-                )
-            if self.kind == "urgent" and method not in self.hub.urgent and method != "ping":
-                raise RpcError(
-                    ErrorCode.UNKNOWN_METHOD,
-                    f"the estop socket takes only {', '.join(sorted(self.hub.urgent))} and ping, "
-                    f"got {_show(method)}",
                 )
             if method in PARAMS:
                 params = check_params(method, params)
@@ -998,6 +986,10 @@ class RpcServer:
         self.lost = 0  # notifications dropped because the backlog to the server process was full
         self.restarts = 0
         self._listeners: list[tuple[socket.socket, str]] = []
+        #: The bound estop socket (None without urgent_path): the daemon serves it itself.
+        self.urgent_listener: socket.socket | None = None
+        #: Stopped, in order, before the sockets close (the estop socket's server).
+        self.companions: list[Any] = []
         self._unix_inos: dict[Path, int] = {}
         self._out: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
         self._snaps: dict[str, object] = {}
@@ -1019,7 +1011,9 @@ class RpcServer:
         try:
             self._listeners.append((self._bind_unix(self.unix_path), "unix"))
             if self.urgent_path is not None:
-                self._listeners.append((self._bind_unix(self.urgent_path), "urgent"))
+                # Bound here (mode, group, stale-socket checks as the main one); served in this
+                # process by daemon/estop_socket.py, which the daemon starts on it.
+                self.urgent_listener = self._bind_unix(self.urgent_path)
             if self.tcp is not None:
                 tsock = socket.create_server(self.tcp, backlog=128)
                 self.tcp_address = tsock.getsockname()[:2]
@@ -1083,6 +1077,8 @@ class RpcServer:
         if not self._started or self._stopping:
             return
         self._stopping = True
+        for companion in self.companions:
+            companion.stop()
         self._out.put(("stop",))
         link = self._link
         if link is not None:
@@ -1139,6 +1135,9 @@ class RpcServer:
         for sock, _ in self._listeners:
             sock.close()
         self._listeners.clear()
+        if self.urgent_listener is not None:
+            self.urgent_listener.close()
+            self.urgent_listener = None
         for path, ino in self._unix_inos.items():
             with contextlib.suppress(OSError):
                 if os.stat(path).st_ino == ino:  # still ours: not replaced by a newer daemon

@@ -1,0 +1,226 @@
+"""The estop socket: `estop` and `ping` only, served in the daemon by one thread of its own.
+
+Beside the main socket (`usmswitchd.sock` -> `usmswitchd.estop.sock`, same mode and group). Not in
+the socket's server process: an estop here takes no process hop and waits behind nothing, however
+busy that process is (a connection flood, large history replies), and the thread runs at the
+daemon's helper priority. What an attacker can do to it is bounded: a few connections
+(`Limits.max_urgent_connections`), frames of a few hundred bytes, a request within
+`Limits.urgent_timeout_ns` of connecting and a frame finished within `Limits.frame_timeout_ns`.
+Work that is not an estop (accepting, refusing, timing out) waits its turn behind the loop's start
+(`gate`); an estop never does.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import selectors
+import socket
+import threading
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import msgpack
+
+from .rpc import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, Limits, RpcError, check_params
+
+log = logging.getLogger("usmswitch.rpc")
+
+MAX_FRAME_BYTES = 512
+_TICK_S = 0.05  # deadlines are checked at least this often
+
+
+class _Peer:
+    __slots__ = ("deadline_ns", "fed", "frames", "frames_end", "sock", "unpacker")
+
+    def __init__(self, sock: socket.socket, deadline_ns: int) -> None:
+        self.sock = sock
+        self.unpacker = msgpack.Unpacker(raw=False, max_buffer_size=MAX_FRAME_BYTES, max_ext_len=0)
+        self.deadline_ns = deadline_ns
+        self.fed = self.frames = self.frames_end = 0
+
+
+class EstopSocket:
+    """Serve `handlers` (the urgent methods) and ping on a bound, listening Unix socket."""
+
+    def __init__(
+        self,
+        sock: socket.socket,
+        handlers: Mapping[str, Callable[[list[Any]], object]],
+        limits: Limits,
+        gate: Callable[[], object] = lambda: None,
+    ) -> None:
+        self.sock = sock
+        self.handlers = dict(handlers)
+        self.limits = limits
+        self.gate = gate
+        self._peers: dict[socket.socket, _Peer] = {}
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._stopping = False
+        self._thread = threading.Thread(target=self._run, name="rpc-estop-socket", daemon=True)
+
+    def start(self) -> None:
+        self.sock.setblocking(False)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stopping = True
+        with contextlib.suppress(OSError):
+            self._wake_w.send(b"x")
+        self._thread.join(5)
+        for peer in list(self._peers.values()):
+            peer.sock.close()
+        self._peers.clear()
+        self._wake_r.close()
+        self._wake_w.close()
+
+    # -- the thread ---------------------------------------------------------------------------
+    def _run(self) -> None:
+        sel = selectors.DefaultSelector()
+        sel.register(self.sock, selectors.EVENT_READ, None)
+        sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        try:
+            while not self._stopping:
+                for key, _ in sel.select(_TICK_S):
+                    if key.data == "wake":
+                        continue
+                    if key.data is None:
+                        self._accept(sel)
+                    else:
+                        self._read(sel, key.data)
+                self._sweep(sel)
+        except Exception:  # a bug here must not take the daemon down; the main socket still serves
+            log.exception("rpc: the estop socket's thread failed; estop remains on the main socket")
+        finally:
+            sel.close()
+
+    def _accept(self, sel: selectors.BaseSelector) -> None:
+        self.gate()
+        while True:
+            try:
+                conn, _ = self.sock.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:  # out of descriptors: the backlog waits for the next round
+                log.warning("rpc: estop socket accept failed: %s", exc)
+                return
+            most = self.limits.max_urgent_connections
+            if len(self._peers) >= most:
+                _send_close(
+                    conn, _note(ErrorCode.BUSY, f"too many connections on the estop socket (max {most})")
+                )
+                continue
+            conn.setblocking(False)
+            peer = _Peer(conn, time.monotonic_ns() + self.limits.urgent_timeout_ns)
+            self._peers[conn] = peer
+            sel.register(conn, selectors.EVENT_READ, peer)
+
+    def _read(self, sel: selectors.BaseSelector, peer: _Peer) -> None:
+        try:
+            data = peer.sock.recv(MAX_FRAME_BYTES)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            data = b""
+        if not data:
+            self._drop(sel, peer)
+            return
+        try:
+            peer.unpacker.feed(data)
+        except msgpack.BufferFull:
+            self._close(sel, peer, ErrorCode.TOO_LARGE, f"frame larger than {MAX_FRAME_BYTES} bytes")
+            return
+        peer.fed += len(data)
+        out = []
+        try:
+            for msg in peer.unpacker:
+                peer.frames += 1
+                peer.frames_end = peer.unpacker.tell()
+                out.append(self._answer(msg))
+        except Exception as exc:  # undecodable: the stream cannot be resynchronised
+            self._close(sel, peer, ErrorCode.PARSE_ERROR, f"undecodable msgpack: {type(exc).__name__}")
+            return
+        now = time.monotonic_ns()
+        lim = self.limits
+        partial = peer.frames_end < peer.fed
+        peer.deadline_ns = now + (lim.frame_timeout_ns if partial else lim.idle_timeout_ns)
+        if out:
+            try:
+                peer.sock.sendall(b"".join(out))  # a few dozen bytes: fits any socket buffer
+            except OSError:
+                self._drop(sel, peer)
+
+    def _answer(self, msg: object) -> bytes:
+        if type(msg) is not list or len(msg) != 4 or msg[0] != REQUEST:
+            return _note(ErrorCode.INVALID_REQUEST, "expected [0, msgid, method, params]")
+        _, msgid, method, params = msg
+        if type(msgid) is not int or not 0 <= msgid <= MAX_MSGID or type(params) is not list:
+            return _note(
+                ErrorCode.INVALID_REQUEST, "expected [0, msgid (uint32), method (str), params (array)]"
+            )
+        try:
+            if method == "ping":
+                return _reply(msgid, None, "pong")
+            if method not in self.handlers:
+                raise RpcError(
+                    ErrorCode.UNKNOWN_METHOD,
+                    f"the estop socket takes only {', '.join(sorted(self.handlers))} and ping,"
+                    f" got {method!r:.40}",
+                )
+            return _reply(msgid, None, self.handlers[method](check_params(method, params)))
+        except RpcError as exc:
+            return _reply(msgid, exc.to_wire(), None)
+        except Exception as exc:
+            log.exception("rpc: estop socket handler %s failed", method)
+            return _reply(
+                msgid, [int(ErrorCode.INTERNAL), f"{method}: internal error: {type(exc).__name__}"], None
+            )
+
+    def _sweep(self, sel: selectors.BaseSelector) -> None:
+        now = time.monotonic_ns()
+        late = [p for p in self._peers.values() if now > p.deadline_ns]
+        if not late:
+            return
+        self.gate()
+        for peer in late:
+            if peer.frames_end < peer.fed:
+                why = f"a frame begun and not finished within {self.limits.frame_timeout_ns / 1e6:g} ms"
+            elif not peer.frames:
+                why = f"no request within {self.limits.urgent_timeout_ns / 1e6:g} ms of connecting"
+            else:
+                why = "idle"
+            self._close(sel, peer, ErrorCode.TIMEOUT, why)
+
+    def _close(self, sel: selectors.BaseSelector, peer: _Peer, code: int, message: str) -> None:
+        self._forget(sel, peer)
+        _send_close(peer.sock, _note(code, message))
+
+    def _drop(self, sel: selectors.BaseSelector, peer: _Peer) -> None:
+        self._forget(sel, peer)
+        peer.sock.close()
+
+    def _forget(self, sel: selectors.BaseSelector, peer: _Peer) -> None:
+        self._peers.pop(peer.sock, None)
+        with contextlib.suppress(KeyError, ValueError):
+            sel.unregister(peer.sock)
+
+
+def _reply(msgid: int, error: object, result: object) -> bytes:
+    return msgpack.packb([RESPONSE, msgid, error, result], use_bin_type=True)
+
+
+def _note(code: int, message: str) -> bytes:
+    return msgpack.packb([NOTIFICATION, "error", [[int(code), message]]], use_bin_type=True)
+
+
+def _send_close(sock: socket.socket, frame: bytes) -> None:
+    """Say why, then close; what the client sent is read first so the close is not a reset."""
+    with contextlib.suppress(OSError):
+        sock.setblocking(False)
+        with contextlib.suppress(BlockingIOError):
+            while sock.recv(MAX_FRAME_BYTES):
+                pass
+        sock.send(frame)
+        sock.shutdown(socket.SHUT_WR)
+    sock.close()
