@@ -206,6 +206,26 @@ def lateness_between(db: Path, first: int, last: int) -> list[int]:
     return [r[0] for r in rows]
 
 
+def sigterm_exit_ms(runs: int = 5) -> list[float]:
+    """SIGTERM to exit of a daemon whose first stroke waits for a start 5 s - t_hat away."""
+    out = []
+    for _ in range(runs):
+        tmp = Path(tempfile.mkdtemp(prefix="usm-term-"))
+        cmd = [
+            sys.executable, "-m", "usmswitch.daemon.cli", "--sim", "--state-dir", str(tmp / "state"),
+            "--socket", str(tmp / "d.sock"), "--log-format", "json", "--target", "5s", "--period", "6s",
+        ]  # fmt: skip
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(2.5)  # started and waiting for the first start
+        t0 = time.perf_counter()
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(30)
+        out.append((time.perf_counter() - t0) * 1e3)
+        if rc != 0:
+            raise RuntimeError(f"usmswitchd exited {rc} after SIGTERM")
+    return out
+
+
 def main() -> int:
     fifo = fifo_allowed()
     tmp = Path(tempfile.mkdtemp(prefix="usm-abuse-"))
@@ -281,6 +301,9 @@ def main() -> int:
     )  # fmt: skip
     checks = [(f"estop p99 <= 5 ms: {r[0]}", r[6] <= 5.0) for r in rows]
     checks += [(f"late p99 <= 1.2x idle: {r[0]}", r[3] <= 1.2 * max(idle_p99, 1.0)) for r in rows[1:]]
+    term = sigterm_exit_ms()
+    print(f"SIGTERM -> exit with a 5 s target, ms: {' '.join(f'{x:.0f}' for x in term)}")
+    checks.append(("SIGTERM exits within 100 ms (worst of 5)", max(term) <= 100.0))
     for label, ok in checks:
         print(f"  {'ok  ' if ok else 'MISS'} {label}")
     return 0 if all(ok for _, ok in checks) else 1

@@ -15,6 +15,7 @@ import daemonproc
 import pytest
 
 from usmswitch.daemon.client import Client
+from usmswitch.daemon.record import Flag
 
 MS = 1_000_000
 
@@ -174,3 +175,27 @@ def test_sd_notify_ready_watchdog_and_stopping(tmp_path: Path) -> None:
     gaps = [b - a for a, b in itertools.pairwise(pings)]
     assert max(gaps) < 0.2  # at least every WatchdogSec (here half of it is 100 ms)
     assert proc.returncode == 0
+
+
+def test_sigterm_during_a_5_s_target_exits_at_once_recording_the_abort(tmp_path: Path) -> None:
+    """Issue 10: the exit took 4.08 s and a whole stroke ran after the signal; now nothing starts."""
+    proc = start(tmp_path, "--target", "5s", "--period", "6s")
+    try:
+        with wait_for_socket(tmp_path, proc) as client:
+            for _ in range(100):
+                if client.status()["state"] == "cycling":
+                    break
+                time.sleep(0.02)
+        time.sleep(0.3)  # the first stroke is waiting for its start, 5 s - t_hat after its command
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err.decode()[-2000:]
+    assert took < 2.0, f"exit took {took:.2f} s"  # the process' own start-up of the exit path included
+    con = sqlite3.connect(tmp_path / "state" / "records.sqlite")
+    (flags, start_ns) = con.execute("SELECT flags, t_start_ns FROM cycles ORDER BY cycle DESC").fetchone()
+    assert start_ns is None and flags & Flag.ABORTED and not flags & (Flag.STALL | Flag.FAULT)
