@@ -5,8 +5,9 @@ outside the cpuset, RLIMIT_MEMLOCK too small): a refusal is logged and the daemo
 what it got. `apply_realtime` reports both, for the log and the status reply.
 
 On Linux the scheduler and affinity calls with pid 0 act on the calling thread only: call
-`apply_realtime` from the loop thread, and `drop_realtime` from helper threads that were started
-by it (they inherit its policy) so the record writer never competes at real-time priority.
+`apply_realtime` from the loop thread, then `lift_helpers` for the threads started before it (they
+share the GIL with the loop: see there); `drop_realtime` puts a thread started by a real-time one
+back on SCHED_OTHER.
 """
 
 from __future__ import annotations
