@@ -21,7 +21,7 @@ import msgpack
 import pytest
 from rawsock import Raw
 
-from usmswitch.daemon.client import Client, ErrorCode
+from usmswitch.daemon.client import Client, ConnectionClosed, ErrorCode
 from usmswitch.daemon.rpc import estop_socket_path
 
 MS = 1_000_000
@@ -114,6 +114,10 @@ def test_connection_floods_do_not_lock_out_the_estop(rig: Rig) -> None:
     [note] = Raw(str(rig.sock)).read_until_closed()
     assert note[:2] == [2, "error"] and note[2][0][0] == ErrorCode.BUSY, note
     assert "too many connections on the Unix socket" in note[2][0][1]
+    # The client says so too, not "connection reset".
+    with pytest.raises(ConnectionClosed, match=r"\[1\] too many connections on the Unix socket"):
+        with Client(str(rig.sock), timeout_ns=5_000 * MS) as c:
+            c.status()
     # 16 half-sent frames on the estop socket hold its slots until its short timeout; the rest
     # are refused at once...
     codes = sorted(raw.read_until_closed()[0][2][0][0] for raw in partial)

@@ -461,3 +461,19 @@ def test_publish_and_snapshot_refuse_undeclared_names(server: RpcServer) -> None
         server.snapshot("status", {})
     with pytest.raises(ValueError, match=r"Limits\.max_connections must be a positive integer"):
         Limits(max_connections=0)
+
+
+def test_the_restart_limit_is_reached(sockdir: Path, rig: Rig) -> None:
+    """Issue 10: the deque of restart times was as long as the limit, so the limit never tripped."""
+    with make_server(sockdir, rig, max_restarts=2) as srv:
+        for n in range(1, 4):
+            pid = srv.server_pid
+            assert pid is not None
+            os.kill(pid, signal.SIGKILL)
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline and srv.server_pid == pid and srv.alive:
+                time.sleep(0.02)
+            time.sleep(0.3)  # a respawn (if any) is running
+            if n <= 2:
+                assert srv.alive and srv.restarts == n
+        assert not srv.alive and srv.restarts == 2, "a third death within a minute must end serving"
