@@ -24,8 +24,8 @@ from urllib.parse import parse_qs, urlsplit
 
 import msgpack
 
-from .rpc import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, RpcError, estop_socket_path
 from .sockdir import UntrustedSocketError, check_peer, check_socket_owner
+from .wire import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, RpcError, estop_socket_path
 
 __all__ = [
     "Client",

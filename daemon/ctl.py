@@ -30,9 +30,9 @@ from typing import IO, Any, NoReturn
 
 from .client import Client, ConnectionClosed, CycleRecord, ErrorCode, RpcError, parse_address
 from .record import FIELDS, UNUSABLE, Flag
-from .rpc import estop_socket_path
 from .stats import Running
 from .units import format_ns, parse_duration_ns
+from .wire import estop_socket_path
 
 EXIT_OK = 0
 EXIT_REFUSED = 1
@@ -44,7 +44,7 @@ EXIT_INTERRUPTED = 130
 
 PROG = "usmswitchctl"
 DIRECTION_NAMES = ("on", "off")
-#: history's upper bound on the socket (usmswitch.daemon.rpc.MAX_HISTORY); export over the socket uses it.
+#: history's upper bound on the socket (usmswitch.daemon.wire.MAX_HISTORY); export over the socket uses it.
 MAX_HISTORY = 10_000
 #: Stroke lines between repeated column headers in `watch`.
 WATCH_HEADER_EVERY = 40

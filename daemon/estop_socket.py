@@ -23,7 +23,8 @@ from typing import Any
 
 import msgpack
 
-from .rpc import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, Limits, RpcError, check_params
+from .rpc_params import check_params
+from .wire import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, Limits, RpcError
 
 log = logging.getLogger("usmswitch.rpc")
 

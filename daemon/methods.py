@@ -22,7 +22,8 @@ from .config import parse_host_port
 from .estop_socket import EstopSocket
 from .loop import LoopError, Mode, State
 from .record import CycleRecord
-from .rpc import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, RpcServer, estop_socket_path
+from .rpc import RpcServer
+from .wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, estop_socket_path
 
 if TYPE_CHECKING:
     from .service import Daemon

@@ -16,7 +16,8 @@ from typing import Any
 import pytest
 
 from usmswitch.daemon.client import Client, ConnectionClosed, parse_address
-from usmswitch.daemon.rpc import ErrorCode, Limits, RpcError, RpcServer
+from usmswitch.daemon.rpc import RpcServer
+from usmswitch.daemon.wire import ErrorCode, Limits, RpcError
 
 TOKEN = "client-test-token-0123"
 METHODS = (

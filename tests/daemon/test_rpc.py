@@ -20,7 +20,9 @@ from typing import Any
 import pytest
 from rawsock import Raw
 
-from usmswitch.daemon.rpc import ErrorCode, Limits, RpcError, RpcServer, check_params
+from usmswitch.daemon.rpc import RpcServer
+from usmswitch.daemon.rpc_params import check_params
+from usmswitch.daemon.wire import ErrorCode, Limits, RpcError
 
 TOKEN = "t0ken-of-twenty-chars"
 

@@ -16,7 +16,8 @@ import msgpack
 import pytest
 
 from usmswitch.daemon.client import Client
-from usmswitch.daemon.rpc import ErrorCode, Limits, RpcServer
+from usmswitch.daemon.rpc import RpcServer
+from usmswitch.daemon.wire import ErrorCode, Limits
 
 GOOD = [
     [0, 1, "ping", []],

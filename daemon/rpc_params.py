@@ -1,0 +1,145 @@
+"""The parameters of every documented socket method: their checks and defaults (docs/protocol.md).
+
+The server process validates each request against `PARAMS` before the daemon sees it, so a handler
+gets a full, checked list.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from .wire import MAX_HISTORY, ErrorCode, RpcError
+
+_REQUIRED = object()
+_MAX_TARGET_NS = 10_000_000_000
+_MAX_PERIOD_NS = 3_600_000_000_000
+_MAX_COUNT = 1_000_000_000
+
+
+def show(value: object) -> str:
+    """A value for an error message, cut short so an attacker's megabyte is not echoed back."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _integer(name: str, lo: int, hi: int) -> Callable[[str, object], object]:
+    def check(method: str, value: object) -> object:
+        if type(value) is not int or not lo <= value <= hi:
+            raise RpcError(
+                ErrorCode.INVALID_PARAMS,
+                f"{method}: {name} must be an integer in [{lo}, {hi}], got {show(value)}",
+            )
+        return value
+
+    return check
+
+
+def _choice(name: str, options: tuple[str, ...]) -> Callable[[str, object], object]:
+    def check(method: str, value: object) -> object:
+        if value not in options or type(value) is not str:
+            raise RpcError(
+                ErrorCode.INVALID_PARAMS,
+                f"{method}: {name} must be one of {list(options)}, got {show(value)}",
+            )
+        return value
+
+    return check
+
+
+def _string(name: str) -> Callable[[str, object], object]:
+    def check(method: str, value: object) -> object:
+        if type(value) is not str:
+            raise RpcError(ErrorCode.INVALID_PARAMS, f"{method}: {name} must be a string, got {show(value)}")
+        return value
+
+    return check
+
+
+def _topics(method: str, value: object) -> object:
+    if type(value) is not list or not all(type(t) is str for t in value):
+        raise RpcError(
+            ErrorCode.INVALID_PARAMS, f"{method}: topics must be an array of strings, got {show(value)}"
+        )
+    return value
+
+
+_DRIVE_KEYS = {"frequency_hz": (1.0, 1e7), "voltage_vpp": (0.0, 1e4)}
+
+
+def _drive(method: str, value: object) -> object:
+    if type(value) is not dict:
+        raise RpcError(ErrorCode.INVALID_PARAMS, f"{method}: settings must be a map, got {show(value)}")
+    for key, item in value.items():
+        if key == "enabled":
+            if type(item) is not bool:
+                raise RpcError(
+                    ErrorCode.INVALID_PARAMS, f"{method}: enabled must be true or false, got {show(item)}"
+                )
+        elif key in _DRIVE_KEYS:
+            lo, hi = _DRIVE_KEYS[key]
+            if type(item) not in (int, float) or not lo <= item <= hi:
+                raise RpcError(
+                    ErrorCode.INVALID_PARAMS,
+                    f"{method}: {key} must be a number in [{lo:g}, {hi:g}], got {show(item)}",
+                )
+        else:
+            raise RpcError(
+                ErrorCode.INVALID_PARAMS,
+                f"{method}: unknown setting {show(key)}; known: enabled, {', '.join(sorted(_DRIVE_KEYS))}",
+            )
+    return value
+
+
+_Spec = tuple[tuple[str, Callable[[str, object], object], object], ...]
+
+#: Positional params of every documented method: (name, check, default or _REQUIRED).
+PARAMS: dict[str, _Spec] = {
+    "ping": (),
+    "auth": (("token", _string("token"), _REQUIRED),),
+    "status": (),
+    "get_target": (),
+    "set_target": (
+        ("target_ns", _integer("target_ns", 1, _MAX_TARGET_NS), _REQUIRED),
+        ("direction", _choice("direction", ("on", "off", "both")), "both"),
+    ),
+    "stats": (),
+    "history": (("n", _integer("n", 1, MAX_HISTORY), 20),),
+    "switch": (("direction", _choice("direction", ("on", "off", "next")), "next"),),
+    "start_cycling": (
+        ("period_ns", _integer("period_ns", 1, _MAX_PERIOD_NS), _REQUIRED),
+        ("count", _integer("count", 0, _MAX_COUNT), 0),
+    ),
+    "stop_cycling": (),
+    "set_mode": (
+        ("mode", _choice("mode", ("open", "closed")), _REQUIRED),
+        ("open_delay_ns", _integer("open_delay_ns", 0, _MAX_TARGET_NS), None),
+    ),
+    "reset_fault": (),
+    "estop": (),
+    "set_drive": (("settings", _drive, {}),),
+    "subscribe": (("topics", _topics, None),),
+    "unsubscribe": (("topics", _topics, None),),
+}
+
+
+def check_params(method: str, params: list[Any]) -> list[Any]:
+    """Validate a documented method's params and fill the defaults, so handlers get full lists."""
+    spec = PARAMS.get(method)
+    if spec is None:
+        return params
+    if len(params) > len(spec):
+        names = ", ".join(name for name, _, _ in spec) or "none"
+        raise RpcError(
+            ErrorCode.INVALID_PARAMS,
+            f"{method} takes at most {len(spec)} params ({names}), got {len(params)}",
+        )
+    out = []
+    for i, (name, check, default) in enumerate(spec):
+        if i < len(params):
+            out.append(check(method, params[i]))
+        elif default is _REQUIRED:
+            raise RpcError(ErrorCode.INVALID_PARAMS, f"{method}: missing param {i} ({name})")
+        else:
+            out.append(default)
+    return out

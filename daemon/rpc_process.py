@@ -1,0 +1,647 @@
+"""The socket server process (`python -m usmswitch.daemon.rpc_process`), spawned by `RpcServer`.
+
+It serves the Unix and TCP sockets the daemon bound: decodes, validates and bounds every request,
+answers ping/auth/subscribe, `stats` from the daemon's snapshots (finished here) and `history` from
+the records file, fans out notifications, and forwards the other calls over its channel to the
+daemon, estops over the urgent channel. Why a process of its own: docs/protocol.md, "Architecture".
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import concurrent.futures
+import hmac
+import importlib
+import logging
+import os
+import signal
+import socket
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import msgpack
+
+from .rpc_params import PARAMS, check_params, show
+from .wire import (
+    BUILTIN_METHODS,
+    MAX_MSGID,
+    REQUEST,
+    ErrorCode,
+    Limits,
+    RpcError,
+    error_frame,
+    note_frame,
+    ok_frame,
+    packb,
+    unpacker,
+)
+
+log = logging.getLogger("usmswitch.rpc")
+
+
+def _import(ref: str) -> Callable[[Any], Any]:
+    """`package.module:function` -> the function (a snapshot finisher, in the server process)."""
+    module, _, name = ref.partition(":")
+    return getattr(importlib.import_module(module), name)  # type: ignore[no-any-return]
+
+
+def _s(ns: int) -> str:
+    """A timeout for people: 2 s, 250 ms."""
+    return f"{ns / 1e9:g} s" if ns >= 1_000_000_000 else f"{ns / 1e6:g} ms"
+
+
+_PONG = packb("pong")
+_TRUE = packb(True)
+
+#: Listener kinds of the server process: the Unix socket and TCP (the estop socket is the daemon's).
+_KINDS = ("unix", "tcp")
+# A refused or timed-out connection is half-closed and kept this long (at most this many at once)
+# so that the client reads the reason instead of a reset.
+_LINGER_S = 0.5
+_MAX_LINGERING = 256
+_HISTORY_CHUNK = 200
+_readers = threading.local()
+
+
+def _history_reply(records_path: str, n: int) -> bytes:
+    """The last `n` records packed as a msgpack array (a worker thread of the server process).
+
+    Packed a chunk of records per call, so the event loop's thread gets the GIL between chunks
+    and an estop or a ping is answered while a large history is being packed.
+    """
+    from .records import RecordStore, RecordStoreError  # the server process only
+
+    store = getattr(_readers, "store", None)
+    if store is None or str(store.path) != records_path:
+        try:
+            store = _readers.store = RecordStore(records_path, readonly=True)
+        except RecordStoreError as exc:
+            raise RpcError(ErrorCode.UNAVAILABLE, f"history: {exc}") from None
+    records = store.history(n)
+    packer = msgpack.Packer(use_bin_type=True, autoreset=True)
+    parts = [packer.pack_array_header(len(records))]
+    for i in range(0, len(records), _HISTORY_CHUNK):
+        parts.append(b"".join(packer.pack(r.to_dict()) for r in records[i : i + _HISTORY_CHUNK]))
+    return b"".join(parts)
+
+
+# -- the server process ----------------------------------------------------------------------------
+
+
+class _Hub:
+    """The server process's state: connections, subscriptions, snapshots, calls in flight."""
+
+    def __init__(self, cfg: dict[str, Any], loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self.limits = Limits(**cfg["limits"])
+        self.token: str | None = cfg["token"]
+        self.handlers = frozenset(cfg["handlers"])
+        self.urgent = frozenset(cfg["urgent"])
+        self.snapshot_methods = frozenset(cfg["snapshot_methods"])
+        self.topics = tuple(cfg["topics"])
+        self.known = frozenset(BUILTIN_METHODS) | self.handlers | self.urgent | self.snapshot_methods
+        if cfg["records_path"]:
+            self.known |= {"history"}
+        self.snaps: dict[str, bytes] = dict(cfg["snaps"])
+        # Snapshots the daemon sends unfinished (the loop's stats without their percentiles):
+        # finished here, on the first request after each update, so the loop never pays for it.
+        self.finishers = {m: _import(ref) for m, ref in cfg["finishers"].items()}
+        self.raw_snaps = {m: self.snaps.pop(m) for m in self.finishers if m in self.snaps}
+        self.subs: dict[str, set[_Conn]] = {t: set() for t in self.topics}
+        self.conns: set[_Conn] = set()
+        self.counts = dict.fromkeys(_KINDS, 0)  # open connections per listener kind
+        self.lingering = 0  # closed connections still draining their client's last bytes
+        self.pending: dict[int, tuple[_Conn, int, int]] = {}  # fid -> (conn, msgid, deadline_ns)
+        self.urgent_pending: dict[int, tuple[_Conn, int, int]] = {}
+        self.next_fid = 1
+        self.lost_seen: int = cfg["lost"]
+        self.channel: _Channel | None = None
+        self.urgent_channel: _Channel | None = None
+        self.done: asyncio.Future[None] = loop.create_future()
+        # History is read from the records file here, not in the daemon: the loop's process never
+        # reads or packs a large reply. The pool bounds how many reads run at once.
+        self.records_path: str | None = cfg["records_path"]
+        self.reads = (
+            concurrent.futures.ThreadPoolExecutor(self.limits.max_reads, thread_name_prefix="rpc-read")
+            if self.records_path
+            else None
+        )
+
+    def snapshot(self, method: str) -> bytes | None:
+        """The packed result of a snapshot method, finished from its raw form when it has to be."""
+        snap = self.snaps.get(method)
+        if snap is None and method in self.raw_snaps:
+            finished = self.finishers[method](msgpack.unpackb(self.raw_snaps[method], raw=False))
+            snap = self.snaps[method] = packb(finished)
+        return snap
+
+    def forward(self, conn: _Conn, msgid: int, method: str, params: list[Any]) -> bytes | None:
+        """Send a call to the daemon, or return an error response when a bound says no."""
+        if conn.outstanding >= self.limits.max_outstanding:
+            return error_frame(
+                msgid,
+                ErrorCode.BUSY,
+                f"{method}: {conn.outstanding} requests outstanding on this connection "
+                f"(max {self.limits.max_outstanding}); read the responses first",
+            )
+        if len(self.pending) >= self.limits.max_forwarded:
+            return error_frame(
+                msgid, ErrorCode.BUSY, f"{method}: daemon busy, {len(self.pending)} calls in flight"
+            )
+        if self.channel is None:
+            return error_frame(msgid, ErrorCode.UNAVAILABLE, f"{method}: the daemon is not connected")
+        fid = self.next_fid
+        self.next_fid += 1
+        self.pending[fid] = (conn, msgid, time.monotonic_ns() + self.limits.call_timeout_ns)
+        conn.outstanding += 1
+        self.channel.send(["call", fid, method, params])
+        return None
+
+    def forward_urgent(self, conn: _Conn, msgid: int, method: str, params: list[Any]) -> bytes | None:
+        """An estop: straight to the daemon's urgent thread, behind nothing, refused by no call limit."""
+        if self.urgent_channel is None:
+            return error_frame(msgid, ErrorCode.UNAVAILABLE, f"{method}: the daemon is not connected")
+        fid = self.next_fid
+        self.next_fid += 1
+        self.urgent_pending[fid] = (conn, msgid, time.monotonic_ns() + self.limits.call_timeout_ns)
+        self.urgent_channel.send(["call", fid, method, params])
+        return None
+
+    def read(self, conn: _Conn, msgid: int, method: str, params: list[Any]) -> bytes | None:
+        """A history read, served from the records file by a worker thread of this process."""
+        if conn.outstanding >= self.limits.max_outstanding:
+            return error_frame(
+                msgid,
+                ErrorCode.BUSY,
+                f"{method}: {conn.outstanding} requests outstanding on this connection "
+                f"(max {self.limits.max_outstanding}); read the responses first",
+            )
+        assert self.reads is not None and self.records_path is not None
+        conn.outstanding += 1
+        fut = self.loop.run_in_executor(self.reads, _history_reply, self.records_path, params[0])
+
+        def done(fut: asyncio.Future[bytes]) -> None:
+            conn.outstanding -= 1
+            exc = fut.exception()
+            if exc is None:
+                conn.write(ok_frame(msgid, fut.result()))
+            elif isinstance(exc, RpcError):
+                conn.write(error_frame(msgid, exc.code, exc.message))
+            else:
+                log.error("rpc: history read failed: %s", exc)
+                conn.write(error_frame(msgid, ErrorCode.INTERNAL, f"{method}: {type(exc).__name__}: {exc}"))
+
+        fut.add_done_callback(done)
+        return None
+
+    def on_daemon(self, msg: list[Any], urgent: bool = False) -> None:
+        """A message from the daemon over the channel (or the urgent channel)."""
+        kind = msg[0]
+        if kind == "resp":
+            _, fid, error, result_bytes = msg
+            entry = (self.urgent_pending if urgent else self.pending).pop(fid, None)
+            if entry is None:  # timed out already
+                return
+            conn, msgid, _ = entry
+            if not urgent:
+                conn.outstanding -= 1
+            if error is None:
+                conn.write(ok_frame(msgid, result_bytes))
+            else:
+                conn.write(error_frame(msgid, error[0], error[1]))
+        elif kind == "note":
+            _, topic, frame, lost_total = msg
+            if lost_total > self.lost_seen:
+                delta, self.lost_seen = lost_total - self.lost_seen, lost_total
+                for conn in {c for subs in self.subs.values() for c in subs}:
+                    conn.dropped(delta)
+            for conn in tuple(self.subs.get(topic, ())):
+                conn.notify(frame)
+        elif kind == "snap":
+            if msg[1] in self.finishers:
+                self.raw_snaps[msg[1]] = msg[2]
+                self.snaps.pop(msg[1], None)  # finished again at the next request
+            else:
+                self.snaps[msg[1]] = msg[2]
+        elif kind == "stop" and not self.done.done():
+            self.done.set_result(None)
+
+    def sweep(self) -> None:
+        """Time out calls the daemon does not answer, TCP clients that never authenticate, idlers."""
+        now = time.monotonic_ns()
+        lim = self.limits
+        for table in (self.pending, self.urgent_pending):
+            for fid, (conn, msgid, deadline) in list(table.items()):
+                if deadline < now:
+                    del table[fid]
+                    if table is self.pending:
+                        conn.outstanding -= 1
+                    conn.write(
+                        error_frame(
+                            msgid,
+                            ErrorCode.TIMEOUT,
+                            f"no answer from the daemon in {_s(lim.call_timeout_ns)}",
+                        )
+                    )
+        for conn in list(self.conns):
+            if conn.partial_since_ns is not None and now - conn.partial_since_ns > lim.frame_timeout_ns:
+                conn.fatal(
+                    ErrorCode.TIMEOUT, f"a frame begun and not finished within {_s(lim.frame_timeout_ns)}"
+                )
+            elif not conn.frames and now - conn.born_ns > conn.first_frame_timeout_ns:
+                conn.fatal(
+                    ErrorCode.TIMEOUT, f"no request within {_s(conn.first_frame_timeout_ns)} of connecting"
+                )
+            elif not conn.authed and now - conn.born_ns > lim.auth_timeout_ns:
+                conn.fatal(ErrorCode.UNAUTHORIZED, f"no auth within {_s(lim.auth_timeout_ns)}")
+            elif not conn.topics and not conn.outstanding and now - conn.last_req_ns > lim.idle_timeout_ns:
+                conn.fatal(ErrorCode.TIMEOUT, f"idle for more than {_s(lim.idle_timeout_ns)}")
+
+
+class _Channel(asyncio.Protocol):
+    """The server process's end of the daemon channel (trusted: the daemon is our parent)."""
+
+    def __init__(self, hub: _Hub, urgent: bool = False) -> None:
+        self.hub = hub
+        self.urgent = urgent
+        self.unpacker = msgpack.Unpacker(raw=False, max_buffer_size=1 << 30)
+        self.transport: asyncio.Transport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        if self.urgent:
+            self.hub.urgent_channel = self
+        else:
+            self.hub.channel = self
+
+    def data_received(self, data: bytes) -> None:
+        self.unpacker.feed(data)
+        for msg in self.unpacker:
+            self.hub.on_daemon(msg, self.urgent)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self.urgent:
+            self.hub.urgent_channel = None
+            return
+        self.hub.channel = None
+        if not self.hub.done.done():
+            self.hub.done.set_result(None)
+
+    def send(self, obj: object) -> None:
+        assert self.transport is not None
+        self.transport.write(packb(obj))
+
+
+class _Conn(asyncio.Protocol):
+    """One client connection: decode, validate, dispatch, and throttle its notifications."""
+
+    def __init__(self, hub: _Hub, kind: str) -> None:
+        self.hub = hub
+        self.kind = kind
+        self.tcp = kind == "tcp"
+        self.unpacker = unpacker(hub.limits)
+        self.transport: asyncio.Transport | None = None
+        self.closed = False
+        self.counted = False
+        self.authed = not self.tcp
+        self.born_ns = self.last_req_ns = time.monotonic_ns()
+        self.fed = 0  # bytes fed to the unpacker; those past the last frame's end are a partial frame
+        self.frames = 0
+        self.frames_end = 0
+        self.partial_since_ns: int | None = None
+        lim = hub.limits
+        self.first_frame_timeout_ns = lim.first_frame_timeout_ns
+        self.outstanding = 0
+        self.bad_frames = 0
+        self.topics: set[str] = set()
+        self.paused = False
+        self.drop_pending = 0
+        self.drop_total = 0
+
+    # asyncio callbacks
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        limits = self.hub.limits
+        most = limits.max_tcp_connections if self.tcp else limits.max_connections
+        if self.hub.counts[self.kind] >= most:
+            where = "TCP" if self.tcp else "Unix socket"
+            self.fatal(ErrorCode.BUSY, f"too many connections on the {where} (max {most}); try again later")
+            return
+        self.hub.conns.add(self)
+        self.hub.counts[self.kind] += 1
+        self.counted = True
+        transport.set_write_buffer_limits(high=limits.subscriber_buffer_bytes)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.closed = True
+        self._uncount()
+        for topic in self.topics:
+            self.hub.subs[topic].discard(self)
+
+    def pause_writing(self) -> None:
+        # The client is not reading: stop reading its requests too (back-pressure on pipelining).
+        self.paused = True
+        if self.transport is not None and not self.closed:
+            self.transport.pause_reading()
+
+    def resume_writing(self) -> None:
+        self.paused = False
+        if self.transport is not None and not self.closed:
+            self.transport.resume_reading()
+            if self.drop_pending:
+                self._tell_dropped()
+
+    def data_received(self, data: bytes) -> None:
+        if self.closed:
+            return
+        try:
+            self.unpacker.feed(data)
+        except msgpack.BufferFull:
+            self.fatal(ErrorCode.TOO_LARGE, f"frame larger than {self.hub.limits.max_frame_bytes} bytes")
+            return
+        self.fed += len(data)
+        out: list[bytes] = []
+        try:
+            for msg in self.unpacker:
+                self.frames += 1
+                self.frames_end = self.unpacker.tell()  # exact here; past a partial frame after
+                reply = self.handle(msg)
+                if reply is not None:
+                    out.append(reply)
+                if self.closed:
+                    break
+        except Exception as exc:  # any decoder complaint: the stream cannot be resynchronised
+            if out:
+                self.write(b"".join(out))
+            self.fatal(ErrorCode.PARSE_ERROR, f"undecodable msgpack: {type(exc).__name__}: {exc}")
+            return
+        if out:
+            self.write(b"".join(out))
+        if self.frames_end < self.fed:
+            if self.partial_since_ns is None:
+                self.partial_since_ns = time.monotonic_ns()
+        else:
+            self.partial_since_ns = None
+
+    # dispatch
+    def handle(self, msg: object) -> bytes | None:
+        """Answer one decoded frame; None when the answer comes later (a forwarded call)."""
+        if type(msg) is not list or len(msg) != 4 or msg[0] != REQUEST:
+            return self._bad(msg)
+        _, msgid, method, params = msg
+        if type(msgid) is not int or not 0 <= msgid <= MAX_MSGID:
+            return self._bad(msg)
+        if type(method) is not str or type(params) is not list:
+            return self._bad(msg, msgid)
+        self.last_req_ns = time.monotonic_ns()
+        if not self.authed and method != "auth":
+            self.fatal(ErrorCode.UNAUTHORIZED, "this TCP connection must send auth [token] first", msgid)
+            return None
+        try:
+            if method not in self.hub.known:
+                raise RpcError(
+                    ErrorCode.UNKNOWN_METHOD,
+                    f"unknown method {show(method)}; known: {', '.join(sorted(self.hub.known))}",
+                )
+            if method in PARAMS:
+                params = check_params(method, params)
+            if method == "ping":
+                return ok_frame(msgid, _PONG)
+            if method in self.hub.urgent:
+                return self.hub.forward_urgent(self, msgid, method, params)
+            if method == "history" and self.hub.reads is not None:
+                return self.hub.read(self, msgid, method, params)
+            snap = self.hub.snapshot(method)
+            if snap is not None and not params:
+                return ok_frame(msgid, snap)
+            if method == "auth":
+                return self._auth(msgid, params[0])
+            if method == "subscribe":
+                return self._subscribe(msgid, params[0], True)
+            if method == "unsubscribe":
+                return self._subscribe(msgid, params[0], False)
+            if method in self.hub.handlers:
+                return self.hub.forward(self, msgid, method, params)
+            if params:
+                raise RpcError(ErrorCode.INVALID_PARAMS, f"{method} takes no params, got {len(params)}")
+            raise RpcError(ErrorCode.UNAVAILABLE, f"{method}: nothing published yet")
+        except RpcError as exc:
+            return error_frame(msgid, exc.code, exc.message)
+        except Exception as exc:  # a bug here must cost one request, not the server
+            log.exception("rpc: %s failed", show(method))
+            return error_frame(msgid, ErrorCode.INTERNAL, f"{method}: internal error: {type(exc).__name__}")
+
+    def _bad(self, msg: object, msgid: int | None = None) -> bytes | None:
+        self.bad_frames += 1
+        if msgid is None and type(msg) is list and len(msg) >= 2 and msg[0] == REQUEST:
+            candidate = msg[1]
+            if type(candidate) is int and 0 <= candidate <= MAX_MSGID:
+                msgid = candidate
+        text = f"expected [0, msgid (uint32), method (str), params (array)], got {show(msg)}"
+        if self.bad_frames > self.hub.limits.max_bad_frames:
+            self.fatal(ErrorCode.INVALID_REQUEST, f"too many invalid requests; last: {text}", msgid)
+            return None
+        if msgid is None:
+            return note_frame("error", [int(ErrorCode.INVALID_REQUEST), text])
+        return error_frame(msgid, ErrorCode.INVALID_REQUEST, text)
+
+    def _auth(self, msgid: int, token: str) -> bytes | None:
+        if not self.tcp or self.hub.token is None:
+            return ok_frame(msgid, _TRUE)
+        if hmac.compare_digest(token.encode(), self.hub.token.encode()):
+            self.authed = True
+            return ok_frame(msgid, _TRUE)
+        self.fatal(ErrorCode.UNAUTHORIZED, "wrong token", msgid)
+        return None
+
+    def _subscribe(self, msgid: int, topics: list[str] | None, on: bool) -> bytes:
+        wanted = self.hub.topics if topics is None else topics
+        for topic in wanted:
+            if topic not in self.hub.subs:
+                raise RpcError(
+                    ErrorCode.INVALID_PARAMS,
+                    f"unknown topic {show(topic)}; known: {', '.join(self.hub.topics)}",
+                )
+        for topic in wanted:
+            if on:
+                self.hub.subs[topic].add(self)
+                self.topics.add(topic)
+            else:
+                self.hub.subs[topic].discard(self)
+                self.topics.discard(topic)
+        return ok_frame(msgid, packb({"topics": sorted(self.topics), "dropped": self.drop_total}))
+
+    # output
+    def write(self, data: bytes) -> None:
+        """Queue bytes; a client that lets replies pile up past the hard limit is cut off."""
+        if self.closed or self.transport is None:
+            return
+        self.transport.write(data)
+        if self.transport.get_write_buffer_size() > self.hub.limits.max_write_buffer_bytes:
+            self.closed = True
+            self.transport.abort()
+
+    def notify(self, frame: bytes) -> None:
+        """Send a notification unless the client is behind; then drop it and count."""
+        if self.closed or self.transport is None:
+            return
+        # Same test as asyncio's pause_writing, so every drop is followed by a resume_writing
+        # that tells the client (even when no further notification comes).
+        if self.paused or self.transport.get_write_buffer_size() > self.hub.limits.subscriber_buffer_bytes:
+            self.drop_pending += 1
+            self.drop_total += 1
+            return
+        if self.drop_pending:
+            self._tell_dropped()
+        self.write(frame)
+
+    def dropped(self, count: int) -> None:
+        """Notifications lost before reaching this process (the daemon's backlog was full)."""
+        self.drop_pending += count
+        self.drop_total += count
+        if not self.paused:
+            self._tell_dropped()
+
+    def _tell_dropped(self) -> None:
+        count, self.drop_pending = self.drop_pending, 0
+        self.write(note_frame("dropped", {"count": count, "total": self.drop_total}))
+
+    def fatal(self, code: int, message: str, msgid: int | None = None) -> None:
+        """Say why (a response when there is a msgid, else an "error" notification), then close."""
+        if self.closed or self.transport is None:
+            return
+        frame = (
+            note_frame("error", [int(code), message]) if msgid is None else error_frame(msgid, code, message)
+        )
+        transport = self.transport
+        transport.write(frame)
+        self.closed = True
+        self._uncount()
+        hub = self.hub
+        if transport.can_write_eof() and hub.lingering < _MAX_LINGERING:
+            # Half-close and read on for a moment: closing outright with the client's request
+            # unread makes the kernel send a reset, and the client would never see why.
+            transport.write_eof()
+            hub.lingering += 1
+
+            def finish() -> None:
+                hub.lingering -= 1
+                transport.close()
+
+            hub.loop.call_later(_LINGER_S, finish)
+        else:
+            transport.close()  # flushes what is buffered, then closes
+
+    def _uncount(self) -> None:
+        if self.counted:
+            self.counted = False
+            self.hub.conns.discard(self)
+            self.hub.counts[self.kind] -= 1
+
+
+def _recv_exact(sock: socket.socket, n: int) -> bytes | None:
+    buf = bytearray()
+    while len(buf) < n:
+        data = sock.recv(n - len(buf))
+        if not data:
+            return None
+        buf += data
+    return bytes(buf)
+
+
+async def _serve(
+    chan: socket.socket,
+    urgent_chan: socket.socket,
+    listeners: list[tuple[socket.socket, str]],
+    cfg: dict[str, Any],
+) -> None:
+    loop = asyncio.get_running_loop()
+    hub = _Hub(cfg, loop)
+    await loop.connect_accepted_socket(lambda: _Channel(hub), sock=chan)
+    await loop.connect_accepted_socket(lambda: _Channel(hub, urgent=True), sock=urgent_chan)
+    servers = []
+    for sock, kind in listeners:
+        # create_server, not create_unix_server: the latter unlinks the path on close (3.13+),
+        # and the socket file belongs to the daemon, which outlives this process.
+        servers.append(await loop.create_server(lambda kind=kind: _Conn(hub, kind), sock=sock))
+    assert hub.channel is not None
+    hub.channel.send(["ready", os.getpid()])
+
+    async def sweeper() -> None:
+        while True:
+            await asyncio.sleep(0.05)
+            hub.sweep()
+
+    task = loop.create_task(sweeper())
+    try:
+        await hub.done
+    finally:
+        task.cancel()
+        for server in servers:
+            server.close()
+        for conn in list(hub.conns):
+            if conn.transport is not None:
+                conn.transport.abort()
+        if hub.reads is not None:
+            hub.reads.shutdown(wait=False, cancel_futures=True)
+
+
+def serve(chan_fd: int, urgent_fd: int, listeners: list[tuple[int, str]], nice: int = 0) -> None:
+    """The server process's body: read the config from the channel, then serve until told to stop."""
+    chan = socket.socket(fileno=chan_fd)
+    chan.setblocking(True)
+    # The config comes first, length-prefixed, so not a byte of what follows is read here.
+    head = _recv_exact(chan, 4)
+    if head is None:
+        return
+    body = _recv_exact(chan, int.from_bytes(head, "big"))
+    if body is None:
+        return
+    cfg = msgpack.unpackb(body, raw=False)
+    if nice:
+        os.nice(nice)
+    socks = [(socket.socket(fileno=fd), kind) for fd, kind in listeners]
+    for sock, _ in socks:
+        sock.setblocking(False)
+    chan.setblocking(False)
+    urgent = socket.socket(fileno=urgent_fd)
+    urgent.setblocking(False)
+    asyncio.run(_serve(chan, urgent, socks, cfg))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry of the server process the daemon spawns (not a command for people)."""
+    parser = argparse.ArgumentParser(prog="usmswitch.daemon.rpc_process", description=__doc__.splitlines()[0])
+    parser.add_argument("--channel", type=int, required=True, help="fd of the socketpair to the daemon")
+    parser.add_argument("--urgent-channel", type=int, required=True, help="fd of the estop socketpair")
+    parser.add_argument(
+        "--listen", action="append", default=[], help="FD:unix, FD:tcp or FD:urgent, a listening socket"
+    )
+    parser.add_argument("--nice", type=int, default=0)
+    args = parser.parse_args(argv)
+    # The daemon owns shutdown: a Ctrl-C to the terminal's process group or systemd's SIGTERM to the
+    # cgroup must not kill the server under it mid-stop. It ends when the daemon's channel closes.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)  # a closed terminal: the daemon decides
+    # A reader thread packing a long history gives the GIL back to the event loop this often
+    # (set here, in the process of its own, not in serve(), which a test may run in a thread).
+    sys.setswitchinterval(0.0005)
+    listeners = []
+    for spec in args.listen:
+        fd, _, kind = spec.partition(":")
+        if kind not in _KINDS or not fd.isdigit():
+            parser.error(f"--listen must be FD:unix, FD:tcp or FD:urgent, got {spec!r}")
+        listeners.append((int(fd), kind))
+    serve(args.channel, args.urgent_channel, listeners, args.nice)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
