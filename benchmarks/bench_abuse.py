@@ -32,7 +32,7 @@ import msgpack
 
 from benchmarks.bench_loop import PRIORITY, fifo_allowed, percentiles
 from benchmarks.table import print_table
-from usmswitch.daemon.client import Client, RpcError
+from usmswitch.client import Client, RpcError
 from usmswitch.daemon.wire import estop_socket_path
 
 MS = 1_000_000

@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 from benchmarks.table import print_table
-from usmswitch.daemon.client import Client, RpcError
+from usmswitch.client import Client, RpcError
 
 MS = 1_000_000
 PERIOD = "15ms"

@@ -78,7 +78,7 @@ asyncio.run(main())
 # One client process: sequential `stats` calls through usmswitch's Client between two instants.
 CLIENT = """
 import json, sys, time
-from usmswitch.daemon.client import Client
+from usmswitch.client import Client
 path, start_ns, end_ns = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
 c = Client(path)
 for _ in range(200):

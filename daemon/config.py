@@ -26,6 +26,7 @@ from typing import Any
 from usmswitch.predictor import MAX_ORDER, MODELS, check_stroke_ns, min_samples
 from usmswitch.sim import FaultPlan
 
+from .sockdir import default_socket_path
 from .units import UNITS_NS, format_ns, parse_duration_ns
 
 DRIVERS = ("sim", "serial", "usb")
@@ -33,7 +34,6 @@ SIM_CLOCKS = ("real", "virtual")
 LOG_FORMATS = ("auto", "json", "console")
 LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
 MODES = ("closed", "open")
-SOCKET_NAME = "usmswitchd.sock"
 # A token shorter than this can be guessed by anyone who can reach the TCP port.
 MIN_TOKEN_CHARS = 16
 # The simulated rig keeps its records apart from the hardware's, below the default state directory.
@@ -68,26 +68,6 @@ def default_state_dir(env: Mapping[str, str] | None = None, *, sim: bool = False
     else:
         base = Path(env.get("HOME") or Path.home()) / ".local" / "state" / "usmswitch"
     return base / SIM_STATE_SUBDIR if sim else base
-
-
-def default_socket_path(env: Mapping[str, str] | None = None) -> Path:
-    """Where the daemon listens: $RUNTIME_DIRECTORY (systemd), else $XDG_RUNTIME_DIR/usmswitch, else a
-    per-user /tmp/usmswitch-<uid> (created 0700 and checked before use: daemon/sockdir.py)."""
-    env = os.environ if env is None else env
-    if env.get("RUNTIME_DIRECTORY"):
-        return Path(env["RUNTIME_DIRECTORY"].split(":")[0]) / SOCKET_NAME
-    if env.get("XDG_RUNTIME_DIR"):
-        return Path(env["XDG_RUNTIME_DIR"]) / "usmswitch" / SOCKET_NAME
-    return Path(f"/tmp/usmswitch-{os.getuid()}") / SOCKET_NAME
-
-
-def client_socket_paths(env: Mapping[str, str] | None = None) -> list[Path]:
-    """Where a client looks for the daemon, in order: $USMSWITCH_SOCKET, this user's daemon, the service's."""
-    env = os.environ if env is None else env
-    paths = [Path(env["USMSWITCH_SOCKET"])] if env.get("USMSWITCH_SOCKET") else []
-    paths.append(default_socket_path(env))
-    paths.append(Path("/run/usmswitch") / SOCKET_NAME)
-    return list(dict.fromkeys(paths))
 
 
 # -- the configuration tree ------------------------------------------------------------------------
@@ -802,8 +782,6 @@ __all__ = [
     "SocketConfig",
     "UsbConfig",
     "apply_overrides",
-    "client_socket_paths",
-    "default_socket_path",
     "default_state_dir",
     "duration_text",
     "existing_cpus",

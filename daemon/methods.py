@@ -14,19 +14,35 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from importlib.metadata import PackageNotFoundError, version
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
-from usmswitch.drivers import DaqError, Direction
+from usmswitch.drivers import Daq, DaqError, Direction
 
-from .config import parse_host_port
+from .config import Config, parse_host_port
 from .estop_socket import EstopSocket
-from .loop import LoopError, Mode, State
+from .loop import ControlLoop, LoopError, Mode, State
 from .record import CycleRecord
+from .records import RecordStore
 from .rpc import RpcServer
 from .wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, estop_socket_path
 
-if TYPE_CHECKING:
-    from .service import Daemon
+
+class Daemon(Protocol):
+    """What the socket methods use of the running daemon (`service.Daemon`), named here so that
+    this module does not import the service that imports it."""
+
+    config: Config
+    loop: ControlLoop | None
+    store: RecordStore | None
+    daq: Daq | None
+    started_ns: int
+
+    def refresh_snapshot(self) -> None: ...
+
+    def set_drive(self, settings: dict[str, Any]) -> Future[dict[str, Any]]: ...
+
+    def records_status(self) -> dict[str, Any]: ...
+
 
 try:
     PACKAGE_VERSION = version("usmswitch")

@@ -30,6 +30,7 @@ from .config import Config
 from .daqfactory import make_daq
 from .logsetup import configure_logging
 from .loop import ControlLoop, State, direction_from_levels
+from .methods import start_rpc
 from .realtime import apply_realtime, lift_helpers
 from .record import CycleRecord, Flag
 from .records import RecordStore, RecordStoreError
@@ -208,9 +209,7 @@ class Daemon:
         )
 
     def _start_socket(self) -> None:
-        """The msgpack-RPC front; wired in methods.py (absent until the socket layer is present)."""
-        from .methods import start_rpc
-
+        """The msgpack-RPC front, wired in methods.py."""
         assert self.loop is not None and self.store is not None
         # A private directory, checked: whoever can write it could swap the socket (sockdir.py).
         prepare_socket_dir(self.config.socket.path, self.config.socket.group or None)

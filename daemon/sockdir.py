@@ -17,6 +17,7 @@ import pwd
 import socket
 import stat
 import struct
+from collections.abc import Mapping
 from pathlib import Path
 
 __all__ = [
@@ -183,3 +184,27 @@ def check_peer(sock: socket.socket, owner: int) -> None:
         raise UntrustedSocketError(
             f"the process listening on the socket runs as {_user(uid)}, not as its owner {_user(owner)}"
         )
+
+
+# -- where the socket is -------------------------------------------------------------------------
+SOCKET_NAME = "usmswitchd.sock"
+
+
+def default_socket_path(env: Mapping[str, str] | None = None) -> Path:
+    """Where the daemon listens: $RUNTIME_DIRECTORY (systemd), else $XDG_RUNTIME_DIR/usmswitch, else a
+    per-user /tmp/usmswitch-<uid> (created 0700 and checked before use: daemon/sockdir.py)."""
+    env = os.environ if env is None else env
+    if env.get("RUNTIME_DIRECTORY"):
+        return Path(env["RUNTIME_DIRECTORY"].split(":")[0]) / SOCKET_NAME
+    if env.get("XDG_RUNTIME_DIR"):
+        return Path(env["XDG_RUNTIME_DIR"]) / "usmswitch" / SOCKET_NAME
+    return Path(f"/tmp/usmswitch-{os.getuid()}") / SOCKET_NAME
+
+
+def client_socket_paths(env: Mapping[str, str] | None = None) -> list[Path]:
+    """Where a client looks for the daemon, in order: $USMSWITCH_SOCKET, this user's daemon, the service's."""
+    env = os.environ if env is None else env
+    paths = [Path(env["USMSWITCH_SOCKET"])] if env.get("USMSWITCH_SOCKET") else []
+    paths.append(default_socket_path(env))
+    paths.append(Path("/run/usmswitch") / SOCKET_NAME)
+    return list(dict.fromkeys(paths))

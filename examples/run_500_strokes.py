@@ -21,8 +21,7 @@ import sys
 import time
 from typing import Any
 
-from usmswitch.daemon.client import Client, CycleRecord, RpcError
-from usmswitch.daemon.config import client_socket_paths
+from usmswitch.client import Client, CycleRecord, RpcError, client_socket_paths
 from usmswitch.daemon.record import UNUSABLE, Flag
 from usmswitch.daemon.units import format_ns, parse_duration_ns
 

@@ -5,10 +5,11 @@
 nothing else of ours. See docs/predictor.md.
 """
 
-from .aic import CRITERIA, SIGMA2_FLOOR_NS2, AicTable, aic_table, min_samples, select_order
+from .aic import SIGMA2_FLOOR_NS2, AicTable, min_samples
 from .ar import STATE_FORMAT, ARPredictor
 from .checks import MAX_ORDER, MAX_T_NS, MODELS, check_stroke_ns
 from .exact import ExactSolution
+from .selection import CRITERIA, aic_table, select_order
 
 __all__ = [
     "CRITERIA",

@@ -1,6 +1,8 @@
 """AIC order selection (paper Eq. 8-9): AIC(m) = N ln(sigma^2) + 2k.
 
-Two readings of sigma^2, both over one common set of N strokes so that the orders are compared fairly:
+The "fit" table is here; `selection.py` adds the "rolling" one (it runs the predictor) and
+`aic_table`/`select_order`, which choose between them. Two readings of sigma^2, both over one
+common set of N strokes so that the orders are compared fairly:
 
 - `criterion="fit"` (the default, and what `ARPredictor(order="auto")` uses): sigma^2 = RSS_m / N, the
   maximum-likelihood residual variance of the least-squares AR(m) fit over the last N = n - max_order
@@ -28,7 +30,6 @@ from dataclasses import dataclass
 from .checks import MAX_ORDER, check_int, check_model, check_stroke_ns
 from .exact import gram_from_columns, nested_rss
 
-CRITERIA = ("fit", "rolling")
 #: Variance of rounding a time to a whole nanosecond; the floor of sigma^2.
 SIGMA2_FLOOR_NS2 = 1.0 / 12.0
 
@@ -69,24 +70,12 @@ def min_samples(max_order: int, model: str) -> int:
     return 2 * max_order + 2 + (model == "centered")
 
 
-def aic_table(
-    samples: Iterable[int],
-    max_order: int = MAX_ORDER,
-    model: str = "paper",
-    criterion: str = "fit",
-    window: int | None = None,
-) -> AicTable:
-    """Eq. 8 for every order 1..max_order over `samples` (stroke times in ns, oldest first)."""
+def fit_table(samples: Iterable[int], max_order: int = MAX_ORDER, model: str = "paper") -> AicTable:
+    """Eq. 8, `criterion="fit"`, for every order 1..max_order over `samples` (ns, oldest first)."""
     check_model(model)
     check_int("max_order", max_order, 1, MAX_ORDER)
-    if criterion not in CRITERIA:
-        raise ValueError(f"criterion must be one of {CRITERIA}, got {criterion!r}")
     values = [check_stroke_ns(v) for v in samples]
     c = 1 if model == "centered" else 0
-    if criterion == "rolling":
-        return _rolling_table(values, max_order, model, window)
-    if window is not None:
-        raise ValueError(f"window applies to criterion='rolling' only, got window={window!r}")
     need = min_samples(max_order, model)
     if len(values) < need:
         raise ValueError(
@@ -104,44 +93,4 @@ def aic_table(
     sigma2 = [num / (den * scale) for num, den in nested_rss(gram)]
     orders = tuple(range(1, max_order + 1))
     aics = tuple(_aic(n_rows, s2, m + c) for m, s2 in zip(orders, sigma2, strict=True))
-    return AicTable(orders, aics, tuple(sigma2), n_rows, model, criterion)
-
-
-def _rolling_table(values: list[int], max_order: int, model: str, window: int | None) -> AicTable:
-    # Imported here: ar.py uses this module for its own online selection.
-    from .ar import ARPredictor
-
-    if window is None:
-        raise ValueError("criterion='rolling' needs the predictor's window, got window=None")
-    check_int("window", window, max_order + 2)
-    predictors = [ARPredictor(order=m, window=window, model=model) for m in range(1, max_order + 1)]
-    start = max(p.min_ready for p in predictors)
-    n_rows = len(values) - start
-    if n_rows < max_order + 2:
-        raise ValueError(
-            f"rolling AIC up to order {max_order} with window {window} needs at least "
-            f"{start + max_order + 2} strokes, got {len(values)}"
-        )
-    sq: list[list[float]] = [[] for _ in predictors]
-    for i, t in enumerate(values):
-        for p, acc in zip(predictors, sq, strict=True):
-            if i >= start:
-                acc.append((t - p.predict()) ** 2)
-            p.update(t)
-    c = 1 if model == "centered" else 0
-    sigma2 = [math.fsum(acc) / n_rows for acc in sq]
-    orders = tuple(range(1, max_order + 1))
-    aics = tuple(_aic(n_rows, s2, m + c) for m, s2 in zip(orders, sigma2, strict=True))
-    return AicTable(orders, aics, tuple(sigma2), n_rows, model, "rolling")
-
-
-def select_order(
-    samples: Iterable[int],
-    max_order: int = MAX_ORDER,
-    model: str = "paper",
-    criterion: str = "fit",
-    window: int | None = None,
-) -> tuple[int, AicTable]:
-    """Pick the AR order by Eq. 8: (the order with the smallest AIC, the whole AIC table)."""
-    table = aic_table(samples, max_order, model, criterion, window)
-    return table.best, table
+    return AicTable(orders, aics, tuple(sigma2), n_rows, model, "fit")

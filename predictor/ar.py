@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .aic import AicTable, aic_table, min_samples
+from .aic import AicTable, fit_table, min_samples
 from .checks import MAX_ORDER, MAX_T_NS, check_int, check_model, check_stroke_ns
 from .exact import ExactSolution, NormalPlan
 
@@ -430,7 +430,7 @@ class ARPredictor:
     def aic_table(self) -> AicTable:
         """Eq. 8 for orders 1..max_order over the window (common rows, see `predictor.aic`)."""
         if self._table is None or self._table_seen != self._seen:
-            self._table = aic_table(self.samples(), self._max_order, self._model)
+            self._table = fit_table(self.samples(), self._max_order, self._model)
             self._table_seen = self._seen
         return self._table
 

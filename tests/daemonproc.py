@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from usmswitch.daemon.client import Client, RpcError
+from usmswitch.client import Client, RpcError
 
 MS = 1_000_000
 

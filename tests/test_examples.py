@@ -17,7 +17,7 @@ from pathlib import Path
 import daemonproc
 import pytest
 
-from usmswitch.daemon.client import Client
+from usmswitch.client import Client
 
 MS = 1_000_000
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"

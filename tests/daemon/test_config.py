@@ -14,12 +14,11 @@ from usmswitch.daemon.config import (
     Config,
     ConfigError,
     apply_overrides,
-    client_socket_paths,
-    default_socket_path,
     default_state_dir,
     load_config,
     parse_modbus_url,
 )
+from usmswitch.daemon.sockdir import client_socket_paths, default_socket_path
 
 ENV = {"HOME": "/home/lab", "XDG_RUNTIME_DIR": "/run/user/1000"}
 

@@ -14,7 +14,7 @@ from pathlib import Path
 import daemonproc
 import pytest
 
-from usmswitch.daemon.client import Client
+from usmswitch.client import Client
 from usmswitch.daemon.record import Flag
 
 MS = 1_000_000

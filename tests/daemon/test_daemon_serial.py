@@ -14,7 +14,7 @@ from pathlib import Path
 import daemonproc
 import pytest
 
-from usmswitch.daemon.client import Client, RpcError
+from usmswitch.client import Client, RpcError
 
 MS = 1_000_000
 STROKES = 320

@@ -17,7 +17,7 @@ import daemonproc
 import msgpack
 import pytest
 
-from usmswitch.daemon.client import Client, ConnectionClosed, ErrorCode, RpcError
+from usmswitch.client import Client, ConnectionClosed, ErrorCode, RpcError
 from usmswitch.daemon.record import Flag
 
 MS = 1_000_000

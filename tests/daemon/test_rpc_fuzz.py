@@ -15,7 +15,7 @@ from typing import Any
 import msgpack
 import pytest
 
-from usmswitch.daemon.client import Client
+from usmswitch.client import Client
 from usmswitch.daemon.rpc import RpcServer
 from usmswitch.daemon.wire import ErrorCode, Limits
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from usmswitch.daemon.client import Client, UntrustedSocketError
+from usmswitch.client import Client, UntrustedSocketError
 from usmswitch.daemon.sockdir import (
     check_private_dir,
     check_socket_owner,

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from usmswitch.daemon.config import UsbConfig, client_socket_paths, load_config
+from usmswitch.daemon.config import UsbConfig, load_config
+from usmswitch.daemon.sockdir import client_socket_paths
 
 ANALYZE = shutil.which("systemd-analyze")
 needs_analyze = pytest.mark.skipif(ANALYZE is None, reason="systemd-analyze is not installed (apt: systemd)")

@@ -10,7 +10,7 @@ import pytest
 from boardsim import BoardServer
 from daemonproc import daemon_args, spawn, stop, wait_serving
 
-from usmswitch.daemon.client import Client, ErrorCode, RpcError
+from usmswitch.client import Client, ErrorCode, RpcError
 
 MS = 1_000_000
 

@@ -140,13 +140,13 @@ def test_auto_reselects_every_k_strokes_exactly(monkeypatch: pytest.MonkeyPatch)
     import usmswitch.predictor.ar as ar_module
 
     selections: list[int] = []
-    real = ar_module.aic_table
+    real = ar_module.fit_table
 
     def counting(samples, max_order, model):
         selections.append(len(seen))
         return real(samples, max_order, model)
 
-    monkeypatch.setattr(ar_module, "aic_table", counting)
+    monkeypatch.setattr(ar_module, "fit_table", counting)
     t = ar_around_mean([0.5], 300, seed=8)
     p = ARPredictor(order="auto", window=60, model="centered", max_order=2, reselect_every=25)
     seen: list[int] = []

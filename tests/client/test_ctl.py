@@ -23,13 +23,14 @@ from pathlib import Path
 import daemonproc
 import pytest
 
-from usmswitch.daemon import ctl
-from usmswitch.daemon.client import Client
+from usmswitch.client import Client
+from usmswitch.client.ctl import args as ctl_args
+from usmswitch.client.ctl import output as ctl_out
 from usmswitch.daemon.record import FIELDS, CycleRecord, Flag
 
 MS = 1_000_000
 BIN = Path(sys.executable).parent / "usmswitchctl"
-CTL = [str(BIN)] if BIN.exists() else [sys.executable, "-m", "usmswitch.daemon.ctl"]
+CTL = [str(BIN)] if BIN.exists() else [sys.executable, "-m", "usmswitch.client.ctl"]
 
 
 TOKEN = "ctl-test-token-0123456789"
@@ -356,7 +357,7 @@ def test_export_csv_round_trip(idle: Rig, tmp_path: Path) -> None:
     r = run(idle, "export", "--csv", str(tmp_path / "missing-dir" / "x.csv"))
     assert r.returncode == 2 and "cannot write" in r.stderr
     r = run(None, "export", "--csv", "-", "--state-dir", str(tmp_path / "nothing-here"))
-    assert r.returncode == 2 and "does not exist" in r.stderr
+    assert r.returncode == 2 and "no records file" in r.stderr
     assert run(idle, "export").returncode == 2  # no --csv
 
 
@@ -436,32 +437,33 @@ def test_usage_errors_exit_2(args: list[str]) -> None:
 
 # -- the formatting helpers, in process ------------------------------------------------------------
 def test_unit_parsers() -> None:
-    assert ctl.frequency_arg("40kHz") == 40_000.0
-    assert ctl.frequency_arg("39.6 khz") == pytest.approx(39_600.0)
-    assert ctl.frequency_arg("1.5MHz") == 1_500_000.0
-    assert ctl.voltage_arg("500V") == ctl.voltage_arg("500Vpp") == ctl.voltage_arg("0.5kV") == 500.0
-    assert ctl.positive_duration_arg("10500us") == 10_500_000
+    assert ctl_args.frequency_arg("40kHz") == 40_000.0
+    assert ctl_args.frequency_arg("39.6 khz") == pytest.approx(39_600.0)
+    assert ctl_args.frequency_arg("1.5MHz") == 1_500_000.0
+    v = ctl_args.voltage_arg
+    assert v("500V") == v("500Vpp") == v("0.5kV") == 500.0
+    assert ctl_args.positive_duration_arg("10500us") == 10_500_000
     for fn, bad in (
-        (ctl.frequency_arg, "40"),
-        (ctl.frequency_arg, "40kV"),
-        (ctl.voltage_arg, "-5V"),
-        (ctl.positive_duration_arg, "0s"),
-        (ctl.duration_arg, "12 lightyears"),
+        (ctl_args.frequency_arg, "40"),
+        (ctl_args.frequency_arg, "40kV"),
+        (ctl_args.voltage_arg, "-5V"),
+        (ctl_args.positive_duration_arg, "0s"),
+        (ctl_args.duration_arg, "12 lightyears"),
     ):
         with pytest.raises(argparse.ArgumentTypeError, match=repr(bad).replace("(", r"\(")):
             fn(bad)
 
 
 def test_show_and_flags() -> None:
-    assert ctl.show_ns(None) == "-" and ctl.show_ns(float("nan")) == "-"
-    assert ctl.show_ns(95_300.4) == "95.3 us" and ctl.show_ns(12_000_000) == "12.000 ms"
-    assert ctl.flag_names(0) == "-"
-    assert ctl.flag_names(int(Flag.LATE | Flag.CLAMPED)) == "LATE|CLAMPED"
-    assert ctl.flag_names(1 << 10) == hex(1 << 10)
+    assert ctl_out.show_ns(None) == "-" and ctl_out.show_ns(float("nan")) == "-"
+    assert ctl_out.show_ns(95_300.4) == "95.3 us" and ctl_out.show_ns(12_000_000) == "12.000 ms"
+    assert ctl_out.flag_names(0) == "-"
+    assert ctl_out.flag_names(int(Flag.LATE | Flag.CLAMPED)) == "LATE|CLAMPED"
+    assert ctl_out.flag_names(1 << 10) == hex(1 << 10)
 
 
 def test_table_aligns_right_columns() -> None:
-    text = ctl.table([["a", "1", "22"], ["bbb", "333", "4"]], ["", "x", "y"])
+    text = ctl_out.table([["a", "1", "22"], ["bbb", "333", "4"]], ["", "x", "y"])
     lines = text.splitlines()
     assert {len(line) for line in lines} == {len(lines[0])}
     assert lines[1].startswith("a  ") and lines[2].endswith("333   4")
@@ -471,7 +473,7 @@ def test_running_stats_matches_sample_std() -> None:
     import statistics
 
     errors = [120, -40, 15, 300, -220, 7]
-    rs = ctl.RunningStats()
+    rs = ctl_out.RunningStats()
     for e in errors:
         rs.add({"error_ns": e, "flags": 0})  # type: ignore[typeddict-item]
     rs.add({"error_ns": None, "flags": int(Flag.STALL)})  # type: ignore[typeddict-item]

@@ -15,7 +15,8 @@ from typing import Any
 
 import pytest
 
-from usmswitch.daemon.client import Client, ConnectionClosed, parse_address
+from usmswitch.client import Client, ConnectionClosed
+from usmswitch.client.connection import parse_address
 from usmswitch.daemon.rpc import RpcServer
 from usmswitch.daemon.wire import ErrorCode, Limits, RpcError
 

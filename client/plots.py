@@ -9,7 +9,7 @@ import statistics
 from collections.abc import Iterable
 from pathlib import Path
 
-from .record import CycleRecord, Flag
+from usmswitch.daemon.record import CycleRecord, Flag
 
 
 def plot_run(records: Iterable[CycleRecord], path: str | Path, *, title: str = "") -> Path:

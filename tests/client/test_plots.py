@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from usmswitch.client.plots import plot_run
 from usmswitch.daemon.loop import ControlLoop
-from usmswitch.daemon.plots import plot_run
 from usmswitch.daemon.records import RecordStore
 from usmswitch.predictor import ARPredictor
 from usmswitch.sim import SimDaq

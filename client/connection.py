@@ -1,6 +1,6 @@
 """The Python client lab scripts use to drive the rig through the daemon's socket.
 
-    from usmswitch.daemon.client import Client
+    from usmswitch.client import Client
 
     with Client("/run/usmswitch/usmswitch.sock") as rig:
         rig.set_target(12_000_000)
@@ -24,8 +24,16 @@ from urllib.parse import parse_qs, urlsplit
 
 import msgpack
 
-from .sockdir import UntrustedSocketError, check_peer, check_socket_owner
-from .wire import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, RpcError, estop_socket_path
+from usmswitch.daemon.sockdir import UntrustedSocketError, check_peer, check_socket_owner
+from usmswitch.daemon.wire import (
+    MAX_MSGID,
+    NOTIFICATION,
+    REQUEST,
+    RESPONSE,
+    ErrorCode,
+    RpcError,
+    estop_socket_path,
+)
 
 __all__ = [
     "Client",

@@ -1,0 +1,7 @@
+"""`python -m usmswitch.client.ctl`: usmswitchctl."""
+
+import sys
+
+from .main import main
+
+sys.exit(main())

@@ -1,0 +1,297 @@
+"""usmswitchctl's commands on a connected rig: each one or two Client calls plus formatting."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import sys
+from collections.abc import Callable
+from typing import Any
+
+from usmswitch.daemon.record import UNUSABLE
+
+from ..connection import Client
+from .args import (
+    EXIT_FAULT,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    PROG,
+    WAIT_POLL_NS,
+    WATCH_HEADER_EVERY,
+    UsageError,
+    positive_duration_arg,
+)
+from .output import (
+    HISTORY_HEADER,
+    RunningStats,
+    history_row,
+    print_json,
+    record_rows,
+    show_ns,
+    stats_table,
+    table,
+    watch_line,
+)
+
+
+# -- commands --------------------------------------------------------------------------------------
+def cmd_ping(client: Client, args: argparse.Namespace) -> int:
+    """Check the daemon answers."""
+    result = client.ping()
+    if args.json:
+        print_json(result)
+    else:
+        print(result)
+    return EXIT_OK
+
+
+def cmd_status(client: Client, args: argparse.Namespace) -> int:
+    """State, mode, fault, versions, targets; exits 4 when FAULT is latched so scripts can test it."""
+    st = client.status()
+    if args.json:
+        print_json(st)
+    else:
+        rows = [
+            ["state", st["state"]],
+            ["fault", st["fault"] or "-"],
+            ["mode", st["mode"]],
+            ["target on", show_ns(st["target_on_ns"])],
+            ["target off", show_ns(st["target_off_ns"])],
+            ["next cycle", str(st["cycle"])],
+            [
+                "driver",
+                st["driver"] + {True: " (answering)", False: " (NOT answering)"}.get(st.get("driver_ok"), ""),
+            ],
+            ["version", f"{st['version']} (protocol {st['protocol_version']})"],
+            ["uptime", show_ns(st["uptime_ns"])],
+        ]
+        print(table(rows, right_from=2))
+    return EXIT_FAULT if st["state"] == "fault" else EXIT_OK
+
+
+def cmd_stats(client: Client, args: argparse.Namespace) -> int:
+    """The daemon's running statistics as one aligned table."""
+    stats = client.stats()
+    if args.json:
+        print_json(stats)
+    else:
+        print(stats_table(stats))
+    return EXIT_OK
+
+
+def _targets_text(t: dict[str, Any]) -> str:
+    return table(
+        [
+            ["on", show_ns(t["target_on_ns"])],
+            ["off", show_ns(t["target_off_ns"])],
+            ["from cycle", str(t["from_cycle"])],
+        ]
+    )
+
+
+def cmd_target(client: Client, args: argparse.Namespace) -> int:
+    """Read T, or set it for one direction or both (from the next armed stroke)."""
+    if args.action in (None, "get"):
+        if args.value is not None:
+            raise UsageError(f"target get takes no value, got {args.value!r}")
+        result = client.get_target()
+    else:
+        if args.value is None:
+            raise UsageError("target set needs a duration, e.g. `target set 12ms`")
+        try:
+            target_ns = positive_duration_arg(args.value)
+        except argparse.ArgumentTypeError as exc:
+            raise UsageError(f"target: {exc}") from None
+        result = client.set_target(target_ns, args.direction)
+        for warning in result.get("warnings", []):
+            print(f"warning: {warning}", file=sys.stderr)
+    if args.json:
+        print_json(result)
+    else:
+        print(_targets_text(result))
+    return EXIT_OK
+
+
+def cmd_switch(client: Client, args: argparse.Namespace) -> int:
+    """One stroke; prints its record. Exits 4 when the stroke ended in a stall, fault or estop."""
+    rec = client.switch(args.direction)
+    if args.json:
+        print_json(rec)
+    else:
+        print(table(record_rows(rec), right_from=2))
+    return EXIT_FAULT if rec["flags"] & UNUSABLE else EXIT_OK
+
+
+def cmd_cycle(client: Client, args: argparse.Namespace) -> int:
+    """Start periodic on/off strokes; with --wait, block until they are done and report how it ended."""
+    if args.wait:
+        client.subscribe("state")  # before starting, so the end of a short run cannot slip past
+    result = client.start_cycling(args.period, args.count)
+    if args.json:
+        print_json(result)
+    else:
+        count = f"{args.count} strokes" if args.count else "until stopped"
+        print(
+            f"cycling every {show_ns(result['period_ns'])}, {count}, from cycle {result['first_cycle']}",
+            flush=True,
+        )
+    if not args.wait:
+        return EXIT_OK
+    try:
+        while True:
+            # A state notification says when cycling ends; status confirms it (and covers a change
+            # the daemon coalesced between two of its slack checks).
+            with contextlib.suppress(TimeoutError):
+                client.next_notification(WAIT_POLL_NS)
+            st = client.status()
+            if st["state"] != "cycling":
+                break
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; the daemon keeps cycling (`{PROG} stop` stops it)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if not args.json:
+        print(
+            f"finished: {st['state']}"
+            + (f" ({st['fault']})" if st["fault"] else "")
+            + f", next cycle {st['cycle']}"
+        )
+    return EXIT_FAULT if st["state"] == "fault" else EXIT_OK
+
+
+def cmd_stop(client: Client, args: argparse.Namespace) -> int:
+    """Stop cycling after the stroke in progress."""
+    result = client.stop_cycling()
+    if args.json:
+        print_json(result)
+    else:
+        what = "stopping after the stroke in progress" if result["was_cycling"] else "was not cycling"
+        print(f"{what}; next cycle {result['cycle']}")
+    return EXIT_OK
+
+
+def cmd_mode(client: Client, args: argparse.Namespace) -> int:
+    """Closed loop (T_d = T - t_hat) or open loop with a fixed delay, from the next armed stroke."""
+    if args.delay is not None and args.mode != "open":
+        raise UsageError("mode: --delay is the open loop's fixed delay; it needs `mode open`")
+    result = client.set_mode(args.mode, args.delay)
+    if args.json:
+        print_json(result)
+    else:
+        delay = result.get("open_delay_ns")
+        extra = (
+            f", open-loop delay {show_ns(delay)}"
+            if result.get("mode") == "open" and delay is not None
+            else ""
+        )
+        print(f"mode {result['mode']}{extra}, from cycle {result['from_cycle']}")
+    return EXIT_OK
+
+
+def cmd_history(client: Client, args: argparse.Namespace) -> int:
+    """The last n stroke records as a table, oldest first."""
+    records = client.history(args.n)
+    if args.json:
+        print_json(records)
+    elif not records:
+        print("no strokes recorded yet")
+    else:
+        print(table([history_row(r) for r in records], HISTORY_HEADER))
+    return EXIT_OK
+
+
+def cmd_watch(client: Client, args: argparse.Namespace) -> int:
+    """Print every stroke as it finishes, with running error figures; Ctrl-C or --count ends it."""
+    running = RunningStats()
+    if args.count == 0:
+        return EXIT_OK
+    sub = client.subscribe("stroke", "state")
+    seen = 0
+    widths = [len(h) for h in HISTORY_HEADER]
+    try:
+        if not args.json:
+            print(f"watching {client.address} (Ctrl-C to stop)", flush=True)
+        for note in sub:
+            if args.json:
+                print(json.dumps({"topic": note.topic, "payload": note.payload}, sort_keys=True), flush=True)
+            if note.topic == "state":
+                if not args.json:
+                    p = note.payload
+                    print(
+                        f"# state {p.get('state')}" + (f" ({p['fault']})" if p.get("fault") else ""),
+                        flush=True,
+                    )
+                continue
+            rec = note.payload
+            running.add(rec)
+            seen += 1
+            if not args.json:
+                if (seen - 1) % WATCH_HEADER_EVERY == 0:
+                    print(watch_line([*HISTORY_HEADER, "err std", "max |err|"], widths), flush=True)
+                cells = [*history_row(rec), show_ns(running.std), show_ns(running.max_abs)]
+                print(watch_line(cells, widths), flush=True)
+            if args.count is not None and seen >= args.count:
+                break
+    except KeyboardInterrupt:
+        pass  # the user ended the view: a clean exit with the summary, no traceback
+    if not args.json:
+        print(running.summary() + (f"; {sub.dropped} dropped by the daemon" if sub.dropped else ""))
+    return EXIT_OK
+
+
+def cmd_reset(client: Client, args: argparse.Namespace) -> int:
+    """Clear a latched FAULT so strokes may run again (refused, exit 1, when none is latched)."""
+    result = client.reset_fault()
+    if args.json:
+        print_json(result)
+    else:
+        print(f"fault cleared ({result['fault']})")
+    return EXIT_OK
+
+
+def cmd_estop(client: Client, args: argparse.Namespace) -> int:
+    """Emergency stop: drive off now and latch FAULT (a successful estop exits 0)."""
+    result = client.estop()
+    if args.json:
+        print_json(result)
+    else:
+        print(f"emergency stop: state {result.get('state')}, fault {result.get('fault')!r}")
+    return EXIT_OK
+
+
+def cmd_drive(client: Client, args: argparse.Namespace) -> int:
+    """Set the drive's excitation (only the flags given); with none, read it."""
+    result = client.set_drive(frequency_hz=args.frequency, voltage_vpp=args.voltage, enabled=args.enabled)
+    if args.json:
+        print_json(result)
+    else:
+        rows = []
+        for key, value in result.items():
+            if key == "frequency_hz" and value is not None:
+                text = f"{value / 1000:.4f} kHz"
+            elif key == "voltage_vpp" and value is not None:
+                text = f"{value:g} Vpp"
+            elif key == "temperature_c" and value is not None:
+                text = f"{value:.2f} C"
+            else:
+                text = "-" if value is None else str(value)
+            rows.append([key, text])
+        print(table(rows, right_from=2))
+    return EXIT_OK
+
+
+COMMANDS: dict[str, Callable[[Client, argparse.Namespace], int]] = {
+    "ping": cmd_ping,
+    "status": cmd_status,
+    "stats": cmd_stats,
+    "target": cmd_target,
+    "switch": cmd_switch,
+    "cycle": cmd_cycle,
+    "stop": cmd_stop,
+    "mode": cmd_mode,
+    "history": cmd_history,
+    "watch": cmd_watch,
+    "reset": cmd_reset,
+    "estop": cmd_estop,
+    "drive": cmd_drive,
+}

@@ -1,0 +1,79 @@
+"""usmswitchctl export and plot: records from the socket or straight from a records file."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+
+from usmswitch.daemon.record import CycleRecord as Record
+
+from ..connection import Client, CycleRecord
+from ..records import RecordsFile, RecordsFileError
+from .args import EXIT_OK, UsageError
+from .output import print_json, write_csv
+
+
+def _records_from_file(state_dir: Path, first: int, last: int | None) -> Iterator[CycleRecord]:
+    # Read-only straight from the daemon's SQLite file: every stroke, without the socket's limit.
+    try:
+        records = RecordsFile(state_dir)
+    except RecordsFileError as exc:
+        raise UsageError(f"export: {exc}") from None
+    with records:
+        yield from records.records(first, last)  # type: ignore[misc]
+
+
+def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
+    """Write cycle records as CSV: all of them from the SQLite file, or the last n over the socket."""
+    if args.csv is None:
+        raise UsageError("export needs --csv FILE (or --csv - for standard output)")
+    if args.state_dir is not None:
+        records: Iterable[CycleRecord] = _records_from_file(Path(args.state_dir), args.first, args.last)
+    else:
+        if args.first != 1 or args.last is not None:
+            raise UsageError("export: --first/--last read the SQLite file; give --state-dir too")
+        with connect() as client:
+            records = client.history(args.n)
+    try:
+        if args.csv == "-":
+            n = write_csv(records, sys.stdout)
+            sys.stdout.flush()
+        else:
+            tmp = Path(f"{args.csv}.partial")
+            with open(tmp, "w", newline="", encoding="utf-8") as fh:
+                n = write_csv(records, fh)
+            os.replace(tmp, args.csv)  # a reader never sees half a file
+    except OSError as exc:
+        raise UsageError(f"export: cannot write {args.csv}: {exc.strerror or exc}") from None
+    if args.csv != "-":
+        message = {"records": n, "file": str(args.csv)}
+        if args.json:
+            print_json(message)
+        else:
+            print(f"{n} records written to {args.csv}")
+    return EXIT_OK
+
+
+def cmd_plot(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
+    """Draw a run (operating time and t_hat, error against T, its histogram) to an image file."""
+    from ..plots import plot_run  # matplotlib: only for this command
+
+    if args.state_dir is not None:
+        rows: Iterable[CycleRecord] = _records_from_file(Path(args.state_dir), args.first, args.last)
+    else:
+        with connect() as client:
+            rows = client.history(args.n)
+    try:
+        out = plot_run((Record.from_row(r) for r in rows), args.out, title=args.title or "")
+    except ValueError as exc:
+        raise UsageError(f"plot: {exc}") from None
+    except OSError as exc:
+        raise UsageError(f"plot: cannot write {args.out}: {exc.strerror or exc}") from None
+    if args.json:
+        print_json({"file": str(out)})
+    else:
+        print(f"plot written to {out}")
+    return EXIT_OK

@@ -1,0 +1,119 @@
+"""usmswitchctl: the daemon's command line, a thin shell over `usmswitch.client.Client`.
+
+Every command is one or two Client calls plus formatting: human units in ("12ms", "40kHz") and out,
+`--json` for the raw result. Exit codes (docs/usmswitchctl.md) are part of the interface:
+
+    0  ok
+    1  the daemon refused the call (its error code and message are printed)
+    2  usage error: bad command, flag or unit; an export file that cannot be written
+    3  cannot reach the daemon: no socket, connection refused or lost, no answer in --timeout
+    4  the rig is in FAULT: `status` found FAULT latched, a command was refused with the FAULT
+       code, or the stroke `switch` made ended in a stall, driver fault or emergency stop
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+from typing import Any
+
+from usmswitch.daemon.sockdir import client_socket_paths
+from usmswitch.daemon.wire import estop_socket_path
+
+from ..connection import Client, ConnectionClosed, ErrorCode, RpcError, parse_address
+from .args import EXIT_CONNECT, EXIT_FAULT, EXIT_INTERRUPTED, EXIT_REFUSED, EXIT_USAGE, PROG, UsageError
+from .commands import COMMANDS
+from .exports import cmd_export, cmd_plot
+from .parser import build_parser, check_args
+
+
+def resolve_address(args: argparse.Namespace) -> str:
+    """The address the Client takes: tcp://host:port, the --socket path, or the first socket that exists."""
+    if args.tcp is not None:
+        return f"tcp://{args.tcp}"  # Client checks host and port and names a bad one
+    if args.socket is not None:
+        return args.socket
+
+    candidates = client_socket_paths()
+    for path in candidates:
+        if path.exists():
+            return str(path)
+    raise ConnectionError(
+        f"no daemon socket found (looked at {', '.join(map(str, candidates))}); give --socket"
+    )
+
+
+def _fail(args: argparse.Namespace, code: int, message: str, rpc_code: int | None = None) -> int:
+    if getattr(args, "json", False):
+        err: dict[str, Any] = {"exit": code, "message": message}
+        if rpc_code is not None:
+            err["code"] = rpc_code
+            err["name"] = _code_name(rpc_code)
+        print(json.dumps({"error": err}, sort_keys=True), file=sys.stderr)
+    else:
+        print(f"{PROG}: {message}", file=sys.stderr)
+    return code
+
+
+def _code_name(code: int) -> str:
+    try:
+        return ErrorCode(code).name
+    except ValueError:
+        return "UNKNOWN"
+
+
+def estop_address(address: str) -> str:
+    """The estop socket beside a Unix socket when it is there (its own slots: a flood on the main
+    socket cannot lock an estop out), else the address itself."""
+    family, path, _ = parse_address(address)
+    if family == "unix" and estop_socket_path(path).exists():
+        return str(estop_socket_path(path))
+    return address
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of `usmswitchctl`."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    # A closed pipe (`usmswitchctl watch | head`) ends us quietly, as for other command-line tools.
+    signal.signal(signal.SIGPIPE, signal.SIG_DFL)
+    address = "the daemon"
+    try:
+        check_args(args)
+        timeout_ns = args.timeout if args.timeout is not None else 10_000_000_000
+
+        def connect() -> Client:
+            nonlocal address
+            address = resolve_address(args)  # only when needed: export from the file has no socket
+            if args.command == "estop":
+                address = estop_address(address)
+            try:
+                return Client(address, timeout_ns=timeout_ns, token=args.token)
+            except ValueError as exc:  # a malformed address, a TCP connection without a token
+                raise UsageError(str(exc)) from None
+
+        if args.command == "export":
+            return cmd_export(args, connect)
+        if args.command == "plot":
+            return cmd_plot(args, connect)
+        with connect() as client:
+            return COMMANDS[args.command](client, args)
+    except UsageError as exc:
+        return _fail(args, EXIT_USAGE, str(exc))
+    except RpcError as exc:
+        exit_code = EXIT_FAULT if exc.code == ErrorCode.FAULT else EXIT_REFUSED
+        return _fail(args, exit_code, f"refused: [{exc.code} {_code_name(exc.code)}] {exc.message}", exc.code)
+    except TimeoutError as exc:
+        return _fail(args, EXIT_CONNECT, f"no answer from the daemon: {exc}")
+    except ConnectionClosed as exc:
+        return _fail(args, EXIT_CONNECT, f"lost the daemon: {exc}", exc.code)
+    except OSError as exc:  # no socket file, refused, permission denied, unreachable host
+        return _fail(args, EXIT_CONNECT, f"cannot connect to {address}: {exc.strerror or exc}")
+    except KeyboardInterrupt:
+        return _fail(args, EXIT_INTERRUPTED, "interrupted")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

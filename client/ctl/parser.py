@@ -1,0 +1,137 @@
+"""usmswitchctl's argument parser."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import NoReturn
+
+from usmswitch.daemon.wire import MAX_HISTORY
+
+from .args import (
+    EXIT_USAGE,
+    PROG,
+    UsageError,
+    duration_arg,
+    frequency_arg,
+    positive_duration_arg,
+    voltage_arg,
+)
+
+
+# -- arguments ---------------------------------------------------------------------------------------
+class _Parser(argparse.ArgumentParser):
+    """argparse that exits with EXIT_USAGE (as it does) but names the program consistently."""
+
+    def error(self, message: str) -> NoReturn:
+        self.print_usage(sys.stderr)
+        self.exit(EXIT_USAGE, f"{PROG}: error: {message}\n")
+
+
+def _connection_flags(p: argparse.ArgumentParser, suppress: bool) -> None:
+    # Declared on the main parser and on every command, so `usmswitchctl stats --json` works too;
+    # on the commands the default is SUPPRESS so they never overwrite a flag given before the command.
+    d = (lambda v: argparse.SUPPRESS) if suppress else (lambda v: v)
+    p.add_argument(
+        "--socket",
+        default=d(None),
+        help="the daemon's Unix socket (default: first that exists "
+        "of $USMSWITCH_SOCKET, $XDG_RUNTIME_DIR/usmswitch/usmswitchd.sock, /run/usmswitch/...)",
+    )
+    p.add_argument(
+        "--tcp", default=d(None), metavar="HOST:PORT", help="connect over TCP instead (needs a token)"
+    )
+    p.add_argument("--token", default=d(None), help="TCP token (default: $USMSWITCH_TOKEN)")
+    p.add_argument(
+        "--timeout",
+        type=positive_duration_arg,
+        default=d(None),
+        help="give up on an answer after this long (default 10s; switch waits its stroke)",
+    )
+    p.add_argument("--json", action="store_true", default=d(False), help="print the raw result as JSON")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Every command and flag; `usmswitchctl COMMAND --help` shows one command's."""
+    p = _Parser(
+        prog=PROG,
+        description="Drive the usmswitchd daemon: status, statistics, targets, strokes, cycling, records.",
+        epilog="Exit codes: 0 ok, 1 refused by the daemon, 2 usage, 3 cannot connect, 4 rig in FAULT.",
+    )
+    _connection_flags(p, suppress=False)
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+
+    def command(name: str, help_text: str) -> argparse.ArgumentParser:
+        c = sub.add_parser(name, help=help_text, description=help_text)
+        _connection_flags(c, suppress=True)
+        return c
+
+    command("ping", "check that the daemon answers")
+    command("status", "state, mode, fault, targets, versions (exit 4 when FAULT is latched)")
+    command("stats", "running statistics per direction and combined, as a table")
+    c = command("target", "get or set the target total time T")
+    c.add_argument("action", nargs="?", choices=("get", "set"), help="get (default) or set")
+    c.add_argument("value", nargs="?", help="the new T for `set`, e.g. 12ms, 10500us, 0.012s")
+    c.add_argument("--direction", choices=("on", "off", "both"), default="both", help="default both")
+    c = command("switch", "make one stroke and print its record")
+    c.add_argument("direction", nargs="?", choices=("on", "off", "next"), default="next")
+    c = command("cycle", "start alternating on/off strokes")
+    c.add_argument(
+        "--period", type=positive_duration_arg, default=50_000_000, help="command to command, default 50ms"
+    )
+    c.add_argument("--count", type=int, default=0, help="strokes to make, 0 (default) until `stop`")
+    c.add_argument("--wait", action="store_true", help="return when cycling ends (exit 4 if in FAULT)")
+    command("stop", "stop cycling after the stroke in progress")
+    c = command("mode", "closed loop (T_d = T - t_hat) or open loop (fixed delay)")
+    c.add_argument("mode", choices=("open", "closed"))
+    c.add_argument("--delay", type=duration_arg, help="the open loop's fixed delay, e.g. 1ms")
+    c = command("history", "the last strokes as a table")
+    c.add_argument("-n", type=int, default=20, help="how many (1..10000, default 20)")
+    c = command("watch", "print every stroke as it finishes, with running error figures")
+    c.add_argument("--count", type=int, help="stop after this many strokes (default: until Ctrl-C)")
+    c = command("export", "write cycle records as CSV")
+    c.add_argument("--csv", metavar="FILE", help="output file, or - for standard output")
+    c.add_argument(
+        "--state-dir",
+        help="read every record from this state directory's records.sqlite "
+        "(or this .sqlite file), read-only, instead of the socket",
+    )
+    c.add_argument(
+        "-n", type=int, default=MAX_HISTORY, help=f"over the socket: the last n (max {MAX_HISTORY})"
+    )
+    c.add_argument("--first", type=int, default=1, help="with --state-dir: first cycle (default 1)")
+    c.add_argument("--last", type=int, help="with --state-dir: last cycle (default: the newest)")
+    c = command("plot", "draw a run to an image (PNG, SVG or PDF by the file's suffix)")
+    c.add_argument("--out", required=True, metavar="FILE", help="e.g. run.png")
+    c.add_argument("--state-dir", help="read the records from this state directory, read-only")
+    c.add_argument(
+        "-n", type=int, default=MAX_HISTORY, help=f"over the socket: the last n (max {MAX_HISTORY})"
+    )
+    c.add_argument("--first", type=int, default=1, help="with --state-dir: first cycle (default 1)")
+    c.add_argument("--last", type=int, help="with --state-dir: last cycle (default: the newest)")
+    c.add_argument("--title", help="the plot's title")
+    command("reset", "clear a latched FAULT")
+    command("estop", "emergency stop: drive off, latch FAULT")
+    c = command("drive", "set the drive board's excitation; no flags: read it")
+    c.add_argument("--frequency", type=frequency_arg, help="excitation frequency, e.g. 40kHz")
+    c.add_argument("--voltage", type=voltage_arg, help="excitation voltage, e.g. 500V")
+    en = c.add_mutually_exclusive_group()
+    en.add_argument("--enable", dest="enabled", action="store_true", default=None, help="drive on")
+    en.add_argument("--disable", dest="enabled", action="store_false", help="drive off")
+    return p
+
+
+def check_args(args: argparse.Namespace) -> None:
+    if args.command == "history" and not 1 <= args.n <= MAX_HISTORY:
+        raise UsageError(f"history: -n must be in 1..{MAX_HISTORY}, got {args.n}")
+    if args.command == "export" and not 1 <= args.n <= MAX_HISTORY:
+        raise UsageError(f"export: -n must be in 1..{MAX_HISTORY}, got {args.n}")
+    if args.command == "export" and args.first < 1:
+        raise UsageError(f"export: --first must be >= 1, got {args.first}")
+    if args.command == "cycle" and args.count < 0:
+        raise UsageError(f"cycle: --count must be >= 0, got {args.count}")
+    if args.command == "watch" and args.count is not None and args.count < 0:
+        raise UsageError(f"watch: --count must be >= 0, got {args.count}")
+    if args.tcp is not None and args.socket is not None:
+        raise UsageError("give --socket or --tcp, not both")

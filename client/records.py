@@ -1,0 +1,122 @@
+"""Read a rig's records file for analysis, read-only, on a lab machine: no daemon needed.
+
+    from usmswitch.client import RecordsFile
+
+    with RecordsFile("~/.local/state/usmswitch/sim/records.sqlite") as f:
+        for rec in f.records(first=1000):        # CycleRecord dicts, in cycle order
+            ...
+        errors = f.column("error_ns")             # a numpy array (NaN where a stroke has none)
+        df = f.dataframe()                        # pandas, when installed (`pip install usmswitch[analysis]`)
+
+The file is opened read-only (SQLite `mode=ro`): a running daemon keeps writing beside the reader
+(WAL), and each chunk is its own short read, so a long analysis never pins the daemon's log.
+Schema: docs/records.md (versions 1 and 2; version 1 rows read `driver` and `rig` as None).
+"""
+
+from __future__ import annotations
+
+import os
+import sqlite3
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+from usmswitch.daemon.record import FIELDS, SOURCE_FIELDS, CycleRecord
+
+RECORDS_FILE = "records.sqlite"
+KNOWN_SCHEMAS = ("1", "2")
+
+
+class RecordsFileError(Exception):
+    """The file is missing, not a records file, or of a schema this client does not read."""
+
+
+class RecordsFile:
+    """A records file (or a state directory holding one), opened read-only."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        p = Path(path).expanduser()
+        self.path = p / RECORDS_FILE if p.is_dir() else p
+        if not self.path.is_file():
+            raise RecordsFileError(f"no records file at {self.path}")
+        uri = f"file:{quote(str(self.path.resolve()))}?mode=ro"
+        try:
+            self._db = sqlite3.connect(uri, uri=True)
+            self._db.row_factory = sqlite3.Row
+            row = self._db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+        except sqlite3.Error as exc:
+            raise RecordsFileError(f"{self.path} is not a usmswitch records file: {exc}") from None
+        self.schema_version = row[0] if row else None
+        if self.schema_version not in KNOWN_SCHEMAS:
+            raise RecordsFileError(
+                f"{self.path} has schema version {self.schema_version}; this client reads {KNOWN_SCHEMAS}"
+            )
+        have = {r[1] for r in self._db.execute("PRAGMA table_info(cycles)")}
+        self._columns = ", ".join(f'"{f}"' if f in have else f'NULL AS "{f}"' for f in FIELDS)
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> RecordsFile:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __len__(self) -> int:
+        return int(self._db.execute("SELECT count(*) FROM cycles").fetchone()[0])
+
+    @property
+    def last_cycle(self) -> int:
+        """The highest cycle number in the file (0 when empty)."""
+        return int(self._db.execute("SELECT coalesce(max(cycle), 0) FROM cycles").fetchone()[0])
+
+    def records(self, first: int = 1, last: int | None = None, chunk: int = 1000) -> Iterator[dict[str, Any]]:
+        """Every record from cycle `first` to `last` (inclusive) in cycle order, as plain dicts."""
+        after = first - 1
+        stop = last if last is not None else (1 << 63) - 1
+        while True:
+            rows = self._db.execute(
+                f"SELECT {self._columns} FROM cycles WHERE cycle > ? AND cycle <= ? ORDER BY cycle LIMIT ?",
+                (after, stop, chunk),
+            ).fetchall()
+            if not rows:
+                return
+            for r in rows:
+                yield CycleRecord.from_row(r).to_dict()
+            after = rows[-1]["cycle"]
+
+    def __iter__(self) -> Iterator[dict[str, Any]]:
+        return self.records()
+
+    def column(self, field: str, first: int = 1, last: int | None = None) -> Any:
+        """One field over cycles `first`..`last` as a numpy array (float64 with NaN where it is
+        missing, for the timing fields; int64 for the ones always present)."""
+        import numpy as np
+
+        if field not in FIELDS or field in ("coefficients", "mode", *SOURCE_FIELDS):
+            raise ValueError(f"column takes a numeric record field, got {field!r}")
+        if f'"{field}"' not in self._columns:
+            raise ValueError(f"{self.path} has no column {field!r} (schema {self.schema_version})")
+        stop = last if last is not None else (1 << 63) - 1
+        values = [
+            r[0]
+            for r in self._db.execute(
+                f'SELECT "{field}" FROM cycles WHERE cycle >= ? AND cycle <= ? ORDER BY cycle', (first, stop)
+            )
+        ]
+        if any(v is None or isinstance(v, float) for v in values):
+            return np.array([np.nan if v is None else v for v in values], dtype=np.float64)
+        return np.array(values, dtype=np.int64)
+
+    def dataframe(self, first: int = 1, last: int | None = None) -> Any:
+        """The records as a pandas DataFrame indexed by cycle (needs pandas: the `analysis` extra)."""
+        try:
+            import pandas as pd
+        except ImportError:
+            raise ImportError(
+                "RecordsFile.dataframe needs pandas: pip install 'usmswitch[analysis]'"
+            ) from None
+        frame = pd.DataFrame.from_records(list(self.records(first, last)), columns=list(FIELDS))
+        return frame.set_index("cycle")
