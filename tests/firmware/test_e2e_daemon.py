@@ -19,7 +19,7 @@ from pathlib import Path
 import daemonproc
 import pytest
 
-from usmswitch.daemon.client import Client
+from usmswitch.client import Client
 
 MS = 1_000_000
 STROKES = 300
