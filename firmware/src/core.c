@@ -171,7 +171,7 @@ void core_edge(uint8_t channel, uint8_t level, uint32_t t_us)
     send_edge(channel, level, t_us);
 }
 
-void core_poll(void)
+uint32_t core_poll(void)
 {
     uint32_t now = hal_now_us();
     if (S.synced && now - S.last_host_us > S.watchdog_us) {
@@ -188,6 +188,17 @@ void core_poll(void)
         send_fault(FC_STALL, now, ms > 0xFFFF ? 0xFFFF : (uint16_t)ms);
         end_stroke(now, SR_STALL, SF_STALL);
     }
+    /* The next instant a check above can fire: the watchdog one microsecond past its period,
+     * the stroke timeout at start + timeout. */
+    uint32_t left = UINT32_MAX;
+    if (S.synced)
+        left = S.watchdog_us + 1 - (now - S.last_host_us);
+    if (S.have_cur && st->state == SS_RUNNING) {
+        uint32_t stall = st->timeout_us - (now - st->t_start_us);
+        if (stall < left)
+            left = stall;
+    }
+    return left;
 }
 
 /* ---- requests ---- */

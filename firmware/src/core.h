@@ -34,8 +34,10 @@ void core_rx_byte(uint8_t b);
 void core_start(uint32_t t_us);
 /* A sensor edge captured at t_us: channel 0 A / 1 B, level 1 active, 0 released. */
 void core_edge(uint8_t channel, uint8_t level, uint32_t t_us);
-/* Timeouts: the watchdog and the stroke timeout. Call every main-loop pass. */
-void core_poll(void);
+/* Timeouts: the watchdog and the stroke timeout. Call every main-loop pass. Returns how long
+ * the main loop may sleep: the microseconds until the next timeout falls due, UINT32_MAX when
+ * none is running. */
+uint32_t core_poll(void);
 
 /* Counters for tests and the PONG. */
 struct core_stats {

@@ -16,6 +16,7 @@
  */
 #include <avr/interrupt.h>
 #include <avr/io.h>
+#include <avr/sleep.h>
 #include <avr/wdt.h>
 #include <stdint.h>
 
@@ -25,6 +26,10 @@
 #define COM4A_SET (_BV(COM4A1) | _BV(COM4A0))
 /* A compare is armed only this many ticks (20 us) ahead; closer, the start is forced at once. */
 #define MARGIN_TICKS 40
+/* The main loop sleeps only when the next timeout is further than this, and sets its alarm at
+ * most half a timer period ahead. */
+#define WAKE_MIN_US 20
+#define WAKE_MAX_TICKS 0x8000u
 
 /* Timer 4 overflows: the high part of the clock. Named and kept so an emulator can preset it. */
 volatile uint32_t clock_ovf __attribute__((used, externally_visible));
@@ -62,6 +67,9 @@ static inline uint32_t hi_for(uint16_t t)
 }
 
 ISR(TIMER4_OVF_vect) { clock_ovf++; }
+
+/* The main loop's alarm (a timeout falls due): waking is all it does. */
+EMPTY_INTERRUPT(TIMER5_COMPA_vect);
 
 uint32_t hal_now_us(void)
 {
@@ -242,9 +250,14 @@ static volatile uint8_t rx_head, rx_tail;
 static volatile uint8_t tx_buf[TXQ];
 static volatile uint8_t tx_head, tx_tail;
 
+/* The USART vectors (25, 26) outrank the capture vectors (41, 46): each UART handler clears its
+ * own source and re-enables interrupts at once, so an arrival edge's stub preempts it and the
+ * drive is cut within ~2 us even under UART traffic. Neither can nest in itself: a byte takes
+ * 10 us to arrive, and the UDRE handler keeps its interrupt off until it is done. */
 ISR(USART0_RX_vect)
 {
-    uint8_t b = UDR0;
+    uint8_t b = UDR0; /* clears RXC0 */
+    sei();
     uint8_t n = (uint8_t)((rx_head + 1) % RXQ);
     if (n != rx_tail) {
         rx_buf[rx_head] = b;
@@ -254,13 +267,15 @@ ISR(USART0_RX_vect)
 
 ISR(USART0_UDRE_vect)
 {
+    UCSR0B &= (uint8_t)~_BV(UDRIE0);
+    sei();
     uint8_t t = tx_tail;
-    if (t == tx_head) {
-        UCSR0B &= (uint8_t)~_BV(UDRIE0);
+    if (t == tx_head)
         return;
-    }
     UDR0 = tx_buf[t];
     tx_tail = (uint8_t)(t + 1); /* TXQ == 256: wraps by itself */
+    cli();
+    UCSR0B |= _BV(UDRIE0);
 }
 
 void hal_tx(const uint8_t *buf, uint8_t len)
@@ -307,6 +322,8 @@ static void hw_init(void)
     UCSR0A = 0;
     UCSR0C = _BV(UCSZ01) | _BV(UCSZ00);
     UCSR0B = _BV(RXEN0) | _BV(TXEN0) | _BV(RXCIE0);
+
+    set_sleep_mode(SLEEP_MODE_IDLE);
 }
 
 int main(void)
@@ -336,6 +353,23 @@ int main(void)
             if (ev_tail != ev_head)
                 break; /* keep edges ahead of later requests */
         }
-        core_poll();
+        uint32_t left_us = core_poll();
+        /* Sleep (idle mode: timers, capture and the UART run) until an interrupt or the next
+         * timeout. Timer 5 counts with timer 4, so its compare A is the alarm; it is set at most
+         * half a period ahead, where a match cannot be taken for one a period later. An alarm
+         * that comes early only runs the loop once more. */
+        cli();
+        if (ev_tail == ev_head && rx_tail == rx_head && left_us > WAKE_MIN_US) {
+            uint16_t ticks = left_us >= WAKE_MAX_TICKS / 2 ? WAKE_MAX_TICKS : (uint16_t)(2 * left_us);
+            OCR5A = (uint16_t)(TCNT5 + ticks);
+            TIFR5 = _BV(OCF5A);
+            TIMSK5 |= _BV(OCIE5A);
+            sleep_enable();
+            sei(); /* the instruction after SEI runs first: an interrupt pending now wakes it */
+            sleep_cpu();
+            sleep_disable();
+            TIMSK5 &= (uint8_t)~_BV(OCIE5A);
+        }
+        sei();
     }
 }
