@@ -38,6 +38,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/resource.h>
 #include <sys/wait.h>
 #include <termios.h>
 #include <time.h>
@@ -59,6 +60,8 @@
 #define A_TCNT4L 0xA4
 #define A_GTCCR 0x43
 #define BIT_FOC4A 7
+/* Real time: the longest sleep once emulated time has caught up with the wall clock. */
+#define IDLE_NS 500000
 
 static avr_t *avr;
 static int fix_bugs = 1;
@@ -66,7 +69,7 @@ static int lockstep;
 static double ppm;
 static uint32_t clock_start_us;
 static uint16_t clock_ovf_addr;
-static avr_cycle_count_t origin_cycle; /* cycle of the firmware's TCNT4 = 0 */
+static avr_cycle_count_t origin_cycle, max_lag; /* cycle of the firmware's TCNT4 = 0 */
 static int origin_set;
 
 static void die(const char *fmt, ...)
@@ -125,6 +128,10 @@ static void helper_start(const char *python, const char *script, int seed, char 
         close(from_child[0]);
         char seed_s[32], at_s[2] = {start_at, 0};
         snprintf(seed_s, sizeof seed_s, "%d", seed);
+        /* The model's numpy would start a BLAS thread per core that spins after each call:
+         * one thread is all it needs, and the rest would take the CPU the emulation paces on. */
+        setenv("OPENBLAS_NUM_THREADS", "1", 1);
+        setenv("OMP_NUM_THREADS", "1", 1);
         execlp(python, python, script, "--seed", seed_s, "--start-at", at_s, (char *)NULL);
         fprintf(stderr, "usmswitch-avrsim: exec %s: %s\n", python, strerror(errno));
         _exit(127);
@@ -443,7 +450,8 @@ static void on_xoff(avr_irq_t *irq, uint32_t value, void *param)
 }
 
 /* ---- pty ---- */
-static int pty_master = -1;
+static int pty_master = -1, pty_slave = -1;
+static unsigned long dropped_bytes; /* the firmware's bytes the pty would not take */
 static char link_path[1024];
 
 static void pty_plug(void)
@@ -457,14 +465,15 @@ static void pty_plug(void)
     tcsetattr(pty_master, TCSANOW, &tio);
     fcntl(pty_master, F_SETFL, O_NONBLOCK);
     const char *slave = ptsname(pty_master);
-    /* The slave raw too: the host may not set it up before the first bytes. */
-    int s = open(slave, O_RDWR | O_NOCTTY);
-    if (s >= 0) {
-        tcgetattr(s, &tio);
-        cfmakeraw(&tio);
-        tcsetattr(s, TCSANOW, &tio);
-        close(s);
-    }
+    /* The slave raw too: the host may not set it up before the first bytes. The harness keeps
+     * it open: a master whose slave nobody holds polls as hung up (POLLHUP) for ever, which
+     * would turn the idle sleep into a spin while no host is attached. */
+    pty_slave = open(slave, O_RDWR | O_NOCTTY);
+    if (pty_slave < 0)
+        die("%s: %s", slave, strerror(errno));
+    tcgetattr(pty_slave, &tio);
+    cfmakeraw(&tio);
+    tcsetattr(pty_slave, TCSANOW, &tio);
     char tmp[1100];
     snprintf(tmp, sizeof tmp, "%s.new", link_path);
     unlink(tmp);
@@ -478,7 +487,9 @@ static void pty_unplug(void)
 {
     if (pty_master >= 0)
         close(pty_master);
-    pty_master = -1;
+    if (pty_slave >= 0)
+        close(pty_slave);
+    pty_master = pty_slave = -1;
     unlink(link_path);
     to_avr_len = 0;
 }
@@ -496,14 +507,31 @@ static void pty_io(void)
     size_t off = 0;
     while (off < from_avr_len) {
         n = write(pty_master, from_avr + off, from_avr_len - off);
-        if (n <= 0)
+        if (n <= 0) {
+            dropped_bytes += from_avr_len - off;
             break; /* nobody reading (EAGAIN) or hung up: the bytes are lost, as on a wire */
+        }
         off += (size_t)n;
     }
     from_avr_len = 0;
 }
 
 /* ---- running ---- */
+static avr_cycle_count_t stop_timer(avr_t *a, avr_cycle_count_t when, void *param)
+{
+    (void)a;
+    (void)when;
+    (void)param;
+    return 0; /* only a bound for the sleep */
+}
+
+/* simavr's own sleep callback sleeps in wall time; pacing is this program's job. */
+static void no_sleep(avr_t *a, avr_cycle_count_t how_long)
+{
+    (void)a;
+    (void)how_long;
+}
+
 static void run_until(avr_cycle_count_t end)
 {
     while (avr->cycle < end) {
@@ -522,6 +550,8 @@ static void run_until(avr_cycle_count_t end)
         if (next >= 0 && pending[next].at < stop)
             stop = pending[next].at;
         edges_changed = 0;
+        /* A sleeping core jumps to its next cycle timer: this one keeps it from passing stop. */
+        avr_cycle_timer_register(avr, stop - avr->cycle, stop_timer, NULL);
         while (avr->cycle < stop && !edges_changed) {
             int st = avr_run(avr);
             if (st == cpu_Done || st == cpu_Crashed)
@@ -530,6 +560,7 @@ static void run_until(avr_cycle_count_t end)
             if (fix_bugs && avr->interrupt_state == -1)
                 avr->interrupt_state = avr_has_pending_interrupts(avr);
         }
+        avr_cycle_timer_cancel(avr, stop_timer, NULL);
     }
 }
 
@@ -654,6 +685,7 @@ int main(int argc, char **argv)
     avr->frequency = (uint32_t)F_CPU;
     avr->log = LOG_ERROR;
     avr_load_firmware(avr, &fw);
+    avr->sleep = no_sleep;
     fflush(stdout);
     dup2(saved_stdout, 1);
     close(saved_stdout);
@@ -694,6 +726,11 @@ int main(int argc, char **argv)
     signal(SIGPIPE, SIG_IGN);
     signal(SIGTERM, on_signal);
     signal(SIGINT, on_signal);
+    if (!lockstep && setpriority(PRIO_PROCESS, 0, -10) == 0)
+        /* The emulated board is hardware of its own, not one more process of the host: where
+         * allowed (root, CAP_SYS_NICE), it and its rig model (a child, which inherits this) get
+         * ahead of the host's load, so emulated time keeps pace with the wall clock. */
+        fprintf(stderr, "usmswitch-avrsim: running at nice -10\n");
     helper_start(python, helper, seed, start_at);
     helper_ask("init");
     drive_sensor_pins();
@@ -723,16 +760,23 @@ int main(int argc, char **argv)
             double now = wall_s();
             avr_cycle_count_t target = c0 + (avr_cycle_count_t)((now - w0) * f_eff());
             /* At most 200 us of emulated time between two looks at the pty. */
+            if (target > avr->cycle && target - avr->cycle > max_lag)
+                max_lag = target - avr->cycle;
             avr_cycle_count_t chunk = avr->cycle + 3200;
             run_until(target < chunk ? target : chunk);
             pty_io();
+            struct pollfd pf[2] = {{stdin_open ? 0 : -1, POLLIN, 0}, {pty_master, POLLIN, 0}};
             if (avr->cycle >= target) {
-                struct pollfd pf[2] = {{0, POLLIN, 0}, {pty_master, POLLIN, 0}};
-                poll(pf, pty_master >= 0 ? 2 : 1, 0);
-                if (!(pf[1].revents & POLLIN))
-                    usleep(100);
+                /* Caught up with the wall clock: sleep until the host writes, a command comes
+                 * or IDLE_NS passes (the firmware's output waits at most that long). Sleeping in
+                 * poll, not spinning, keeps the harness's CPU near the emulation's own cost, so
+                 * it keeps pace on a loaded machine. */
+                struct timespec idle = {0, IDLE_NS};
+                ppoll(pf, 2, &idle, NULL);
+            } else {
+                poll(pf, 2, 0);
             }
-            ssize_t n = stdin_open ? read(0, line + stdin_len, sizeof line - 1 - stdin_len) : -1;
+            ssize_t n = (pf[0].revents & (POLLIN | POLLHUP)) ? read(0, line + stdin_len, sizeof line - 1 - stdin_len) : -1;
             if (n == 0)
                 stdin_open = 0; /* no more commands: run until SIGTERM */
             if (n > 0) {
@@ -749,6 +793,9 @@ int main(int argc, char **argv)
             }
         }
         pty_unplug();
+        /* How far emulated time fell behind the wall clock at worst (a slow or starved host). */
+        fprintf(stderr, "usmswitch-avrsim: max lag %.0f us, %lu bytes dropped\n", (double)max_lag * 1e6 / f_eff(),
+                dropped_bytes);
     }
     if (truth)
         fclose(truth);
