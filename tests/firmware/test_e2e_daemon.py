@@ -57,9 +57,12 @@ def test_closed_loop_on_the_firmware_in_simavr(avrsim: Path, firmware_elf: Path,
     finally:
         if daemon is not None:
             err = daemonproc.stop(daemon)
+            # On a failure pytest shows this: the daemon's warnings say what went wrong.
+            print("\n".join(ln for ln in err.decode().splitlines() if '"level": "INFO"' not in ln)[-6000:])
             assert daemon.returncode == 0, err.decode()[-3000:]
         sim.terminate()
-        sim.communicate(timeout=10)
+        _, sim_err = sim.communicate(timeout=10)
+        print(sim_err.decode()[-2000:])
     con = sqlite3.connect(tmp_path / "state" / "records.sqlite")
     rows = list(
         con.execute(
@@ -85,7 +88,9 @@ def test_closed_loop_on_the_firmware_in_simavr(avrsim: Path, firmware_elf: Path,
     assert worst <= 1000, f"a recorded stamp is {worst} ns from the emulator's truth"
     cut = [int(tr["cut_ns"]) for tr in truth]
     assert max(cut) <= 5000, f"arrival edge to drive off up to {max(cut)} ns"
-    errs = [r[4] for r in rows[100:]]
+    # A start the host commanded too late (flag LATE, counted below) misses T by its lateness by
+    # design; the closed-loop std is that of the strokes started on time, as the daemon's stats.
+    errs = [r[4] for r in rows[100:] if not r[5] & 1]
     std = statistics.pstdev(errs)
     late = sum(1 for r in rows if r[5] & 1)
     print(f"\nfirmware e2e: {len(rows)} strokes, error std {std / 1e3:.1f} us, late {late}, "
