@@ -35,6 +35,9 @@ import usb.core
 
 from usmswitch.drivers.events import Channel, Direction
 from usmswitch.drivers.mcu_protocol import (
+    MAX_ENCODED,
+    MAX_PAYLOAD,
+    MESSAGES,
     PROTOCOL_MAJOR,
     PROTOCOL_MINOR,
     U16_MOD,
@@ -53,6 +56,7 @@ from usmswitch.drivers.mcu_protocol import (
     MsgType,
     Ping,
     Pong,
+    ProtocolError,
     SeqTracker,
     Start,
     StateFlags,
@@ -62,6 +66,8 @@ from usmswitch.drivers.mcu_protocol import (
     StopReason,
     Stroke,
     StrokeFlags,
+    cobs_decode,
+    crc16,
     encode_frame,
 )
 
@@ -107,6 +113,59 @@ class _Stroke:
     started: bool = False
     done: bool = False
     late: bool = False
+
+
+@dataclass(frozen=True)
+class UnknownFrame:
+    """A valid frame (COBS, CRC) of a type this protocol version does not define: a newer minor
+    version's message. The device answers it with ACK UNKNOWN_TYPE, as the firmware does."""
+
+    TYPE: int
+    body: bytes
+
+
+class _DeviceDecoder:
+    """The device's receiver: FrameDecoder's frames and counters, plus the valid frames of an
+    unknown type, which FrameDecoder counts as errors but the protocol says to answer."""
+
+    def __init__(self) -> None:
+        self.decoder = FrameDecoder()
+        self._buf = bytearray()
+
+    @property
+    def errors(self) -> int:
+        return self.decoder.errors
+
+    def feed(self, data: bytes) -> list[tuple[int, Message | UnknownFrame]]:
+        out: list[tuple[int, Message | UnknownFrame]] = []
+        self._buf += data
+        while (z := self._buf.find(0)) >= 0:
+            frame = bytes(self._buf[: z + 1])
+            del self._buf[: z + 1]
+            unknown = _unknown_frame(frame[:-1])
+            if unknown is not None:
+                out.append(unknown)
+            else:
+                out.extend(self.decoder.feed(frame))
+        if len(self._buf) > MAX_ENCODED:  # no delimiter in sight: the decoder counts the overrun
+            out.extend(self.decoder.feed(bytes(self._buf)))
+            self._buf.clear()
+        return out
+
+
+def _unknown_frame(raw: bytes) -> tuple[int, UnknownFrame] | None:
+    if not raw or len(raw) > MAX_ENCODED:
+        return None
+    try:
+        payload = cobs_decode(raw)
+    except ProtocolError:
+        return None
+    n = len(payload)
+    if n < 5 or n > MAX_PAYLOAD or payload[0] in MESSAGES:
+        return None
+    if crc16(payload[:-2]) != int.from_bytes(payload[-2:], "little"):
+        return None
+    return int.from_bytes(payload[1:3], "little"), UnknownFrame(payload[0], payload[3:-2])
 
 
 class McuEmulator:
@@ -177,7 +236,7 @@ class McuEmulator:
         with self._lock:
             self.boots += 1
             self._t_boot_ns = time.monotonic_ns()
-            self._decoder = FrameDecoder()
+            self._decoder = _DeviceDecoder()
             self._rx_err_base = 0
             self._rx_seq = SeqTracker()
             self._tx_seq = 0
@@ -348,6 +407,8 @@ class McuEmulator:
                     fn()
                 self._check_watchdog(now)
                 wait = self._timers[0][0] - now if self._timers else _IDLE_WAIT_S * 1e9
+                if self._synced:  # wake when the watchdog falls due, not at the next idle look
+                    wait = min(wait, self._last_host_ns + self._watchdog_ns + 1 - now)
             try:
                 data = self._rx.get(timeout=max(0.0, min(wait / 1e9, _IDLE_WAIT_S)))
             except queue.Empty:
@@ -378,7 +439,7 @@ class McuEmulator:
         if cur is not None and not cur.done:
             self._end_stroke(cur, now, StopReason.WATCHDOG, StrokeFlags.WATCHDOG)
 
-    def _on_frame(self, seq: int, msg: Message, now: int) -> None:
+    def _on_frame(self, seq: int, msg: Message | UnknownFrame, now: int) -> None:
         self.received[msg.TYPE] = self.received.get(msg.TYPE, 0) + 1
         if isinstance(msg, Hello):
             self._on_hello(seq, msg, now)
@@ -407,7 +468,13 @@ class McuEmulator:
             self._ack(msg, seq, Status.UNKNOWN_TYPE, 0, now)
 
     def _ack(
-        self, msg: Message, seq: int, status: Status, stroke: int, now: int, t_us: int | None = None
+        self,
+        msg: Message | UnknownFrame,
+        seq: int,
+        status: Status,
+        stroke: int,
+        now: int,
+        t_us: int | None = None,
     ) -> None:
         self._send(Ack(msg.TYPE, seq, status, stroke, self.device_us(now) if t_us is None else t_us))
 

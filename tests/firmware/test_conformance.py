@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 from avrsim import FirmwareDevice, Lockstep
 
 from usmswitch.drivers import mcu_protocol as mp
-from usmswitch.drivers.mcu_protocol import FrameDecoder, Message, encode_frame
+from usmswitch.drivers.mcu_protocol import FrameDecoder, Message, cobs_encode, crc16, encode_frame
 from usmswitch.sim.mcu_emulator import McuEmulator
 
 U32 = 1 << 32
@@ -48,21 +48,62 @@ class PythonDevice:
     def close(self) -> None:
         self.emu.stop()
 
+    def stall(self) -> None:
+        self.emu.inject_stall()
+
+    def bounce(self) -> None:
+        self.emu.inject_bounce()
+
+    def power_cycle(self) -> None:
+        self.emu.power_cycle()
+
+
+class Firmware(FirmwareDevice):
+    def close(self) -> None:
+        self.sim.close()
+
+    def stall(self) -> None:
+        self.sim.command("stall")
+
+    def bounce(self) -> None:
+        self.sim.command("bounce")
+
+    def power_cycle(self) -> None:
+        self.sim.command("replug")  # a power-on reset (lockstep has no pty to unplug)
+        self.sim.run(2000)  # the firmware's start-up: bytes before its UART is on are lost
+
+
+Device = Firmware | PythonDevice
+WRAP_START_US = U32 - 32768  # one timer period (the harness takes whole ones) before the wrap
+
 
 @pytest.fixture(params=["firmware", "python"])
-def device(request: pytest.FixtureRequest) -> Iterator[FirmwareDevice | PythonDevice]:
-    if request.param == "firmware":
-        avrsim: Path = request.getfixturevalue("avrsim")
-        sim = Lockstep(avrsim, avrsim.parent / "usmswitch.elf")
-        yield FirmwareDevice(sim)
-        sim.close()
-    else:
-        dev = PythonDevice()
-        yield dev
+def make_device(request: pytest.FixtureRequest) -> Iterator[Callable[..., Device]]:
+    """Build the device under test; `clock_start_us` starts its clock there (near the wrap)."""
+    made: list[Device] = []
+
+    def make(clock_start_us: int = 0) -> Device:
+        dev: Device
+        if request.param == "firmware":
+            avrsim: Path = request.getfixturevalue("avrsim")
+            args = ["--clock-start-us", str(clock_start_us)] if clock_start_us else []
+            dev = Firmware(Lockstep(avrsim, avrsim.parent / "usmswitch.elf", *args))
+        else:
+            dev = PythonDevice(clock_start_us=clock_start_us)
+        made.append(dev)
+        return dev
+
+    yield make
+    for dev in made:
         dev.close()
 
 
-def _hello(dev: FirmwareDevice | PythonDevice, major: int = 1, watchdog_ms: int = 500) -> mp.HelloAck:
+@pytest.fixture
+def device(make_device: Callable[..., Device]) -> Device:
+    return make_device()
+
+
+def _hello(dev: Device, major: int = 1, watchdog_ms: int = 500) -> mp.HelloAck:
     dev.write(b"\x00")
     dev.send(mp.Hello(major, 0, watchdog_ms), 0)
     got = dev.run(5000)
@@ -74,7 +115,7 @@ def _msgs(got: list[tuple[int, Message]]) -> list[Message]:
     return [m for _, m in got]
 
 
-def test_handshake_and_versions(device: FirmwareDevice | PythonDevice) -> None:
+def test_handshake_and_versions(device: Device) -> None:
     ack = _hello(device)
     assert (ack.major, ack.minor, ack.caps, ack.fw_version, ack.max_delay_us) == (1, 0, 31, 0x0100, 1_000_000)
     device.send(mp.Ping(7), 1)
@@ -88,7 +129,7 @@ def test_handshake_and_versions(device: FirmwareDevice | PythonDevice) -> None:
     assert isinstance(ack2, mp.Ack) and ack2.status == mp.Status.NOT_SYNCED and ack2.stroke == 0
 
 
-def test_arm_checks_and_command_refusals(device: FirmwareDevice | PythonDevice) -> None:
+def test_arm_checks_and_command_refusals(device: Device) -> None:
     hello = _hello(device)
     now = hello.t_us
     device.send(mp.Arm(1, 2, 1000, 100_000), 1)  # bad direction
@@ -108,7 +149,7 @@ def test_arm_checks_and_command_refusals(device: FirmwareDevice | PythonDevice) 
     ]
 
 
-def test_retransmitted_command_and_late_start(device: FirmwareDevice | PythonDevice) -> None:
+def test_retransmitted_command_and_late_start(device: Device) -> None:
     hello = _hello(device)
     device.send(mp.Arm(3, 0, 1000, 100_000), 1)
     t_cmd = (hello.t_us - 20_000) % U32  # 20 ms in the past: the start is late by ~19 ms
@@ -123,28 +164,112 @@ def test_retransmitted_command_and_late_start(device: FirmwareDevice | PythonDev
     assert stroke.flags & mp.StrokeFlags.LATE and stroke.flags & mp.StrokeFlags.ARRIVED
 
 
-def test_watchdog_stops_a_stroke(device: FirmwareDevice | PythonDevice) -> None:
+def test_watchdog_stops_a_stroke(device: Device) -> None:
     hello = _hello(device, watchdog_ms=20)
     device.send(mp.Arm(4, 0, 200_000, 100_000), 1)  # starts 200 ms on: the watchdog acts first
     device.send(mp.Command(4, hello.t_us, 0), 2)
-    got = _msgs(device.run(120_000))  # the Python emulator looks at its watchdog every 50 ms
+    got = _msgs(device.run(60_000))
     kinds = [type(m).__name__ for m in got]
     assert kinds[:2] == ["Ack", "Ack"] and "Start" not in kinds
     i = kinds.index("Fault")
     assert kinds[i : i + 3] == ["Fault", "Stroke", "Stopped"]
     assert got[i].code == mp.DeviceFault.HOST_SILENT and got[i].detail == 20
+    # on time: 20 ms after the last host frame (the COMMAND, acked at its receipt), not a poll later
+    assert 20_000 < (got[i].t_us - got[1].t_us) % U32 <= 23_000, (got[1], got[i])
     assert got[i + 2].reason == mp.StopReason.WATCHDOG and got[i + 1].flags & mp.StrokeFlags.WATCHDOG
     device.send(mp.Arm(5, 0, 0, 100_000), 3)
     (ack,) = _msgs(device.run(3000))
     assert ack.status == mp.Status.NOT_SYNCED
 
 
-def test_unknown_type_and_bad_frames(device: FirmwareDevice | PythonDevice) -> None:
+def test_unknown_type_and_bad_frames(device: Device) -> None:
     _hello(device)
     device.send(mp.Pong(1, 2, 3, 4, 5), 1)  # a device-side type sent to the device
     device.write(b"\x05\x01\x02\x03\x04\x00")  # COBS fine, CRC wrong
     device.write(b"\x11" * 80 + b"\x00")  # over-long
-    device.send(mp.Ping(9), 5)  # seq 2..4 missing
+    device.write(_raw_frame(0x06, 5, b"\x01\x02\x03"))  # a type of a newer minor version
+    device.send(mp.Ping(9), 7)  # seq 2..4 and 6 missing
     got = _msgs(device.run(5000))
     assert isinstance(got[0], mp.Ack) and got[0].status == mp.Status.UNKNOWN_TYPE
-    assert isinstance(got[1], mp.Pong) and (got[1].rx_errors, got[1].rx_lost) == (2, 3)
+    assert (got[1].acked_type, got[1].acked_seq, got[1].status) == (0x06, 5, mp.Status.UNKNOWN_TYPE)
+    assert isinstance(got[2], mp.Pong) and (got[2].rx_errors, got[2].rx_lost) == (2, 4)
+
+
+def _raw_frame(mtype: int, seq: int, body: bytes) -> bytes:
+    payload = bytes([mtype]) + seq.to_bytes(2, "little") + body
+    return cobs_encode(payload + crc16(payload).to_bytes(2, "little")) + b"\x00"
+
+
+def _stroke(dev: Device, stroke: int, direction: int, seq: int, delay_us: int = 1000) -> list[Message]:
+    """ARM and COMMAND (at arrival) one stroke, run 40 ms, return what the device sent."""
+    dev.send(mp.Arm(stroke, direction, delay_us, 100_000), seq)
+    dev.send(mp.Command(stroke, 0, 0), seq + 1)
+    return _msgs(dev.run(40_000))
+
+
+def test_stall_stops_the_drive(device: Device) -> None:
+    _hello(device, watchdog_ms=5000)
+    device.stall()
+    device.send(mp.Arm(1, 0, 1000, 30_000), 1)  # device stall limit 30 ms from the start
+    device.send(mp.Command(1, 0, 0), 2)
+    got = _msgs(device.run(60_000))
+    kinds = [type(m).__name__ for m in got]
+    (start,) = [m for m in got if isinstance(m, mp.Start)]
+    i = kinds.index("Fault")
+    assert kinds[i:] == ["Fault", "Stroke", "Stopped"], kinds
+    fault, stroke, stopped = got[i:]
+    assert fault.code == mp.DeviceFault.STALL and fault.detail == 30
+    assert stroke.flags & mp.StrokeFlags.STALL and not stroke.flags & mp.StrokeFlags.ARRIVED
+    assert stopped.reason == mp.StopReason.STALL
+    assert 30_000 <= (stopped.t_us - start.t_us) % U32 <= 31_000  # on time
+    # the session goes on: the next stroke runs (from where the jam left the mover)
+    device.send(mp.Ping(1), 3)
+    (pong,) = _msgs(device.run(2000))
+    assert pong.state & mp.StateFlags.SYNCED and not pong.state & mp.StateFlags.DRIVE_ON
+
+
+def test_bounce_is_reported_edge_by_edge(device: Device) -> None:
+    _hello(device, watchdog_ms=5000)
+    device.bounce()
+    got = _stroke(device, 1, 0, 1)
+    edges = [(m.channel, m.level) for m in got if isinstance(m, mp.Edge)]
+    # depart A, arrive B (the drive is cut), then B bounces: released and active again
+    assert edges == [(0, 0), (1, 1), (1, 0), (1, 1)], edges
+    (stopped,) = [m for m in got if isinstance(m, mp.Stopped)]
+    b_edges = [m for m in got if isinstance(m, mp.Edge) and m.channel == 1]
+    assert stopped.reason == mp.StopReason.ARRIVED and stopped.t_us == b_edges[0].t_us
+    assert 0 < (b_edges[2].t_us - b_edges[0].t_us) % U32 < 1000  # the chatter is tens of us
+
+
+def test_clock_wrap_inside_a_stroke(make_device: Callable[..., Device]) -> None:
+    dev = make_device(clock_start_us=WRAP_START_US)
+    hello = _hello(dev, watchdog_ms=5000)
+    assert WRAP_START_US <= hello.t_us < U32  # before the wrap
+    # commanded ~5 ms after the HELLO_ACK, it starts ~8 ms before the wrap and arrives after it
+    got = _stroke(dev, 1, 0, 1, delay_us=(U32 - hello.t_us) - 13_000)
+    (start,) = [m for m in got if isinstance(m, mp.Start)]
+    (stroke,) = [m for m in got if isinstance(m, mp.Stroke)]
+    assert U32 - 12_000 < start.t_us < U32 - 5000 and start.late_us == 0
+    assert stroke.flags & mp.StrokeFlags.ARRIVED and stroke.t_arrive_us < 100_000  # after the wrap
+    assert 8_000 < (stroke.t_arrive_us - stroke.t_start_us) % U32 < 14_000
+    dev.send(mp.Ping(3), 3)
+    (pong,) = _msgs(dev.run(2000))
+    assert pong.t_us < 100_000 and pong.state & mp.StateFlags.SENSOR_B
+
+
+def test_power_cycle_forgets_the_session(device: Device) -> None:
+    hello = _hello(device, watchdog_ms=5000)
+    device.send(mp.Arm(1, 0, 200_000, 100_000), 1)
+    device.send(mp.Command(1, 0, 0), 2)  # due in 200 ms: the power goes first
+    device.run(20_000)
+    device.power_cycle()
+    device.send(mp.Ping(1), 3)
+    device.send(mp.Arm(2, 0, 1000, 100_000), 4)
+    got = _msgs(device.run(300_000))
+    assert [type(m).__name__ for m in got] == ["Pong", "Ack"], got  # no START: the stroke is gone
+    pong, ack = got
+    assert not pong.state & (mp.StateFlags.SYNCED | mp.StateFlags.ARMED | mp.StateFlags.DRIVE_ON)
+    assert ack.status == mp.Status.NOT_SYNCED
+    assert pong.t_us < hello.t_us + 20_000  # the clock restarted at power-on
+    again = _hello(device)
+    assert again.t_us > pong.t_us
