@@ -81,6 +81,11 @@ class TransportLost(DaqDisconnected):
 class Transport(ABC):
     """A bidirectional byte pipe to the MCU: a serial port, a pair of USB bulk endpoints."""
 
+    #: How long the first HELLO after an open waits for its answer before HELLO is retried: a
+    #: board that resets when its port opens (Arduino, DTR) sits in its bootloader meanwhile, and
+    #: more bytes would keep some bootloaders there. 0 for a device that is ready at once.
+    reset_wait_ns: int = 0
+
     @abstractmethod
     def open(self) -> None:
         """Open the device; raises TransportLost (absent, busy) with the reason."""
@@ -450,12 +455,23 @@ class McuDaq(Daq):
 
     # -- handshake ---------------------------------------------------------------------------
     def _handshake(self) -> None:
-        """HELLO until HELLO_ACK: version and capability check, sequence reset, clock anchor."""
+        """HELLO until HELLO_ACK: version and capability check, sequence reset, clock anchor.
+
+        A device that is ready answers the first HELLO at once. When the transport may have reset
+        the board (`reset_wait_ns`), that first HELLO waits up to reset_wait_ns for its answer
+        while the host sends nothing more (the Mega 2560's bootloader stays in programming mode
+        while bytes keep coming, and starts the firmware about a second after the last one);
+        HELLO is then retried every 4 reply timeouts for as long again as the retries take, or
+        1 s, whichever is longer.
+        """
         self._keep_decoder_totals()
         with self._wlock:
             self._tx_seq = 0
-        last = "no reply"
-        for _ in range(self.retries):
+        reply_ns = 4 * self.reply_timeout_ns
+        reset_wait_ns = self.transport.reset_wait_ns
+        tries = self.retries if not reset_wait_ns else 1 + max(self.retries, -(-1_000_000_000 // reply_ns))
+        waited_ns = 0
+        for attempt in range(tries):
             t_send = time.monotonic_ns()
             try:
                 self.transport.write(b"\x00")  # ends any partial frame the device holds
@@ -463,7 +479,9 @@ class McuDaq(Daq):
             except TransportLost:
                 self.stats.handshake_failures += 1
                 raise
-            deadline = t_send + 4 * self.reply_timeout_ns
+            wait_ns = max(reply_ns, reset_wait_ns) if attempt == 0 else reply_ns
+            waited_ns += wait_ns
+            deadline = t_send + wait_ns
             while (now := time.monotonic_ns()) < deadline:
                 data = self.transport.read(deadline - now)
                 for seq, msg in self._decoder.feed(data):
@@ -472,9 +490,11 @@ class McuDaq(Daq):
                     t_recv = time.monotonic_ns()
                     self._accept_hello(seq, msg, t_send, t_recv)
                     return
-            last = f"no HELLO_ACK within {4 * self.reply_timeout_ns // 1_000_000} ms"
         self.stats.handshake_failures += 1
-        raise TransportLost(f"{self.name}: handshake with {self.transport.describe()} failed: {last}")
+        raise TransportLost(
+            f"{self.name}: handshake with {self.transport.describe()} failed: "
+            f"no HELLO_ACK to {tries} HELLO within {waited_ns // 1_000_000} ms"
+        )
 
     def _accept_hello(self, seq: int, msg: HelloAck, t_send: int, t_recv: int) -> None:
         if msg.major != PROTOCOL_MAJOR:

@@ -18,7 +18,8 @@ from usmswitch.sim.mcu_emulator import McuEmulator, PtyLink
 def rig(tmp_path):
     emu = McuEmulator(seed=3, clock_start_us=(1 << 32) - 40_000, drift_ppm=40).start()
     link = PtyLink(emu, tmp_path / "usmswitch").plug()
-    daq = SerialMcuDaq.from_spec(f"serial:{tmp_path / 'usmswitch'}", **FAST)
+    # The emulator does not reset when its port opens: no bootloader to wait out.
+    daq = SerialMcuDaq.from_spec(f"serial:{tmp_path / 'usmswitch'}?reset_wait_ms=0", **FAST)
     daq.open()
     yield emu, link, daq
     daq.close()
@@ -65,11 +66,16 @@ def test_port_is_exclusive_and_spec_is_checked(rig, tmp_path) -> None:
     other = SerialMcuDaq(str(tmp_path / "usmswitch"))
     with pytest.raises(DaqError, match=r"lock|exclusive|Resource"):
         other.open()
-    assert parse_serial_spec("serial:/dev/ttyACM0?baud=115200") == ("/dev/ttyACM0", 115200)
+    assert parse_serial_spec("serial:/dev/ttyACM0?baud=115200") == ("/dev/ttyACM0", 115200, 2000)
+    assert parse_serial_spec("serial:/dev/ttyACM0") == ("/dev/ttyACM0", 1_000_000, 2000)
+    assert parse_serial_spec("serial:/dev/x?reset_wait_ms=0&baud=9600") == ("/dev/x", 9600, 0)
     for bad, match in [
         ("serial:", "no device path"),
         ("tty:/dev/x", "serial:"),
         ("serial:/x?baud=7", "baud 7"),
+        ("serial:/x?reset_wait_ms=-1", "reset_wait_ms must be an integer"),
+        ("serial:/x?reset_wait_ms=10001", "reset_wait_ms 10001 is not in 0..10000"),
+        ("serial:/x?wait=1", "unknown option"),
     ]:
         with pytest.raises(ValueError, match=match):
             parse_serial_spec(bad)
@@ -260,3 +266,48 @@ def test_version_and_capability_checks(tmp_path) -> None:
 def test_absent_port_is_a_clear_error(tmp_path) -> None:
     with pytest.raises(DaqDisconnected, match="cannot open"):
         SerialMcuDaq(str(tmp_path / "nothing")).open()
+
+
+def test_board_that_resets_on_open_is_waited_for(tmp_path) -> None:
+    """An Arduino resets when its port opens and sits in its bootloader, which every byte keeps
+    there: the first HELLO is lost, the host stays quiet for reset_wait_ms, then HELLO gets in."""
+    emu = McuEmulator(seed=1, bootloader_ms=600).start()
+    link = PtyLink(emu, tmp_path / "usmswitch").plug()
+    try:
+        # HELLO three times 100 ms apart (no reset wait): each keeps the bootloader going
+        emu.power_cycle()
+        quick = SerialMcuDaq(str(tmp_path / "usmswitch"), reset_wait_ms=0, **FAST)
+        with pytest.raises(DaqError, match="no HELLO_ACK to 3 HELLO within 300 ms"):
+            quick.open()
+        quick.close()
+        assert emu.bootloader_bytes > 0 and not emu.synced
+        emu.power_cycle()  # the port opens: DTR resets the board
+        daq = SerialMcuDaq(str(tmp_path / "usmswitch"), reset_wait_ms=900, **FAST)
+        t0 = time.monotonic()
+        daq.open()
+        took = time.monotonic() - t0
+        try:
+            assert emu.bootloader_bytes > 0  # the first HELLO went to the bootloader
+            assert 0.9 <= took < 2.0, took  # answered by the first retry after the quiet wait
+            assert daq.connected and daq.ping()
+        finally:
+            daq.close()
+    finally:
+        link.close()
+        emu.stop()
+
+
+def test_ready_device_answers_the_first_hello_at_once(tmp_path) -> None:
+    """The default reset wait costs a device that is ready nothing."""
+    emu = McuEmulator(seed=1).start()
+    link = PtyLink(emu, tmp_path / "usmswitch").plug()
+    daq = SerialMcuDaq.from_spec(f"serial:{tmp_path / 'usmswitch'}", **FAST)
+    try:
+        assert daq.transport.reset_wait_ns == 2_000_000_000
+        t0 = time.monotonic()
+        daq.open()
+        assert time.monotonic() - t0 < 0.5
+    finally:
+        daq.close()
+        link.close()
+        emu.stop()
