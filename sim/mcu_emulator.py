@@ -182,7 +182,14 @@ class McuEmulator:
         major: int = PROTOCOL_MAJOR,
         minor: int = PROTOCOL_MINOR,
         start_at: Channel = Channel.A,
+        bootloader_ms: int = 0,
     ) -> None:
+        """`bootloader_ms`: after each power-on (`power_cycle()`, as an Arduino's reset when its
+        port opens) the firmware starts only once the line has been quiet that long: like the
+        Mega 2560's stk500v2 bootloader, bytes meanwhile are lost and restart the wait."""
+        if not 0 <= bootloader_ms <= 10_000:
+            raise ValueError(f"bootloader_ms must be in 0..10000, got {bootloader_ms!r}")
+        self.bootloader_ns = bootloader_ms * 1_000_000
         if not 0 <= clock_start_us < U32_MOD:
             raise ValueError(f"clock_start_us must be a 32-bit count, got {clock_start_us!r}")
         if not -1000 <= drift_ppm <= 1000:
@@ -236,6 +243,8 @@ class McuEmulator:
         with self._lock:
             self.boots += 1
             self._t_boot_ns = time.monotonic_ns()
+            self._bootloader_until_ns = self._t_boot_ns + self.bootloader_ns
+            self.bootloader_bytes = 0
             self._decoder = _DeviceDecoder()
             self._rx_err_base = 0
             self._rx_seq = SeqTracker()
@@ -416,6 +425,11 @@ class McuEmulator:
             if data is None:
                 continue
             with self._lock:
+                now = time.monotonic_ns()
+                if now < self._bootloader_until_ns:  # in the bootloader: lost, and it stays longer
+                    self.bootloader_bytes += len(data)
+                    self._bootloader_until_ns = now + self.bootloader_ns
+                    continue
                 frames = self._decoder.feed(data)
                 self.rx_errors = self._decoder.errors - self._rx_err_base
                 now = time.monotonic_ns()
