@@ -144,10 +144,22 @@ static void helper_start(const char *python, const char *script, int seed, char 
 
 static int edges_changed;
 
+static avr_cycle_count_t edge_timer(avr_t *a, avr_cycle_count_t when, void *param)
+{
+    (void)a;
+    (void)when;
+    (void)param;
+    return 0; /* only a bound for the sleep */
+}
+
 static void add_edge(avr_cycle_count_t at, int ch, int level)
 {
     if (npending >= MAX_EDGES)
         die("too many pending sensor edges");
+    /* The edge may come while simavr is inside a step (the drive went on at a compare match):
+     * a sleeping core would then skip to its next timer, past the edge. This timer stops it at the
+     * edge; run_until applies the edge there. */
+    avr_cycle_timer_register(avr, at > avr->cycle ? at - avr->cycle : 1, edge_timer, &pending[npending]);
     pending[npending++] = (struct edge){at, ch, level};
     edges_changed = 1;
 }
