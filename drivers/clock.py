@@ -31,6 +31,14 @@ class Clock(ABC):
         When `cancel` is set (an emergency stop from another thread) it returns at once, early.
         """
 
+    def approach(self, t_ns: int, cancel: threading.Event | None = None) -> int:
+        """Sleep until shortly before `t_ns` (this clock's own margin), giving up when `cancel` is set.
+
+        The caller then does what it must do ahead (take locks, check state), and `sleep_until(t_ns)`
+        ends the wait precisely. A clock without a margin just sleeps until `t_ns`.
+        """
+        return self.sleep_until(t_ns, cancel)
+
     def wait_until(self, t_ns: int) -> int:
         """Return at or after `t_ns` without spinning: for waiting on events, not for starting motors."""
         return self.sleep_until(t_ns)
@@ -49,21 +57,25 @@ class MonotonicClock(Clock):
     def now_ns(self) -> int:
         return time.monotonic_ns()
 
-    def sleep_until(self, t_ns: int, cancel: threading.Event | None = None) -> int:
-        now_ns = self.now_ns
-        now = now_ns()
-        ahead = t_ns - now - self.spin_margin_ns
+    def approach(self, t_ns: int, cancel: threading.Event | None = None) -> int:
+        ahead = t_ns - self.now_ns() - self.spin_margin_ns
         if ahead > 0:
             if cancel is None:
                 time.sleep(ahead / 1e9)
-            elif cancel.wait(ahead / 1e9):
-                return now_ns()
-        now = now_ns()
+            else:
+                cancel.wait(ahead / 1e9)
+        return self.now_ns()
+
+    def sleep_until(self, t_ns: int, cancel: threading.Event | None = None) -> int:
+        now = self.approach(t_ns, cancel)
+        # The spin reads the clock in a bare loop: every call less is less overshoot.
+        now_ns = time.monotonic_ns if type(self).now_ns is MonotonicClock.now_ns else self.now_ns
         if cancel is None:
             while now < t_ns:
                 now = now_ns()
         else:
-            while now < t_ns and not cancel.is_set():
+            is_set = cancel.is_set
+            while now < t_ns and not is_set():
                 now = now_ns()
         return now
 
