@@ -133,7 +133,7 @@ def test_lost_edges_and_report_is_a_wire_fault(rig) -> None:
     assert daq.link_stats()["unrecovered_strokes"] == 1
     # The link itself is fine: the next stroke runs.
     emu._drop_next = 0
-    seen = run_stroke(daq, Direction.OFF if emu._pos_mm > 2.5 else Direction.ON)
+    seen = run_stroke(daq, Direction.OFF if emu.rig.position_mm > 2.5 else Direction.ON)
     assert seen.events[-1].kind is EventKind.STOP
 
 
