@@ -7,6 +7,8 @@ import json
 import sys
 
 from .config import ConfigError, load_config
+from .version import version_text
+from .wire import PROTOCOL_VERSION
 
 EXIT_CONFIG = 2  # a bad config or flag: nothing was started
 # A part could not start: driver missing, socket in use, state dir unwritable or in use by another
@@ -23,6 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="USM switch controller: delays each motor start by T - t_hat so every stroke "
         "ends T after its command. With no config it runs the simulated rig.",
     )
+    p.add_argument("--version", action="version", version=version_text("usmswitchd", PROTOCOL_VERSION))
     p.add_argument("--config", help="TOML config file (docs/config.md)")
     p.add_argument("--sim", action="store_true", default=None, help="run on the simulated rig (driver.kind)")
     p.add_argument("--driver", choices=("sim", "serial", "usb"), help="driver.kind")

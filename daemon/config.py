@@ -164,7 +164,8 @@ class SocketConfig:
     """[socket]: the msgpack-RPC server."""
 
     path: Path
-    mode: int = 0o660
+    # Written back as octal text ("0o660", what the file says): 432 means nothing to a reader.
+    mode: int = field(default=0o660, metadata={"octal": True})
     group: str = ""  # "" = the daemon's own group
     tcp: str = ""  # "" = no TCP; "127.0.0.1:7770"
     tcp_token: str = ""  # required with tcp
@@ -753,7 +754,9 @@ def _section_to_dict(obj: Any) -> dict[str, Any]:
             name = name[: -len("_ns")]
             if isinstance(value, int):
                 value = duration_text(value)  # with its unit, as the loader wants it
-        if is_dataclass(value):
+        if fl.metadata.get("octal"):
+            out[name] = f"0o{value:03o}"
+        elif is_dataclass(value):
             out[name] = _section_to_dict(value)
         elif isinstance(value, Path):
             out[name] = str(value)

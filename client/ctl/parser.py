@@ -6,7 +6,8 @@ import argparse
 import sys
 from typing import NoReturn
 
-from usmswitch.daemon.wire import MAX_HISTORY
+from usmswitch.daemon.version import version_text
+from usmswitch.daemon.wire import MAX_HISTORY, PROTOCOL_VERSION
 
 from .args import (
     EXIT_USAGE,
@@ -58,6 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Drive the usmswitchd daemon: status, statistics, targets, strokes, cycling, records.",
         epilog="Exit codes: 0 ok, 1 refused by the daemon, 2 usage, 3 cannot connect, 4 rig in FAULT.",
     )
+    p.add_argument("--version", action="version", version=version_text(PROG, PROTOCOL_VERSION))
     _connection_flags(p, suppress=False)
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
