@@ -122,6 +122,7 @@ class Daemon:
         self.rpc: Any = None
         self.board: BoardPoller | None = None
         self._next_summary_ns = 0
+        self._last_summary: tuple[Any, ...] | None = None  # what the last summary line said
         self._next_live_ns = 0
         self._live = self.log_format == "console" and self.stream.isatty()
         self._lock_fd: int | None = None
@@ -179,6 +180,8 @@ class Daemon:
             late_margin_ns=cfg.control.late_margin_ns,
             sink=self.store.submit,
             first_cycle=self.store.last_cycle() + 1,
+            first_run_id=self.store.last_run_id() + 1,
+            run_sink=self.store.submit_run,
             next_direction=first_direction(self.daq, last_rec),
             conditions=conditions,
         )
@@ -200,8 +203,8 @@ class Daemon:
             driver=self.daq.name,
             state_dir=str(state_dir),
             socket=str(cfg.socket.path),
-            target_on=format_ns(cfg.control.target_on_ns),
-            target_off=format_ns(cfg.control.target_off_ns),
+            target_on_ns=cfg.control.target_on_ns,
+            target_off_ns=cfg.control.target_off_ns,
             mode=cfg.control.mode,
             model=cfg.control.model,
             order=cfg.control.order,
@@ -238,9 +241,7 @@ class Daemon:
             # Queued, so the first tick is laid after run() has set up the collector.
             loop = self.loop
             loop.call(lambda: loop.start_cycling(cfg.cycle.period_ns, cfg.cycle.count))
-            self.log.info(
-                "cycling", period=format_ns(cfg.cycle.period_ns), count=cfg.cycle.count or "forever"
-            )
+            self.log.info("cycling", period_ns=cfg.cycle.period_ns, count=cfg.cycle.count or "forever")
         self._next_summary_ns = time.monotonic_ns() + cfg.daemon.summary_interval_ns
         self.notifier.ready(status=self._status_line())
         status = 0
@@ -381,7 +382,6 @@ class Daemon:
         if loop.state is State.FAULT:
             return  # latched already (this or another fault); after a reset it latches again
         reason = f"records: {error}"
-        loop.stop_cycling()
         loop.latch_fault(reason)
         self._records_fault = error
         self.log.error(
@@ -397,7 +397,7 @@ class Daemon:
         self.notifier.maybe_watchdog(now)
         if now >= self._next_summary_ns:
             self._next_summary_ns = now + self.config.daemon.summary_interval_ns
-            self._summary()
+            self._summary(only_if_changed=True)
         if self._live and now >= self._next_live_ns:
             self._next_live_ns = now + LIVE_LINE_NS
             self.stream.write("\r\x1b[K" + self._status_line())
@@ -407,38 +407,38 @@ class Daemon:
         loop = self.loop
         if loop is None:
             return "starting"
-        s = loop.stats[0], loop.stats[1]
-        n = s[0].error.count + s[1].error.count
-        if not n:
+        both = loop.snapshot(raw=True)["all"]  # the summary's figures: one definition of each
+        if not both["count"]:
             return f"{loop.state} | no strokes yet"
-        err = [x.error for x in s]
-        mean = (err[0].mean * err[0].count + err[1].mean * err[1].count) / n
-        std = max(err[0].std, err[1].std)
-        late = s[0].late + s[1].late
-        stalls = s[0].stalls + s[1].stalls
         return (
-            f"{loop.state} | strokes {n} | error mean {format_ns(round(mean))}"
-            f" std {format_ns(round(std))} | late {late} stall {stalls}"
+            f"{loop.state} | strokes {both['count']} | error mean {format_ns(round(both['error_mean_ns']))}"
+            f" std {format_ns(round(both['error_std_ns']))} | late {both['late']} stall {both['stalls']}"
         )
 
-    def _summary(self, final: bool = False) -> None:
+    def _summary(self, final: bool = False, only_if_changed: bool = False) -> None:
+        """The summary line: count, error mean and std (pooled over both directions, integer ns),
+        late and stall counts. `only_if_changed`: an idle daemon does not repeat the same line."""
         loop = self.loop
         if loop is None:
             return
-        snap = loop.snapshot()["all"]
+        snap = loop.snapshot(raw=True)["all"]  # no percentiles here: not worth a sort on the loop
+        fields = {
+            "state": str(loop.state),
+            "count": snap["count"],
+            "error_mean_ns": round(snap["error_mean_ns"]),
+            "error_std_ns": round(snap["error_std_ns"]),
+            "max_abs_error_pct": snap["max_abs_error_pct"],
+            "late": snap["late"],
+            "stalls": snap["stalls"],
+            "fault": loop.fault_reason or None,
+        }
+        said = tuple(fields.values())
+        if only_if_changed and said == self._last_summary:
+            return
+        self._last_summary = said
         if self._live:
             self.stream.write("\n" if final else "\r\x1b[K")
-        self.log.info(
-            "summary" if not final else "final summary",
-            state=str(loop.state),
-            count=snap["count"],
-            error_mean_ns=snap["error_mean_ns"],
-            error_std_ns=snap["error_std_ns"],
-            max_abs_error_pct=snap["max_abs_error_pct"],
-            late=snap["late"],
-            stalls=snap["stalls"],
-            fault=loop.fault_reason or None,
-        )
+        self.log.info("summary" if not final else "final summary", **fields)
         if loop.state is State.FAULT:
             self.notifier.status(f"FAULT: {loop.fault_reason}")
         else:

@@ -92,3 +92,26 @@ def format_ns(ns: int) -> str:
 
 
 _FORMAT_STEPS = ((-3, Decimal("0.1"), "us"), (-6, Decimal("0.001"), "ms"))
+
+
+def format_elapsed(ns: int) -> str:
+    """A long duration for people, to the precision a person reads: "14.5 s", "12 min 05 s",
+    "2 h 03 min", "3 d 04 h" (an uptime, not a measurement: format_ns keeps the digits)."""
+    if isinstance(ns, bool) or not isinstance(ns, int):
+        raise ValueError(f"format_elapsed needs integer nanoseconds, got {ns!r}")
+    if ns < 0:
+        return "-" + format_elapsed(-ns)
+    if ns < 59_950_000_000:  # below what rounds to "60.0 s"
+        return f"{Decimal(ns).scaleb(-9).quantize(Decimal('0.1'))} s"
+    s = (ns + 500_000_000) // 1_000_000_000  # whole seconds, rounded
+    if s < 3600:
+        return f"{s // 60} min {s % 60:02d} s"
+    if s < 86400:
+        return f"{s // 3600} h {s % 3600 // 60:02d} min"
+    return f"{s // 86400} d {s % 86400 // 3600:02d} h"
+
+
+def is_instant_field(name: str) -> bool:
+    """Whether an `_ns` field is an instant on a clock (`t_cmd_ns`, `wall_ns`), not a duration:
+    instants print as raw ns (only their differences mean something), durations in units."""
+    return name == "wall_ns" or (name.startswith("t_") and name.endswith("_ns") and name != "t_hat_ns")

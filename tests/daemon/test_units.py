@@ -98,3 +98,16 @@ def test_format_parses_back_within_its_shown_precision(ns):
 def test_format_refuses_floats():
     with pytest.raises(ValueError, match=r"0\.012"):
         format_ns(0.012)  # type: ignore[arg-type]
+
+
+def test_format_elapsed_reads_like_an_uptime() -> None:
+    from usmswitch.daemon.units import format_elapsed
+
+    s = 1_000_000_000
+    assert format_elapsed(14_514_742_000) == "14.5 s"
+    assert format_elapsed(59_960_000_000) == "1 min 00 s"  # rounds up into minutes, never "60.0 s"
+    assert format_elapsed(725 * s) == "12 min 05 s"
+    assert format_elapsed(7380 * s) == "2 h 03 min"
+    assert format_elapsed((3 * 86400 + 4 * 3600) * s) == "3 d 04 h"
+    with pytest.raises(ValueError):
+        format_elapsed(1.5)  # type: ignore[arg-type]
