@@ -33,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--socket", help="socket.path (Unix socket for lab scripts)")
     p.add_argument("--tcp", help="socket.tcp, e.g. 127.0.0.1:7770 (needs socket.tcp_token in the file)")
     p.add_argument("--state-dir", help="daemon.state_dir (records.sqlite lives there)")
+    p.add_argument("--rig", help="daemon.rig: this rig's name, stamped on every record (usmswitchd@RIG)")
     p.add_argument("--log-format", choices=("json", "console", "auto"), help="daemon.log_format")
     p.add_argument("--log-level", choices=("debug", "info", "warning", "error"), help="daemon.log_level")
     p.add_argument("--target", help="control.target for both directions, e.g. 12ms")

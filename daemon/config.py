@@ -252,6 +252,7 @@ OVERRIDE_KEYS: dict[str, str] = {
     "driver": "driver.kind",
     "port": "driver.serial.port",
     "state_dir": "daemon.state_dir",
+    "rig": "daemon.rig",
     "log_format": "daemon.log_format",
     "log_level": "daemon.log_level",
     "socket": "socket.path",

@@ -27,6 +27,7 @@ __all__ = [
     "check_socket_owner",
     "ensure_private_dir",
     "prepare_socket_dir",
+    "rig_socket_path",
 ]
 
 
@@ -201,10 +202,25 @@ def default_socket_path(env: Mapping[str, str] | None = None) -> Path:
     return Path(f"/tmp/usmswitch-{os.getuid()}") / SOCKET_NAME
 
 
+#: Where the services put their sockets: /run/usmswitch for the one-rig unit, /run/usmswitch/<rig>
+#: for each instance of the template unit usmswitchd@<rig>.service.
+SERVICE_RUNTIME_DIR = Path("/run/usmswitch")
+
+
+def rig_socket_path(rig: str) -> Path:
+    """The socket of the service instance usmswitchd@<rig> (systemd/usmswitchd@.service)."""
+    if not rig or "/" in rig or rig.startswith(".") or not rig.isprintable():
+        raise ValueError(f"rig name {rig!r}: expected a name like 'rigA' (no '/', not starting with '.')")
+    return SERVICE_RUNTIME_DIR / rig / SOCKET_NAME
+
+
 def client_socket_paths(env: Mapping[str, str] | None = None) -> list[Path]:
-    """Where a client looks for the daemon, in order: $USMSWITCH_SOCKET, this user's daemon, the service's."""
+    """Where a client looks for the daemon, in order: $USMSWITCH_SOCKET, the instance of rig
+    $USMSWITCH_RIG, this user's daemon, the one-rig service's."""
     env = os.environ if env is None else env
     paths = [Path(env["USMSWITCH_SOCKET"])] if env.get("USMSWITCH_SOCKET") else []
+    if env.get("USMSWITCH_RIG"):
+        paths.append(rig_socket_path(env["USMSWITCH_RIG"]))
     paths.append(default_socket_path(env))
-    paths.append(Path("/run/usmswitch") / SOCKET_NAME)
+    paths.append(SERVICE_RUNTIME_DIR / SOCKET_NAME)
     return list(dict.fromkeys(paths))

@@ -19,7 +19,7 @@ import signal
 import sys
 from typing import Any
 
-from usmswitch.daemon.sockdir import client_socket_paths
+from usmswitch.daemon.sockdir import client_socket_paths, rig_socket_path
 from usmswitch.daemon.wire import estop_socket_path
 
 from ..connection import Client, ConnectionClosed, ErrorCode, RpcError, parse_address
@@ -35,6 +35,11 @@ def resolve_address(args: argparse.Namespace) -> str:
         return f"tcp://{args.tcp}"  # Client checks host and port and names a bad one
     if args.socket is not None:
         return args.socket
+    if args.rig is not None:
+        try:
+            return str(rig_socket_path(args.rig))
+        except ValueError as exc:
+            raise UsageError(f"--rig: {exc}") from None
 
     candidates = client_socket_paths()
     for path in candidates:

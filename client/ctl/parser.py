@@ -40,6 +40,12 @@ def _connection_flags(p: argparse.ArgumentParser, suppress: bool) -> None:
         "of $USMSWITCH_SOCKET, $XDG_RUNTIME_DIR/usmswitch/usmswitchd.sock, /run/usmswitch/...)",
     )
     p.add_argument(
+        "--rig",
+        default=d(None),
+        help="the service instance usmswitchd@RIG: its socket /run/usmswitch/RIG/usmswitchd.sock "
+        "(default: $USMSWITCH_RIG)",
+    )
+    p.add_argument(
         "--tcp", default=d(None), metavar="HOST:PORT", help="connect over TCP instead (needs a token)"
     )
     p.add_argument("--token", default=d(None), help="TCP token (default: $USMSWITCH_TOKEN)")
@@ -135,5 +141,6 @@ def check_args(args: argparse.Namespace) -> None:
         raise UsageError(f"cycle: --count must be >= 0, got {args.count}")
     if args.command == "watch" and args.count is not None and args.count < 0:
         raise UsageError(f"watch: --count must be >= 0, got {args.count}")
-    if args.tcp is not None and args.socket is not None:
-        raise UsageError("give --socket or --tcp, not both")
+    given = [f"--{name}" for name in ("socket", "rig", "tcp") if getattr(args, name) is not None]
+    if len(given) > 1:
+        raise UsageError(f"give one of --socket, --rig and --tcp, not {' and '.join(given)}")

@@ -176,3 +176,14 @@ def test_a_path_that_is_not_a_socket_is_refused(tmp_path: Path):
         Client(str(f), timeout_ns=1_000_000_000)
     with pytest.raises(FileNotFoundError):
         Client(str(tmp_path / "missing.sock"), timeout_ns=1_000_000_000)
+
+
+def test_a_rig_instance_socket_is_looked_for_after_usmswitch_socket() -> None:
+    from usmswitch.daemon.sockdir import client_socket_paths, rig_socket_path
+
+    assert rig_socket_path("rigA") == Path("/run/usmswitch/rigA/usmswitchd.sock")
+    paths = client_socket_paths({"USMSWITCH_SOCKET": "/a.sock", "USMSWITCH_RIG": "rigB"})
+    assert paths[:2] == [Path("/a.sock"), Path("/run/usmswitch/rigB/usmswitchd.sock")]
+    for bad in ("", "../etc", "a/b", ".hidden"):
+        with pytest.raises(ValueError, match="rig name"):
+            rig_socket_path(bad)
