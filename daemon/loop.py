@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import math
 import queue
 import threading
 import time
@@ -23,8 +24,9 @@ import structlog
 
 from usmswitch.drivers import Conditions, Daq, DaqError, DaqHalted, Direction, EventKind, FaultCode, check_ns
 
-from .record import CycleRecord, Flag
+from .record import CycleRecord, Flag, RunRecord
 from .stats import DirectionStats
+from .units import format_ns
 
 log = structlog.get_logger("usmswitch.loop")
 
@@ -103,6 +105,8 @@ class ControlLoop:
         next_direction: Direction = Direction.ON,
         conditions_every: int = 1,
         conditions: Callable[[], Conditions | None] | None = None,
+        first_run_id: int = 1,
+        run_sink: Callable[[RunRecord], None] | None = None,
     ) -> None:
         if len(predictors) != 2:
             raise ValueError(f"one predictor per direction (on, off) is needed, got {len(predictors)}")
@@ -119,8 +123,18 @@ class ControlLoop:
         self.cycle = first_cycle
         self.state = State.IDLE
         self.fault_reason = ""
-        self.stats = [DirectionStats(), DirectionStats()]
+        self.stats = [DirectionStats(), DirectionStats()]  # since the loop started
         self.stats_all = DirectionStats()  # both directions together
+        # Runs: each start_cycling opens one; its strokes carry its id and have statistics of
+        # their own, which `snapshot` reports (the current run, else the last one).
+        self.latest_run: RunRecord | None = None  # the open run, else the last one
+        self.run_sink = run_sink
+        self.run_stats = [DirectionStats(), DirectionStats()]
+        self.run_stats_all = DirectionStats()
+        self._next_run_id = first_run_id
+        self._first_cycle = first_cycle
+        self._run_ending: str | None = None  # why the open run ends, once its last stroke is recorded
+        self._in_stroke = False
         self.spurious_edges = 0
         self.overruns = 0
         self.stale_events = 0  # driver events dropped at a fault reset
@@ -158,6 +172,10 @@ class ControlLoop:
         """
         self._estop.set()
         self._halt(reason)
+        # Shown at once (a status right after the estop's reply says FAULT); the loop thread
+        # latches it fully (cycling stopped, the run ended) at its next step.
+        self.fault_reason = reason
+        self.state = State.FAULT
         self.call(lambda: self._latch_fault(reason))
 
     def shutdown(self) -> None:
@@ -189,11 +207,16 @@ class ControlLoop:
             targets[d] = target_ns
         return self.set_targets(targets)
 
-    def set_targets(self, targets: Sequence[int]) -> list[str]:
-        """Both targets (on, off) in one change: one check, one re-arm; returns warnings."""
+    def set_targets(self, targets: Sequence[int], allow_late: bool = True) -> list[str]:
+        """Both targets (on, off) in one change: one check, one re-arm; returns warnings.
+
+        With `allow_late=False` a target the rig cannot reach (closed loop) is refused instead.
+        """
         targets = [check_ns("target_ns", t, minimum=1) for t in targets]
         if len(targets) != 2:
             raise ValueError(f"set_targets takes (on, off), got {len(targets)} values")
+        if not allow_late:
+            self.check_reach(targets)
         if self.state is State.CYCLING:
             self._check_period(self._period_ns, targets, self.mode, self.open_delay_ns)
         self.targets = targets
@@ -209,6 +232,34 @@ class ControlLoop:
         self.mode = mode
         self.open_delay_ns = delay
         self._rearm()
+
+    def shortest_target_ns(self, direction: Direction) -> int:
+        """The shortest target `direction` reaches now: its predicted stroke plus the late margin."""
+        return math.ceil(self.predictors[direction].predict()) + self.late_margin_ns
+
+    def check_reach(self, targets: Sequence[int], mode: Mode | None = None) -> None:
+        """Refuse (ValueError) a closed-loop target below what the rig reaches: every stroke would
+        start at once and arrive late. The message names the shortest reachable target."""
+        if (mode or self.mode) is not Mode.CLOSED:
+            return
+        for d in (Direction.ON, Direction.OFF):
+            shortest = self.shortest_target_ns(d)
+            if targets[d] < shortest:
+                # Rounded up to 10 us: a target people can type that is surely reachable.
+                typed = -(-shortest // 10_000) * 10_000
+                hint = (
+                    " (a bare number is nanoseconds: write the unit, e.g. '12ms')"
+                    if targets[d] < 1_000_000
+                    else ""
+                )
+                name = "on" if d is Direction.ON else "off"
+                raise ValueError(
+                    f"target {format_ns(targets[d])}{hint} is below the shortest the rig reaches "
+                    f"in direction {name}: {format_ns(typed)} (predicted stroke "
+                    f"{format_ns(shortest - self.late_margin_ns)} + late margin "
+                    f"{format_ns(self.late_margin_ns)}); every stroke would be late. Set a target "
+                    f">= {format_ns(typed)}, or allow late strokes (allow_late)"
+                )
 
     def reach_warnings(self) -> list[str]:
         """Per direction, a warning when T is shorter than the predicted stroke (it will be late)."""
@@ -238,8 +289,20 @@ class ControlLoop:
             self._next_dir = direction_from_levels(self.daq.levels(), self._next_dir)
             self._plan = None
 
-    def start_cycling(self, period_ns: int, count: int = 0) -> None:
-        """Command a stroke every `period_ns`, alternately on and off, `count` strokes (0: until stopped)."""
+    def start_cycling(
+        self,
+        period_ns: int,
+        count: int = 0,
+        *,
+        kind: str = "cycling",
+        settings: dict[str, Any] | None = None,
+    ) -> RunRecord:
+        """Command a stroke every `period_ns`, alternately on and off, `count` strokes (0: until
+        stopped), as a new run; returns the run (its id, its first cycle, its settings).
+
+        `kind` and `settings` describe the run for its record (an experiment names itself and
+        adds its own settings to the loop's).
+        """
         check_ns("period_ns", period_ns, minimum=1)
         if isinstance(count, bool) or not isinstance(count, int) or count < 0:
             raise ValueError(f"count must be an integer >= 0, got {count!r}")
@@ -251,12 +314,61 @@ class ControlLoop:
         self._cycling_left = count if count else -1
         self._next_tick_ns = self.clock.now_ns() + COMMAND_LEAD_NS
         self.state = State.CYCLING
+        return self._open_run(kind, {"period_ns": period_ns, "count": count, **(settings or {})})
 
-    def stop_cycling(self) -> None:
-        """Finish the stroke in progress (if any) and command no more."""
+    def stop_cycling(self, reason: str = "stopped") -> None:
+        """Command no more strokes (the loop thread calls it between strokes); ends the run."""
         self._cycling_left = None
         if self.state is State.CYCLING:
             self.state = State.IDLE
+        self._end_run(reason)
+
+    def run_settings(self) -> dict[str, Any]:
+        """What a run records of the loop's settings at its open."""
+        p = self.predictors
+        return {
+            "target_on_ns": self.targets[Direction.ON],
+            "target_off_ns": self.targets[Direction.OFF],
+            "mode": str(self.mode),
+            "open_delay_ns": self.open_delay_ns,
+            "model": getattr(p[0], "model", type(p[0]).__name__),
+            "order": [p[0].order, p[1].order],
+            "window": getattr(p[0], "window", None),
+            "driver": self.daq.name,
+        }
+
+    def _open_run(self, kind: str, settings: dict[str, Any]) -> RunRecord:
+        self._end_run("superseded")  # never two open runs (defensive: start_cycling refuses)
+        run = RunRecord(
+            run_id=self._next_run_id,
+            kind=kind,
+            first_cycle=self.cycle,
+            started_wall_ns=time.time_ns(),
+            settings={**self.run_settings(), **settings},
+        )
+        self._next_run_id += 1
+        self.latest_run = run
+        self._run_ending = None
+        self.run_stats = [DirectionStats(), DirectionStats()]
+        self.run_stats_all = DirectionStats()
+        if self.run_sink is not None:
+            self.run_sink(run)
+        return run
+
+    def _end_run(self, reason: str) -> None:
+        """End the open run (if any) with `reason`; during a stroke, once that stroke is recorded."""
+        run = self.latest_run
+        if run is None or not run.running:
+            return
+        if self._in_stroke:
+            self._run_ending = self._run_ending or reason
+            return
+        run.last_cycle = self.cycle - 1
+        run.ended_wall_ns = time.time_ns()
+        run.end_reason = reason
+        self._run_ending = None
+        if self.run_sink is not None:
+            self.run_sink(run)
 
     def switch(self, direction: Direction) -> CycleRecord:
         """One stroke in `direction`, commanded now; returns its record."""
@@ -299,6 +411,7 @@ class ControlLoop:
             self._safe_stop("shutdown")
             self._cycling_left = None
             self.state = State.STOPPED
+            self._end_run("shutdown")
             gc.enable()
 
     def conditions(self) -> Conditions | None:
@@ -328,10 +441,19 @@ class ControlLoop:
             "overruns": self.overruns,
             "driver_bounces": self.daq.bounces,
             "driver": self.daq.counters(),
-            "all": self.stats_all.snapshot(raw),
         }
+        run = self.latest_run
+        if run is None:  # no run yet: every stroke since the start
+            per, both, first = self.stats, self.stats_all, self._first_cycle
+        else:
+            per, both, first = self.run_stats, self.run_stats_all, run.first_cycle
+        last = run.last_cycle if run is not None and not run.running else self.cycle - 1
+        out["run"] = None if run is None else run.to_dict()
+        out["first_cycle"] = first
+        out["last_cycle"] = last if last >= first else None
+        out["all"] = both.snapshot(raw)
         for d, name in ((Direction.ON, "on"), (Direction.OFF, "off")):
-            s = self.stats[d].snapshot(raw)
+            s = per[d].snapshot(raw)
             p = self.predictors[d]
             s["order"] = p.order
             s["coefficients"] = list(p.coefficients)
@@ -372,6 +494,7 @@ class ControlLoop:
         self.fault_reason = reason
         self._cycling_left = None
         self._plan = None
+        self._end_run(f"fault: {reason}")
 
     def _plan_for(self, direction: Direction) -> Plan:
         """Eq. 6-7: t_hat from this direction's predictor, T_d = T - t_hat clamped at 0 (late)."""
@@ -423,10 +546,19 @@ class ControlLoop:
         if self._cycling_left is not None and self._cycling_left > 0:
             self._cycling_left -= 1
             if self._cycling_left == 0:
-                self.stop_cycling()
+                self.stop_cycling("done")
 
     def _stroke(self, t_cmd_ns: int | None) -> CycleRecord:
         """Command the armed stroke, stamp it, update the predictor, arm the next one, record."""
+        self._in_stroke = True  # a fault latched now ends the run after this stroke's record
+        try:
+            return self._stroke_inner(t_cmd_ns)
+        finally:
+            self._in_stroke = False
+            if self._run_ending is not None:
+                self._end_run(self._run_ending)
+
+    def _stroke_inner(self, t_cmd_ns: int | None) -> CycleRecord:
         direction = self._next_dir
         daq = self.daq
         bounces_before = daq.bounces
@@ -576,20 +708,16 @@ class ControlLoop:
             frequency_hz=None if cond is None else cond.frequency_hz,
             flags=int(flags),
             wall_ns=time.time_ns(),
+            run_id=self.latest_run.run_id
+            if self.latest_run is not None and self.latest_run.running
+            else None,
         )
         self.cycle += 1
-        for stats in (self.stats[plan.direction], self.stats_all):
-            stats.add(
-                operating_ns=operating,
-                total_ns=total,
-                error_ns=error,
-                target_ns=plan.target_ns,
-                lateness_ns=lateness,
-                late=bool(flags & Flag.LATE),
-                stall=bool(flags & Flag.STALL),
-                bounce=bool(flags & Flag.BOUNCE),
-                fault=bool(flags & Flag.FAULT),
-            )
+        self.stats[plan.direction].add_record(rec)
+        self.stats_all.add_record(rec)
+        if rec.run_id is not None:
+            self.run_stats[plan.direction].add_record(rec)
+            self.run_stats_all.add_record(rec)
         if self.sink is not None:
             self.sink(rec)
         for listener in self.listeners:

@@ -21,7 +21,7 @@ from usmswitch.drivers import Daq, DaqError, Direction
 from .config import Config, parse_host_port
 from .estop_socket import EstopSocket
 from .loop import ControlLoop, LoopError, Mode, State
-from .record import CycleRecord
+from .record import CycleRecord, RunRecord
 from .records import RecordStore
 from .rpc import RpcServer
 from .wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, estop_socket_path
@@ -140,27 +140,28 @@ class Methods:
 
     def set_target(self, params: list[Any]) -> Future[Any]:
         """Targets are folded: calls that pile up before the loop's slack are one change."""
-        target_ns, which = params
+        target_ns, which, allow_late = params
         done: Future[Any] = Future()
         with self._target_lock:
             batch = self._target_batch
             first = batch is None
             if batch is None:
                 batch = self._target_batch = []
-            batch.append((target_ns, which, done))
+            batch.append((target_ns, which, allow_late, done))
         if first:
             applied = self._on_loop(lambda: self._apply_targets(batch))
             applied.add_done_callback(lambda fut: _resolve_all(batch, fut))
         return done
 
-    def _apply_targets(self, batch: list[tuple[int, str, Future[Any]]]) -> dict[str, Any]:
+    def _apply_targets(self, batch: list[tuple[int, str, bool, Future[Any]]]) -> dict[str, Any]:
         with self._target_lock:
             self._target_batch = None  # later calls start a batch of their own
         targets = list(self.loop.targets)
-        for target_ns, which, _ in batch:
+        for target_ns, which, _, _ in batch:
             for d in DIRECTIONS[which]:
                 targets[d] = target_ns
-        warnings = self.loop.set_targets(targets)
+        # Folded calls are one change: it may be late only if every call said so.
+        warnings = self.loop.set_targets(targets, allow_late=all(late for _, _, late, _ in batch))
         self._targets_from_cycle = self.loop.cycle
         self.store.record_event(
             "target",
@@ -215,12 +216,43 @@ class Methods:
         return done
 
     def start_cycling(self, params: list[Any]) -> Future[Any]:
-        period_ns, count = params
+        """A new run: the target (when given) is set with it, and the run records both."""
+        period_ns, count, target_ns, allow_late = params
 
-        def run() -> dict[str, int]:
-            self.loop.start_cycling(period_ns, count)
-            self.store.record_event("cycle", period_ns=period_ns, count=count, first_cycle=self.loop.cycle)
-            return {"period_ns": period_ns, "count": count, "first_cycle": self.loop.cycle}
+        def run() -> dict[str, Any]:
+            loop = self.loop
+            if loop.state is State.CYCLING:
+                raise LoopError("already cycling: stop_cycling first (or wait for the run to end)")
+            targets = list(loop.targets) if target_ns is None else [target_ns, target_ns]
+            if not allow_late:
+                loop.check_reach(targets)
+            old = list(loop.targets)
+            warnings = loop.set_targets(targets) if target_ns is not None else []
+            try:
+                run = loop.start_cycling(period_ns, count, settings={"allow_late": allow_late})
+            except Exception:
+                loop.set_targets(old)  # a refused run changes nothing
+                raise
+            if target_ns is not None and targets != old:
+                self._targets_from_cycle = loop.cycle
+                self.store.record_event(
+                    "target",
+                    target_on_ns=targets[0],
+                    target_off_ns=targets[1],
+                    calls=1,
+                    from_cycle=loop.cycle,
+                )
+            self.store.record_event("cycle", period_ns=period_ns, count=count, first_cycle=loop.cycle)
+            self.daemon.refresh_snapshot()
+            return {
+                "run_id": run.run_id,
+                "period_ns": period_ns,
+                "count": count,
+                "first_cycle": run.first_cycle,
+                "target_on_ns": loop.targets[0],
+                "target_off_ns": loop.targets[1],
+                "warnings": warnings,
+            }
 
         return self._on_loop(run)
 
@@ -228,7 +260,13 @@ class Methods:
         def run() -> dict[str, Any]:
             was = self.loop.state is State.CYCLING
             self.loop.stop_cycling()
-            return {"was_cycling": was, "cycle": self.loop.cycle}
+            self.daemon.refresh_snapshot()  # a stats call after this reply sees the run ended
+            run = self.loop.latest_run
+            return {
+                "was_cycling": was,
+                "cycle": self.loop.cycle,
+                "run": None if run is None else run.to_dict(),
+            }
 
         return self._on_loop(run)
 
@@ -270,6 +308,12 @@ class Methods:
         return done
 
     # -- from the record writer, once records are committed --------------------------------------
+    def on_run(self, run: RunRecord) -> None:
+        """Tell subscribers a run opened or ended, once its row is in the file: the end comes
+        after every stroke of the run has been published."""
+        if self.server is not None:
+            self.server.publish("run", run.to_dict())
+
     def on_commit(self, records: list[CycleRecord]) -> None:
         """Notify subscribers of strokes now in the file, never before: a subscriber's log and the
         records agree even if the daemon is killed the next instant."""
@@ -310,10 +354,10 @@ class Methods:
             self.daemon.refresh_snapshot()
 
 
-def _resolve_all(batch: list[tuple[int, str, Future[Any]]], fut: Future[Any]) -> None:
+def _resolve_all(batch: list[tuple[int, str, bool, Future[Any]]], fut: Future[Any]) -> None:
     """Every call folded into one change gets that change's outcome."""
     exc = fut.exception()
-    for _, _, done in batch:
+    for _, _, _, done in batch:
         if exc is not None:
             done.set_exception(exc)
         else:
@@ -335,7 +379,7 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         urgent=methods.urgent(),
         urgent_path=estop_socket_path(cfg.path),
         records_path=daemon.store.path,
-        topics=("stroke", "state"),
+        topics=("stroke", "state", "run"),
         snapshot_methods=("stats",),
         snapshot_finishers={"stats": "usmswitch.daemon.stats:finish_snapshot"},
         limits=Limits(max_connections=cfg.max_clients, max_tcp_connections=cfg.max_tcp_clients),
@@ -349,5 +393,6 @@ def start_rpc(daemon: Daemon) -> RpcServer:
     assert daemon.loop is not None
     daemon.loop.listeners.append(methods.on_record)
     daemon.store.on_commit = methods.on_commit
+    daemon.store.on_run = methods.on_run
     daemon.loop.slack_hooks.append(methods.on_slack)
     return server

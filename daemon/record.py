@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from enum import IntFlag
 from typing import Any
 
@@ -76,6 +76,7 @@ class CycleRecord:
     # (the daemon's driver name and rig identity) at submit, so every stored row says its source.
     driver: str | None = None  # "sim", "serial", "usb" (None: unknown, e.g. a schema 1 row)
     rig: str | None = None  # [daemon] rig, by default the host name
+    run_id: int | None = None  # the run this stroke belongs to (None: a stroke outside any run)
 
     @classmethod
     def build(
@@ -100,6 +101,7 @@ class CycleRecord:
         wall_ns: int,
         driver: str | None = None,
         rig: str | None = None,
+        run_id: int | None = None,
     ) -> CycleRecord:
         """Make a record from the stamps, deriving operating, total, error and dead time in one place."""
         operating = total = error = dead = None
@@ -134,6 +136,7 @@ class CycleRecord:
             wall_ns=wall_ns,
             driver=driver,
             rig=rig,
+            run_id=run_id,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -169,24 +172,27 @@ class CycleRecord:
             self.wall_ns,
             self.driver,
             self.rig,
+            self.run_id,
         )
 
     @classmethod
     def from_row(cls, row: Mapping[str, Any] | Sequence[Any]) -> CycleRecord:
         """Rebuild a record from `to_dict()`, `to_row()`, a sqlite3.Row or a CSV row (all text).
 
-        `driver` and `rig` may be missing (a row or CSV from before they existed): they read as None.
+        The fields added since schema 1 (`driver`, `rig`, `run_id`) may be missing (a row or CSV
+        from before they existed): they read as None.
         """
         if isinstance(row, Mapping) or hasattr(row, "keys"):
             keys = set(row.keys())
-            missing = [f for f in FIELDS if f not in keys and f not in SOURCE_FIELDS]
+            missing = [f for f in FIELDS if f not in keys and f not in LATER_FIELDS]
             if missing:
                 raise ValueError(f"cycle record row lacks field(s) {', '.join(missing)}")
             values = [row[f] if f in keys else None for f in FIELDS]
         else:
             values = list(row)
-            if len(values) == len(FIELDS) - len(SOURCE_FIELDS):
-                values += [None] * len(SOURCE_FIELDS)
+            for n_later in (len(LATER_FIELDS), 1):  # schema 1 rows, then schema 2 rows
+                if len(values) == len(FIELDS) - n_later:
+                    values += [None] * n_later
             if len(values) != len(FIELDS):
                 raise ValueError(f"cycle record row has {len(values)} values, expected {len(FIELDS)}")
         kwargs = {}
@@ -198,6 +204,8 @@ class CycleRecord:
 FIELDS: tuple[str, ...] = tuple(f.name for f in fields(CycleRecord))
 #: The fields that say where a record came from (schema 2); absent from older rows and exports.
 SOURCE_FIELDS: tuple[str, ...] = ("driver", "rig")
+#: Fields that older rows and exports lack: the source (schema 2) and the run (schema 3).
+LATER_FIELDS: tuple[str, ...] = (*SOURCE_FIELDS, "run_id")
 
 
 def _to_int(value: Any) -> int:
@@ -247,6 +255,7 @@ _CONVERT = (
     | {
         name: _opt_int
         for name in (
+            "run_id",
             "t_start_ns",
             "t_depart_ns",
             "t_arrive_ns",
@@ -266,3 +275,59 @@ def _convert(name: str, value: Any) -> Any:
         return _CONVERT[name](value)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"cycle record field {name}={value!r}: {exc}") from None
+
+
+RUN_KINDS = ("cycling", "experiment")
+
+
+@dataclass(slots=True)
+class RunRecord:
+    """One run: a `start_cycling` (or an experiment) from its first stroke to its last.
+
+    Written when it opens (`last_cycle`, `ended_wall_ns` and `end_reason` None) and again when it
+    ends. Its strokes are the cycles first_cycle..last_cycle that carry its `run_id`.
+    """
+
+    run_id: int
+    kind: str  # "cycling" or "experiment"
+    first_cycle: int  # the number its first stroke got (or would have got)
+    started_wall_ns: int  # time.time_ns() at the open, for people
+    settings: dict[str, Any] = field(default_factory=dict)  # period_ns, count, targets, mode, model ...
+    last_cycle: int | None = None  # None while running; first_cycle - 1 for a run without strokes
+    ended_wall_ns: int | None = None
+    end_reason: str | None = None  # "done" (count reached), "stopped", "fault: ...", "shutdown"
+    driver: str | None = None
+    rig: str | None = None
+
+    @property
+    def running(self) -> bool:
+        return self.end_reason is None
+
+    @property
+    def strokes(self) -> int | None:
+        """How many strokes the run has (None while it runs)."""
+        return None if self.last_cycle is None else self.last_cycle - self.first_cycle + 1
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain types for msgpack and JSON."""
+        d = {name: getattr(self, name) for name in RUN_FIELDS}
+        d["settings"] = dict(self.settings)
+        return d
+
+    def to_row(self) -> tuple[Any, ...]:
+        """In `RUN_FIELDS` order with the settings as JSON text: one SQLite row."""
+        return tuple(
+            json.dumps(self.settings, sort_keys=True) if name == "settings" else getattr(self, name)
+            for name in RUN_FIELDS
+        )
+
+    @classmethod
+    def from_row(cls, row: Mapping[str, Any] | Any) -> RunRecord:
+        """From `to_dict()` or a sqlite3.Row."""
+        values = {name: row[name] for name in RUN_FIELDS}
+        if isinstance(values["settings"], str):
+            values["settings"] = json.loads(values["settings"])
+        return cls(**values)
+
+
+RUN_FIELDS: tuple[str, ...] = tuple(f.name for f in fields(RunRecord))

@@ -37,13 +37,13 @@ from urllib.parse import quote
 import structlog
 
 from .realtime import drop_realtime
-from .record import FIELDS, SOURCE_FIELDS, UNUSABLE, CycleRecord
+from .record import FIELDS, RUN_FIELDS, SOURCE_FIELDS, UNUSABLE, CycleRecord, RunRecord
 
 log = structlog.get_logger("usmswitch.records")
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 #: Versions this code reads; a writer migrates an older file to SCHEMA_VERSION at open.
-READABLE_VERSIONS = (1, 2)
+READABLE_VERSIONS = (1, 2, 3)
 #: How often an idle writer checks that its file is still the one at its path.
 FILE_CHECK_NS = 200_000_000
 
@@ -75,10 +75,24 @@ CREATE TABLE IF NOT EXISTS cycles (
     flags INTEGER NOT NULL DEFAULT 0,
     wall_ns INTEGER NOT NULL,
     driver TEXT,
-    rig TEXT
+    rig TEXT,
+    run_id INTEGER
 );
 CREATE INDEX IF NOT EXISTS cycles_direction ON cycles (direction, cycle);
 CREATE INDEX IF NOT EXISTS cycles_source ON cycles (driver, rig, direction, cycle);
+CREATE INDEX IF NOT EXISTS cycles_run ON cycles (run_id, cycle);
+CREATE TABLE IF NOT EXISTS runs (
+    run_id INTEGER PRIMARY KEY CHECK (run_id >= 1),
+    kind TEXT NOT NULL,
+    first_cycle INTEGER NOT NULL,
+    started_wall_ns INTEGER NOT NULL,
+    settings TEXT NOT NULL,
+    last_cycle INTEGER,
+    ended_wall_ns INTEGER,
+    end_reason TEXT,
+    driver TEXT,
+    rig TEXT
+);
 CREATE TABLE IF NOT EXISTS events (
     id INTEGER PRIMARY KEY,
     wall_ns INTEGER NOT NULL,
@@ -93,16 +107,27 @@ _COLUMNS = ", ".join(f'"{f}"' for f in FIELDS)
 _INSERT_CYCLE = f"INSERT INTO cycles ({_COLUMNS}) VALUES ({', '.join('?' * len(FIELDS))})"
 _INSERT_EVENT = "INSERT INTO events (wall_ns, after_cycle, kind, data) VALUES (?, ?, ?, ?)"
 _SELECT_CYCLES = f"SELECT {_COLUMNS} FROM cycles"
-# A schema 1 file (read-only) has no source columns: they read as NULL.
-_SELECT_CYCLES_V1 = "SELECT {}, {} FROM cycles".format(
-    ", ".join(f'"{f}"' for f in FIELDS if f not in SOURCE_FIELDS),
-    ", ".join(f'NULL AS "{f}"' for f in SOURCE_FIELDS),
+
+
+def _select_without(missing: tuple[str, ...]) -> str:
+    """The cycles SELECT for an older file (read-only): the columns it lacks read as NULL."""
+    return "SELECT {} FROM cycles".format(
+        ", ".join(f'NULL AS "{f}"' if f in missing else f'"{f}"' for f in FIELDS)
+    )
+
+
+# What an older file (opened read-only) lacks, by its schema version.
+_SELECT_BY_VERSION = {1: _select_without((*SOURCE_FIELDS, "run_id")), 2: _select_without(("run_id",))}
+_UPSERT_RUN = "INSERT INTO runs ({}) VALUES ({}) ON CONFLICT (run_id) DO UPDATE SET {}".format(
+    ", ".join(RUN_FIELDS),
+    ", ".join("?" * len(RUN_FIELDS)),
+    ", ".join(f"{f} = excluded.{f}" for f in RUN_FIELDS if f != "run_id"),
 )
-# Schema 1 -> 2: where each record came from. Old rows keep NULL ("unknown"): no warm start uses them.
-_MIGRATE_1_TO_2 = """
-ALTER TABLE cycles ADD COLUMN driver TEXT;
-ALTER TABLE cycles ADD COLUMN rig TEXT;
-"""
+# Migrations, each from the version before. Old rows keep NULL ("unknown" source, no run).
+_MIGRATIONS = {
+    2: "ALTER TABLE cycles ADD COLUMN driver TEXT; ALTER TABLE cycles ADD COLUMN rig TEXT;",
+    3: "ALTER TABLE cycles ADD COLUMN run_id INTEGER;",
+}
 
 _EVENT_KIND = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 _EVENT_RESERVED = frozenset({"id", "wall_ns", "after_cycle", "kind"})
@@ -176,6 +201,8 @@ class RecordStore:
         self.written = 0
         #: Events committed to the file by this store.
         self.events_written = 0
+        #: Run rows (opens and ends) committed to the file by this store.
+        self.runs_written = 0
         #: Records the database refused for good (a duplicate cycle number, a violated CHECK).
         self.rejected = 0
         #: Records dropped because the writer failed for so long that `max_pending` was reached.
@@ -187,6 +214,9 @@ class RecordStore:
         #: Called on the writer thread with each batch of records once committed (and not
         #: rejected): what the daemon publishes, so a subscriber never sees a stroke the file lacks.
         self.on_commit: Callable[[list[CycleRecord]], None] | None = None
+        #: Called on the writer thread with each run row once committed, in order with the records:
+        #: a run's end reaches it after every stroke of the run has reached `on_commit`.
+        self.on_run: Callable[[RunRecord], None] | None = None
         #: Called before each batch is written: the daemon makes it wait while the loop is about
         #: to start a stroke (the writer's Python work would hold the GIL the loop needs).
         self.gate: Callable[[], object] = lambda: None
@@ -197,8 +227,7 @@ class RecordStore:
             self._writer = None
             self._closed = True  # nothing may be submitted to a read-only store
             self.schema_version = self._check_schema(self._reader())
-            if self.schema_version == 1:
-                self._select = _SELECT_CYCLES_V1
+            self._select = _SELECT_BY_VERSION.get(self.schema_version, _SELECT_CYCLES)
             return
         self._writer = self._open_writer(synchronous.upper())
         row = self._writer.execute("SELECT max(cycle) FROM cycles").fetchone()
@@ -235,6 +264,18 @@ class RecordStore:
         except (TypeError, ValueError) as exc:
             raise ValueError(f"event {kind!r} fields {fields!r} are not plain JSON values: {exc}") from None
         self._queue.put((time.time_ns(), self._last_submitted_cycle, kind, data))
+
+    def submit_run(self, run: RunRecord) -> None:
+        """Queue a run's row (at its open, and again at its end), in order with the records."""
+        if self._closed:
+            raise RecordStoreError(f"record store {self.path} is closed (or read-only)")
+        if type(run) is not RunRecord:
+            raise TypeError(f"submit_run takes a RunRecord, got {type(run).__name__}")
+        if run.driver is None:
+            run.driver = self.driver
+        if run.rig is None:
+            run.rig = self.rig
+        self._queue.put(RunRecord(**run.to_dict()))  # a copy: the loop goes on changing its own
 
     def flush(self, timeout_ns: int = 5_000_000_000) -> bool:
         """Wait until everything submitted so far is committed; False if that took over `timeout_ns`."""
@@ -285,6 +326,7 @@ class RecordStore:
             "submitted": self.submitted,
             "written": self.written,
             "events_written": self.events_written,
+            "runs_written": self.runs_written,
             "backlog": self.backlog,
             "rejected": self.rejected,
             "dropped": self.dropped,
@@ -335,32 +377,44 @@ class RecordStore:
         )
         return [r[0] for r in reversed(rows)]
 
-    def history(self, n: int, direction: int | None = None) -> list[CycleRecord]:
-        """The last `n` records (of one direction, or both), oldest first."""
+    def history(self, n: int, direction: int | None = None, run_id: int | None = None) -> list[CycleRecord]:
+        """The last `n` records (of one direction, or both; of one run, or any), oldest first."""
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
-        if direction is None:
-            sql, args = f"{self._select} ORDER BY cycle DESC LIMIT ?", (n,)
-        else:
-            sql, args = f"{self._select} WHERE direction = ? ORDER BY cycle DESC LIMIT ?", (direction, n)
-        rows = self._reader().execute(sql, args).fetchall()
+        where, args = self._where(direction=direction, run_id=run_id)
+        sql = f"{self._select}{where} ORDER BY cycle DESC LIMIT ?"
+        rows = self._reader().execute(sql, (*args, n)).fetchall()
         return [CycleRecord.from_row(r) for r in reversed(rows)]
 
+    def _where(self, **equal: int | None) -> tuple[str, list[Any]]:
+        """A WHERE clause for the columns given a value (None: any); run_id on an old file: none."""
+        terms, args = [], []
+        for column, value in equal.items():
+            if value is not None:
+                if column == "run_id" and self.schema_version < 3:
+                    terms.append("0")  # a file from before runs has no run's strokes
+                    continue
+                terms.append(f"{column} = ?")
+                args.append(value)
+        return (" WHERE " + " AND ".join(terms) if terms else ""), args
+
     def iter_records(
-        self, first: int = 1, last: int | None = None, chunk: int = 1000
+        self, first: int = 1, last: int | None = None, chunk: int = 1000, run_id: int | None = None
     ) -> Iterator[CycleRecord]:
-        """Every record from cycle `first` to `last` in order, read in chunks (for CSV export).
+        """Every record from cycle `first` to `last` (of one run, or any) in order, read in chunks.
 
         Each chunk is its own short read, so a long export never pins the WAL.
         """
         after = first - 1
         stop = last if last is not None else (1 << 63) - 1
+        where, args = self._where(run_id=run_id)
+        where = f"{where} AND" if where else " WHERE"
         while True:
             rows = (
                 self._reader()
                 .execute(
-                    f"{self._select} WHERE cycle > ? AND cycle <= ? ORDER BY cycle LIMIT ?",
-                    (after, stop, chunk),
+                    f"{self._select}{where} cycle > ? AND cycle <= ? ORDER BY cycle LIMIT ?",
+                    (*args, after, stop, chunk),
                 )
                 .fetchall()
             )
@@ -369,6 +423,26 @@ class RecordStore:
             for r in rows:
                 yield CycleRecord.from_row(r)
             after = rows[-1]["cycle"]
+
+    def runs(self, n: int = 20) -> list[RunRecord]:
+        """The last `n` runs, oldest first (none in a file from before runs)."""
+        if self.schema_version < 3:
+            return []
+        rows = self._reader().execute("SELECT * FROM runs ORDER BY run_id DESC LIMIT ?", (n,)).fetchall()
+        return [RunRecord.from_row(r) for r in reversed(rows)]
+
+    def run(self, run_id: int) -> RunRecord | None:
+        """One run by its id, or None."""
+        if self.schema_version < 3:
+            return None
+        row = self._reader().execute("SELECT * FROM runs WHERE run_id = ?", (run_id,)).fetchone()
+        return None if row is None else RunRecord.from_row(row)
+
+    def last_run_id(self) -> int:
+        """The highest run id in the file (0 when none): the next run is this + 1."""
+        if self.schema_version < 3:
+            return 0
+        return self._reader().execute("SELECT max(run_id) FROM runs").fetchone()[0] or 0
 
     def events(self, kind: str | None = None, n: int = 100) -> list[dict[str, Any]]:
         """The last `n` events (of one kind, or all), oldest first, with their fields merged in."""
@@ -396,8 +470,9 @@ class RecordStore:
             conn.execute(f"PRAGMA synchronous = {synchronous}")
             # Keep the WAL file from staying huge after a burst (it is reset at each checkpoint).
             conn.execute("PRAGMA journal_size_limit = 67108864")
-            if self._check_schema(conn) == 1:
-                self._migrate_1_to_2(conn)
+            version = self._check_schema(conn)
+            if version < SCHEMA_VERSION:
+                self._migrate(conn, version)
             conn.executescript(SCHEMA)
             conn.execute(
                 "INSERT OR IGNORE INTO meta (key, value)"
@@ -433,15 +508,21 @@ class RecordStore:
             if mode & ~self._file_mode:
                 os.chmod(p, mode & self._file_mode)
 
-    def _migrate_1_to_2(self, conn: sqlite3.Connection) -> None:
-        """Schema 1 -> 2: the source columns added, every row kept (driver and rig NULL: unknown)."""
+    def _migrate(self, conn: sqlite3.Connection, version: int) -> None:
+        """An older file brought to SCHEMA_VERSION in one transaction, every row kept: the columns
+        added since read NULL (unknown source, no run)."""
         rows = conn.execute("SELECT count(*) FROM cycles").fetchone()[0]
+        steps = " ".join(_MIGRATIONS[v] for v in range(version + 1, SCHEMA_VERSION + 1))
         conn.executescript(
-            f"BEGIN IMMEDIATE; {_MIGRATE_1_TO_2}"
+            f"BEGIN IMMEDIATE; {steps}"
             f" UPDATE meta SET value = '{SCHEMA_VERSION}' WHERE key = 'schema_version'; COMMIT;"
         )
         log.info(
-            "record file migrated", path=str(self.path), schema_from=1, schema_to=SCHEMA_VERSION, rows=rows
+            "record file migrated",
+            path=str(self.path),
+            schema_from=version,
+            schema_to=SCHEMA_VERSION,
+            rows=rows,
         )
 
     def _check_schema(self, conn: sqlite3.Connection) -> int:
@@ -580,8 +661,7 @@ class RecordStore:
                         backoff = min(2 * backoff, self._retry_ns[1])
                         break
                     self._count(counts)
-                    if self.on_commit is not None:
-                        self._tell_committed(batch, {*counts[4], *(c for c, _ in counts[3])})
+                    self._tell_committed(batch, {*counts[4], *(c for c, _ in counts[3])})
                     next_check = time.monotonic_ns() + FILE_CHECK_NS
                     done += len(batch)
                     batch = []  # the records are on disk: hold none of them while idle
@@ -624,10 +704,14 @@ class RecordStore:
         """Commit one batch; (written, rejected, events, unconvertible, rejected cycles) for `_count`."""
         cycles = []
         events = []
+        runs = []
         unconvertible: list[tuple[int, str]] = []
         for item in batch:
             if type(item) is tuple:
                 events.append(item)
+                continue
+            if type(item) is RunRecord:
+                runs.append(item.to_row())
                 continue
             try:
                 cycles.append(item.to_row())
@@ -648,6 +732,8 @@ class RecordStore:
             conn.execute("RELEASE batch")
             if events:
                 conn.executemany(_INSERT_EVENT, events)
+            if runs:
+                conn.executemany(_UPSERT_RUN, runs)
             conn.execute("COMMIT")
         except BaseException:
             if conn.in_transaction:
@@ -666,12 +752,25 @@ class RecordStore:
         self.events_written += events
 
     def _tell_committed(self, batch: list[Any], rejected: set[int]) -> None:
-        """Hand the records now in the file to `on_commit` (a subscriber sees only what is kept)."""
-        records = [r for r in batch if type(r) is CycleRecord and r.cycle not in rejected]
-        if not records:
+        """Hand the records and runs now in the file to `on_commit` and `on_run`, in the order they
+        were submitted (a subscriber sees only what is kept, and a run's end after its strokes)."""
+        records: list[CycleRecord] = []
+        for item in batch:
+            if type(item) is CycleRecord:
+                if item.cycle not in rejected:
+                    records.append(item)
+            elif type(item) is RunRecord:
+                self.runs_written += 1
+                self._tell(self.on_commit, records)
+                records = []
+                self._tell(self.on_run, item)
+        self._tell(self.on_commit, records)
+
+    def _tell(self, listener: Callable[[Any], None] | None, what: Any) -> None:
+        if listener is None or (type(what) is list and not what):
             return
         try:
-            self.on_commit(records)  # type: ignore[misc]
+            listener(what)
         except Exception:  # a listener's bug must not stop the writing
             log.exception("record commit listener failed", path=str(self.path))
 

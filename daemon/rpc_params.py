@@ -15,6 +15,9 @@ _REQUIRED = object()
 _MAX_TARGET_NS = 10_000_000_000
 _MAX_PERIOD_NS = 3_600_000_000_000
 _MAX_COUNT = 1_000_000_000
+_MAX_ID = 2**62
+#: runs' upper bound on n.
+MAX_RUNS = 1_000
 
 
 def show(value: object) -> str:
@@ -29,6 +32,26 @@ def _integer(name: str, lo: int, hi: int) -> Callable[[str, object], object]:
             raise RpcError(
                 ErrorCode.INVALID_PARAMS,
                 f"{method}: {name} must be an integer in [{lo}, {hi}], got {show(value)}",
+            )
+        return value
+
+    return check
+
+
+def _optional(check: Callable[[str, object], object]) -> Callable[[str, object], object]:
+    """`check`, or nil for "not given"."""
+
+    def optional(method: str, value: object) -> object:
+        return None if value is None else check(method, value)
+
+    return optional
+
+
+def _boolean(name: str) -> Callable[[str, object], object]:
+    def check(method: str, value: object) -> object:
+        if type(value) is not bool:
+            raise RpcError(
+                ErrorCode.INVALID_PARAMS, f"{method}: {name} must be true or false, got {show(value)}"
             )
         return value
 
@@ -102,13 +125,24 @@ PARAMS: dict[str, _Spec] = {
     "set_target": (
         ("target_ns", _integer("target_ns", 1, _MAX_TARGET_NS), _REQUIRED),
         ("direction", _choice("direction", ("on", "off", "both")), "both"),
+        ("allow_late", _boolean("allow_late"), False),
     ),
-    "stats": (),
-    "history": (("n", _integer("n", 1, MAX_HISTORY), 20),),
+    "stats": (
+        ("run", _optional(_integer("run", 1, _MAX_ID)), None),
+        ("first_cycle", _optional(_integer("first_cycle", 1, _MAX_ID)), None),
+        ("last_cycle", _optional(_integer("last_cycle", 1, _MAX_ID)), None),
+    ),
+    "history": (
+        ("n", _integer("n", 1, MAX_HISTORY), 20),
+        ("run", _optional(_integer("run", 1, _MAX_ID)), None),
+    ),
+    "runs": (("n", _integer("n", 1, MAX_RUNS), 20),),
     "switch": (("direction", _choice("direction", ("on", "off", "next")), "next"),),
     "start_cycling": (
         ("period_ns", _integer("period_ns", 1, _MAX_PERIOD_NS), _REQUIRED),
         ("count", _integer("count", 0, _MAX_COUNT), 0),
+        ("target_ns", _optional(_integer("target_ns", 1, _MAX_TARGET_NS)), None),
+        ("allow_late", _boolean("allow_late"), False),
     ),
     "stop_cycling": (),
     "set_mode": (

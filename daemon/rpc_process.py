@@ -67,12 +67,8 @@ _HISTORY_CHUNK = 200
 _readers = threading.local()
 
 
-def _history_reply(records_path: str, n: int) -> bytes:
-    """The last `n` records packed as a msgpack array (a worker thread of the server process).
-
-    Packed a chunk of records per call, so the event loop's thread gets the GIL between chunks
-    and an estop or a ping is answered while a large history is being packed.
-    """
+def _reader(records_path: str, method: str) -> Any:
+    """This worker thread's read-only store on the records file (opened once per thread)."""
     from .records import RecordStore, RecordStoreError  # the server process only
 
     store = getattr(_readers, "store", None)
@@ -80,13 +76,65 @@ def _history_reply(records_path: str, n: int) -> bytes:
         try:
             store = _readers.store = RecordStore(records_path, readonly=True)
         except RecordStoreError as exc:
-            raise RpcError(ErrorCode.UNAVAILABLE, f"history: {exc}") from None
-    records = store.history(n)
+            raise RpcError(ErrorCode.UNAVAILABLE, f"{method}: {exc}") from None
+    return store
+
+
+def _known_run(store: Any, method: str, run_id: int) -> Any:
+    run = store.run(run_id)
+    if run is None:
+        last = store.last_run_id()
+        have = f"runs are 1..{last}" if last else "no run has been recorded yet"
+        raise RpcError(ErrorCode.INVALID_PARAMS, f"{method}: no run {run_id} ({have})")
+    return run
+
+
+def _history_reply(records_path: str, n: int, run_id: int | None = None) -> bytes:
+    """The last `n` records (of one run) packed as a msgpack array (a worker thread of the server
+    process).
+
+    Packed a chunk of records per call, so the event loop's thread gets the GIL between chunks
+    and an estop or a ping is answered while a large history is being packed.
+    """
+    store = _reader(records_path, "history")
+    if run_id is not None:
+        _known_run(store, "history", run_id)
+    records = store.history(n, run_id=run_id)
     packer = msgpack.Packer(use_bin_type=True, autoreset=True)
     parts = [packer.pack_array_header(len(records))]
     for i in range(0, len(records), _HISTORY_CHUNK):
         parts.append(b"".join(packer.pack(r.to_dict()) for r in records[i : i + _HISTORY_CHUNK]))
     return b"".join(parts)
+
+
+def _runs_reply(records_path: str, n: int) -> bytes:
+    """The last `n` runs, oldest first, packed."""
+    return packb([r.to_dict() for r in _reader(records_path, "runs").runs(n)])
+
+
+def _stats_reply(
+    records_path: str, run_id: int | None, first_cycle: int | None, last_cycle: int | None
+) -> bytes:
+    """Statistics of a past run or a range of cycles, from the records file, packed."""
+    from .stats import stats_of_records  # the server process only
+
+    store = _reader(records_path, "stats")
+    run = None if run_id is None else _known_run(store, "stats", run_id)
+    first = first_cycle or 1
+    last = last_cycle
+    if first_cycle is not None and last_cycle is not None and last_cycle < first_cycle:
+        raise RpcError(
+            ErrorCode.INVALID_PARAMS, f"stats: last_cycle {last_cycle} is before first_cycle {first_cycle}"
+        )
+    return packb(stats_of_records(store.iter_records(first, last, run_id=run_id), run))
+
+
+#: Methods answered from the records file by a worker thread, and how.
+_FILE_READS: dict[str, Callable[..., bytes]] = {
+    "history": _history_reply,
+    "runs": _runs_reply,
+    "stats": _stats_reply,
+}
 
 
 # -- the server process ----------------------------------------------------------------------------
@@ -105,12 +153,14 @@ class _Hub:
         self.topics = tuple(cfg["topics"])
         self.known = frozenset(BUILTIN_METHODS) | self.handlers | self.urgent | self.snapshot_methods
         if cfg["records_path"]:
-            self.known |= {"history"}
+            self.known |= {"history", "runs"}
         self.snaps: dict[str, bytes] = dict(cfg["snaps"])
         # Snapshots the daemon sends unfinished (the loop's stats without their percentiles):
         # finished here, on the first request after each update, so the loop never pays for it.
         self.finishers = {m: _import(ref) for m, ref in cfg["finishers"].items()}
         self.raw_snaps = {m: self.snaps.pop(m) for m in self.finishers if m in self.snaps}
+        # The run each finished snapshot covers: `stats [run]` of that run is the snapshot.
+        self.snap_runs: dict[str, int | None] = {}
         self.subs: dict[str, set[_Conn]] = {t: set() for t in self.topics}
         self.conns: set[_Conn] = set()
         self.counts = dict.fromkeys(_KINDS, 0)  # open connections per listener kind
@@ -137,6 +187,18 @@ class _Hub:
         if snap is None and method in self.raw_snaps:
             finished = self.finishers[method](msgpack.unpackb(self.raw_snaps[method], raw=False))
             snap = self.snaps[method] = packb(finished)
+            run = finished.get("run") if isinstance(finished, dict) else None
+            self.snap_runs[method] = run.get("run_id") if isinstance(run, dict) else None
+        return snap
+
+    def stats_from_snapshot(self, params: list[Any]) -> bytes | None:
+        """The published stats when `params` ask for what they cover (the current or last run)."""
+        run, first, last = params
+        if first is not None or last is not None:
+            return None
+        snap = self.snapshot("stats")
+        if snap is None or (run is not None and self.snap_runs.get("stats") != run):
+            return None
         return snap
 
     def forward(self, conn: _Conn, msgid: int, method: str, params: list[Any]) -> bytes | None:
@@ -172,7 +234,8 @@ class _Hub:
         return None
 
     def read(self, conn: _Conn, msgid: int, method: str, params: list[Any]) -> bytes | None:
-        """A history read, served from the records file by a worker thread of this process."""
+        """A read (history, runs, a past run's stats) served from the records file by a worker
+        thread of this process."""
         if conn.outstanding >= self.limits.max_outstanding:
             return error_frame(
                 msgid,
@@ -182,7 +245,7 @@ class _Hub:
             )
         assert self.reads is not None and self.records_path is not None
         conn.outstanding += 1
-        fut = self.loop.run_in_executor(self.reads, _history_reply, self.records_path, params[0])
+        fut = self.loop.run_in_executor(self.reads, _FILE_READS[method], self.records_path, *params)
 
         def done(fut: asyncio.Future[bytes]) -> None:
             conn.outstanding -= 1
@@ -192,7 +255,7 @@ class _Hub:
             elif isinstance(exc, RpcError):
                 conn.write(error_frame(msgid, exc.code, exc.message))
             else:
-                log.error("rpc: history read failed: %s", exc)
+                log.error("rpc: %s read failed: %s", method, exc)
                 conn.write(error_frame(msgid, ErrorCode.INTERNAL, f"{method}: {type(exc).__name__}: {exc}"))
 
         fut.add_done_callback(done)
@@ -415,7 +478,20 @@ class _Conn(asyncio.Protocol):
                 return ok_frame(msgid, _PONG)
             if method in self.hub.urgent:
                 return self.hub.forward_urgent(self, msgid, method, params)
-            if method == "history" and self.hub.reads is not None:
+            if method == "stats":
+                snap = self.hub.stats_from_snapshot(params)
+                if snap is not None:
+                    return ok_frame(msgid, snap)
+                if any(p is not None for p in params):
+                    if self.hub.reads is not None:
+                        return self.hub.read(self, msgid, method, params)
+                    raise RpcError(
+                        ErrorCode.UNAVAILABLE,
+                        f"{method}: past runs and cycle ranges are read from the records file; "
+                        "this server has none",
+                    )
+                raise RpcError(ErrorCode.UNAVAILABLE, f"{method}: nothing published yet")
+            if method in _FILE_READS and self.hub.reads is not None:
                 return self.hub.read(self, msgid, method, params)
             snap = self.hub.snapshot(method)
             if snap is not None and not params:

@@ -10,6 +10,10 @@ from __future__ import annotations
 
 import math
 from array import array
+from collections.abc import Iterable
+from typing import Any
+
+from .record import CycleRecord, Flag, RunRecord
 
 # |error| and lateness percentiles are taken over the most recent strokes only, in fixed memory.
 PERCENTILE_WINDOW = 4096
@@ -47,7 +51,8 @@ class Running:
 
 
 class Ring:
-    """The last `size` integer values, for percentiles without growth."""
+    """The last `size` integer values, for percentiles without growth (size 0: every value, for
+    statistics of a finished run read from the records, where the percentiles must be exact)."""
 
     __slots__ = ("buf", "n", "size")
 
@@ -57,12 +62,15 @@ class Ring:
         self.n = 0
 
     def add(self, x: int) -> None:
-        self.buf[self.n % self.size] = x
+        if self.size:
+            self.buf[self.n % self.size] = x
+        else:
+            self.buf.append(x)
         self.n += 1
 
     def raw(self) -> bytes:
         """The values held, as native int64 bytes (any order): what `percentiles_of` takes."""
-        return self.buf[: min(self.n, self.size)].tobytes()
+        return self.buf[: min(self.n, self.size or self.n)].tobytes()
 
     def percentiles(self, qs: tuple[float, ...]) -> list[int | None]:
         """Nearest-rank percentiles (q in 0..100) of the values held; None when empty."""
@@ -106,13 +114,13 @@ def finish_snapshot(snapshot: dict[str, object]) -> dict[str, object]:
 class DirectionStats:
     """Everything the stats call reports for one direction."""
 
-    def __init__(self) -> None:
+    def __init__(self, window: int = PERCENTILE_WINDOW) -> None:
         self.operating = Running()
         self.total = Running()
         self.error = Running()
         self.lateness = Running()
-        self.abs_error = Ring()
-        self.abs_lateness = Ring()
+        self.abs_error = Ring(window)
+        self.abs_lateness = Ring(window)
         self.max_abs_error_pct = 0.0
         self.late = 0
         self.stalls = 0
@@ -150,6 +158,21 @@ class DirectionStats:
         self.bounces += bounce
         self.faults += fault
 
+    def add_record(self, rec: CycleRecord) -> None:
+        """Fold one stroke's record in (what the loop and a read of the records file both do)."""
+        flags = rec.flags
+        self.add(
+            operating_ns=rec.operating_ns,
+            total_ns=rec.total_ns,
+            error_ns=rec.error_ns,
+            target_ns=rec.target_ns,
+            lateness_ns=rec.lateness_ns,
+            late=bool(flags & Flag.LATE),
+            stall=bool(flags & Flag.STALL),
+            bounce=bool(flags & Flag.BOUNCE),
+            fault=bool(flags & Flag.FAULT),
+        )
+
     def snapshot(self, raw: bool = False) -> dict[str, object]:
         """A plain-typed dict of this direction's figures (integers are ns).
 
@@ -164,3 +187,35 @@ class DirectionStats:
         out["abs_lateness_raw"] = self.abs_lateness.raw()
         out.update(late=self.late, stalls=self.stalls, bounces=self.bounces, faults=self.faults)
         return out if raw else finish_direction(out)
+
+
+def stats_of_records(records: Iterable[CycleRecord], run: RunRecord | None = None) -> dict[str, Any]:
+    """The statistics of stored strokes (a past run, a range of cycles) in the shape of the
+    daemon's `stats` reply: `on`, `off` and `all` with exact percentiles over every stroke, each
+    direction's model as its last stroke used it, the run and the cycles covered."""
+    per = (DirectionStats(window=0), DirectionStats(window=0))
+    both = DirectionStats(window=0)
+    last: list[CycleRecord | None] = [None, None]
+    first_cycle = last_cycle = None
+    for rec in records:
+        per[rec.direction].add_record(rec)
+        both.add_record(rec)
+        last[rec.direction] = rec
+        if first_cycle is None:
+            first_cycle = rec.cycle
+        last_cycle = rec.cycle
+    out: dict[str, Any] = {
+        "run": None if run is None else run.to_dict(),
+        "first_cycle": first_cycle,
+        "last_cycle": last_cycle,
+        "all": both.snapshot(),
+    }
+    for d, name in ((0, "on"), (1, "off")):
+        snap = per[d].snapshot()
+        rec = last[d]
+        snap["order"] = None if rec is None else rec.order
+        snap["coefficients"] = [] if rec is None else list(rec.coefficients)
+        snap["ready"] = rec is not None and not rec.flags & Flag.WARMUP
+        snap["target_ns"] = None if rec is None else rec.target_ns
+        out[name] = snap
+    return out

@@ -118,8 +118,12 @@ def test_cycling_stats_and_subscription(idle: Daemon) -> None:
         assert cycles == list(range(cycles[0], cycles[0] + 10))
         stop = c.stop_cycling()
         assert stop["was_cycling"] is True
-        stats = c.stats()
-        assert stats["all"]["count"] >= 12
+        assert stop["run"]["run_id"] == cyc["run_id"] and stop["run"]["end_reason"] == "stopped"
+        stats = c.stats()  # the run just stopped: exactly its strokes
+        run = stats["run"]
+        assert run["run_id"] == cyc["run_id"] and run["first_cycle"] == cyc["first_cycle"]
+        assert stats["first_cycle"] == run["first_cycle"] and stats["last_cycle"] == run["last_cycle"]
+        assert stats["all"]["strokes"] == run["last_cycle"] - run["first_cycle"] + 1 >= 10
         assert stats["on"]["order"] == 1 and len(stats["on"]["coefficients"]) == 1
         assert stats["all"]["abs_error_p99_ns"] >= stats["all"]["abs_error_p50_ns"] >= 0
         assert stats["all"]["max_abs_error_pct"] > 0

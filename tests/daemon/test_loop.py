@@ -215,6 +215,7 @@ def test_reliability_100k_strokes_all_recorded_memory_flat(tmp_path: Path) -> No
     recs_count = [0]
     loop.listeners.clear()
     loop.listeners.append(lambda r: recs_count.__setitem__(0, recs_count[0] + 1))
+    loop.run_sink = store.submit_run
 
     # Python objects alive (pymalloc blocks), sampled with the writer drained: a leak of even one
     # small object per stroke would add 40,000 blocks between the samples.
@@ -228,9 +229,14 @@ def test_reliability_100k_strokes_all_recorded_memory_flat(tmp_path: Path) -> No
     blocks1 = sys.getallocatedblocks()
     assert recs_count[0] == 100_000
     assert loop.state is State.IDLE
-    snap = loop.snapshot()["all"]
+    snap = loop.stats_all.snapshot()  # both runs: since the loop started
     assert snap["count"] == 100_000 and snap["stalls"] == 0
+    assert loop.snapshot()["all"]["count"] == 40_000  # the stats reply covers the last run
     assert store.count() == 100_000
+    assert [(r.run_id, r.first_cycle, r.last_cycle, r.end_reason) for r in store.runs()] == [
+        (1, 1, 60_000, "done"),
+        (2, 60_001, 100_000, "done"),
+    ]
     store.close()
     print(f"\n100k: late={snap['late']} allocated blocks {blocks0} -> {blocks1}")
     assert blocks1 - blocks0 < 5_000

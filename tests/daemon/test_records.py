@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from usmswitch.daemon.record import FIELDS, UNUSABLE, CycleRecord, Flag
-from usmswitch.daemon.records import RecordStore, RecordStoreError
+from usmswitch.daemon.records import SCHEMA_VERSION, RecordStore, RecordStoreError
 
 
 def make_record(cycle: int, *, operating_ns: int | None = 10_500_000, flags: int = 0) -> CycleRecord:
@@ -379,7 +379,9 @@ def test_store_stamps_driver_and_rig_and_the_warm_start_uses_only_its_own(tmp_pa
         ]
         assert [r.to_dict()["driver"] for r in real.iter_records(first=6)] == ["sim", "serial", "serial"]
     con = sqlite3.connect(path)
-    assert con.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone() == ("2",)
+    assert con.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone() == (
+        str(SCHEMA_VERSION),
+    )
     con.close()
 
 
@@ -408,7 +410,7 @@ def test_a_schema_1_file_is_read_as_is_and_migrated_keeping_every_row(tmp_path: 
     con = sqlite3.connect(path)
     con.executescript(SCHEMA_V1)
     old = [make_record(i, operating_ns=10_000_000 + i) for i in range(1, 301)]
-    v1_fields = [f for f in FIELDS if f not in ("driver", "rig")]
+    v1_fields = [f for f in FIELDS if f not in ("driver", "rig", "run_id")]
     columns, marks = ", ".join(f'"{f}"' for f in v1_fields), ", ".join("?" * len(v1_fields))
     con.executemany(
         f"INSERT INTO cycles ({columns}) VALUES ({marks})", [r.to_row()[: len(v1_fields)] for r in old]
@@ -432,7 +434,9 @@ def test_a_schema_1_file_is_read_as_is_and_migrated_keeping_every_row(tmp_path: 
         assert store.history(1)[0].driver == "serial"
         assert store.events("stop")[0]["after_cycle"] == 300
     con = sqlite3.connect(path)
-    assert con.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone() == ("2",)
+    assert con.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone() == (
+        str(SCHEMA_VERSION),
+    )
     assert con.execute("SELECT count(*), count(driver) FROM cycles").fetchone() == (301, 1)
     assert con.execute("PRAGMA integrity_check").fetchone() == ("ok",)
     con.close()

@@ -60,7 +60,7 @@ class Rig:
 
     def set_target(self, params: list[Any]) -> dict[str, int]:
         self.calls.append(("set_target", params))
-        target_ns, direction = params
+        target_ns, direction, _allow_late = params
         for i, name in enumerate(("on", "off")):
             if direction in (name, "both"):
                 self.targets[i] = target_ns
@@ -146,7 +146,7 @@ def test_builtin_snapshot_and_forwarded_methods(server: RpcServer, rig: Rig) -> 
         None,
         {"target_on_ns": 24_000_000, "target_off_ns": 24_000_000},
     ]
-    assert rig.calls == [("set_target", [24_000_000, "both"])]
+    assert rig.calls == [("set_target", [24_000_000, "both", False])]
     assert c.call("get_target")[3] == {"target_on_ns": 24_000_000, "target_off_ns": 24_000_000}
     assert c.call("history", 3)[3] == [{"cycle": 0}, {"cycle": 1}, {"cycle": 2}]
     assert c.call("switch", "on")[3] == {"cycle": 1, "direction": "on"}
@@ -162,8 +162,12 @@ def test_errors_carry_documented_codes_and_name_the_value(server: RpcServer) -> 
     assert err[0] == ErrorCode.INVALID_PARAMS and "'sideways'" in err[1]
     err = c.call("set_target", True)[2]  # a bool is not an integer of ns
     assert err[0] == ErrorCode.INVALID_PARAMS
-    err = c.call("stats", 1)[2]
-    assert err[0] == ErrorCode.INVALID_PARAMS and "at most 0" in err[1]
+    err = c.call("stats", 1, None, None, 4)[2]
+    assert err[0] == ErrorCode.INVALID_PARAMS and "at most 3" in err[1]
+    err = c.call("stats", 0)[2]
+    assert err[0] == ErrorCode.INVALID_PARAMS and "run must be an integer" in err[1]
+    err = c.call("stats", 1)[2]  # a past run is read from the records file: this server has none
+    assert err[0] == ErrorCode.UNAVAILABLE and "records file" in err[1]
     err = c.call("set_drive", {"frequency_hz": 40_000, "colour": "red"})[2]
     assert err[0] == ErrorCode.UNKNOWN_METHOD  # set_drive is documented but this daemon has none
     err = c.call("set_mode", "open")[2]
@@ -186,8 +190,9 @@ def test_errors_carry_documented_codes_and_name_the_value(server: RpcServer) -> 
 
 
 def test_check_params_fills_defaults_and_refuses_extra() -> None:
-    assert check_params("history", []) == [20]
-    assert check_params("start_cycling", [50_000_000]) == [50_000_000, 0]
+    assert check_params("history", []) == [20, None]
+    assert check_params("start_cycling", [50_000_000]) == [50_000_000, 0, None, False]
+    assert check_params("stats", [None, 5]) == [None, 5, None]
     assert check_params("switch", []) == ["next"]
     assert check_params("set_drive", [{"enabled": False, "voltage_vpp": 480.5}]) == [
         {"enabled": False, "voltage_vpp": 480.5}
