@@ -18,20 +18,21 @@ from .args import (
     EXIT_OK,
     PROG,
     WAIT_POLL_NS,
-    WATCH_HEADER_EVERY,
     UsageError,
     positive_duration_arg,
 )
 from .output import (
     HISTORY_HEADER,
-    RunningStats,
+    CycleProgress,
+    WatchView,
+    drive_table,
     history_row,
     print_json,
     record_rows,
     show_ns,
     stats_table,
+    status_table,
     table,
-    watch_line,
 )
 
 
@@ -52,21 +53,7 @@ def cmd_status(client: Client, args: argparse.Namespace) -> int:
     if args.json:
         print_json(st)
     else:
-        rows = [
-            ["state", st["state"]],
-            ["fault", st["fault"] or "-"],
-            ["mode", st["mode"]],
-            ["target on", show_ns(st["target_on_ns"])],
-            ["target off", show_ns(st["target_off_ns"])],
-            ["next cycle", str(st["cycle"])],
-            [
-                "driver",
-                st["driver"] + {True: " (answering)", False: " (NOT answering)"}.get(st.get("driver_ok"), ""),
-            ],
-            ["version", f"{st['version']} (protocol {st['protocol_version']})"],
-            ["uptime", show_ns(st["uptime_ns"])],
-        ]
-        print(table(rows, right_from=2))
+        print(status_table(st))
     return EXIT_FAULT if st["state"] == "fault" else EXIT_OK
 
 
@@ -139,14 +126,16 @@ def cmd_cycle(client: Client, args: argparse.Namespace) -> int:
     if not args.wait:
         return EXIT_OK
     try:
-        while True:
-            # A state notification says when cycling ends; status confirms it (and covers a change
-            # the daemon coalesced between two of its slack checks).
-            with contextlib.suppress(TimeoutError):
-                client.next_notification(WAIT_POLL_NS)
-            st = client.status()
-            if st["state"] != "cycling":
-                break
+        with CycleProgress(result["first_cycle"], args.count if not args.json else 0) as progress:
+            while True:
+                # A state notification says when cycling ends; status confirms it (and covers a change
+                # the daemon coalesced between two of its slack checks).
+                with contextlib.suppress(TimeoutError):
+                    client.next_notification(WAIT_POLL_NS)
+                st = client.status()
+                progress.update(st["cycle"])
+                if st["state"] != "cycling":
+                    break
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted; the daemon keeps cycling (`{PROG} stop` stops it)", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -202,40 +191,31 @@ def cmd_history(client: Client, args: argparse.Namespace) -> int:
 
 def cmd_watch(client: Client, args: argparse.Namespace) -> int:
     """Print every stroke as it finishes, with running error figures; Ctrl-C or --count ends it."""
-    running = RunningStats()
     if args.count == 0:
         return EXIT_OK
     sub = client.subscribe("stroke", "state")
     seen = 0
-    widths = [len(h) for h in HISTORY_HEADER]
+    view = WatchView(live=False if args.json else None)
     try:
         if not args.json:
             print(f"watching {client.address} (Ctrl-C to stop)", flush=True)
-        for note in sub:
-            if args.json:
-                print(json.dumps({"topic": note.topic, "payload": note.payload}, sort_keys=True), flush=True)
-            if note.topic == "state":
-                if not args.json:
-                    p = note.payload
+        with view:
+            for note in sub:
+                if args.json:
                     print(
-                        f"# state {p.get('state')}" + (f" ({p['fault']})" if p.get("fault") else ""),
-                        flush=True,
+                        json.dumps({"topic": note.topic, "payload": note.payload}, sort_keys=True), flush=True
                     )
-                continue
-            rec = note.payload
-            running.add(rec)
-            seen += 1
-            if not args.json:
-                if (seen - 1) % WATCH_HEADER_EVERY == 0:
-                    print(watch_line([*HISTORY_HEADER, "err std", "max |err|"], widths), flush=True)
-                cells = [*history_row(rec), show_ns(running.std), show_ns(running.max_abs)]
-                print(watch_line(cells, widths), flush=True)
-            if args.count is not None and seen >= args.count:
-                break
+                elif note.topic == "state":
+                    view.state(note.payload)
+                else:
+                    view.stroke(note.payload)
+                seen += note.topic == "stroke"
+                if args.count is not None and seen >= args.count:
+                    break
     except KeyboardInterrupt:
         pass  # the user ended the view: a clean exit with the summary, no traceback
     if not args.json:
-        print(running.summary() + (f"; {sub.dropped} dropped by the daemon" if sub.dropped else ""))
+        print(view.running.summary() + (f"; {sub.dropped} dropped by the daemon" if sub.dropped else ""))
     return EXIT_OK
 
 
@@ -265,18 +245,7 @@ def cmd_drive(client: Client, args: argparse.Namespace) -> int:
     if args.json:
         print_json(result)
     else:
-        rows = []
-        for key, value in result.items():
-            if key == "frequency_hz" and value is not None:
-                text = f"{value / 1000:.4f} kHz"
-            elif key == "voltage_vpp" and value is not None:
-                text = f"{value:g} Vpp"
-            elif key == "temperature_c" and value is not None:
-                text = f"{value:.2f} C"
-            else:
-                text = "-" if value is None else str(value)
-            rows.append([key, text])
-        print(table(rows, right_from=2))
+        print(drive_table(result))
     return EXIT_OK
 
 

@@ -2,20 +2,22 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
+from types import TracebackType
 from typing import IO, Any
 
 from usmswitch.daemon.record import FIELDS, UNUSABLE, Flag
 from usmswitch.daemon.stats import Running
-from usmswitch.daemon.units import format_ns
+from usmswitch.daemon.units import format_elapsed, format_ns, is_instant_field
 
 from ..connection import CycleRecord
-from .args import DIRECTION_NAMES
+from .args import DIRECTION_NAMES, WATCH_HEADER_EVERY
 
 
 def show_ns(value: float | int | None) -> str:
@@ -62,12 +64,42 @@ def print_json(value: Any, out: IO[str] | None = None) -> None:
     print(json.dumps(value, indent=2, sort_keys=True), file=out or sys.stdout)
 
 
+#: What a person reads for each record field (`switch`); a field not named here shows as it is.
+FIELD_LABELS: dict[str, str] = {
+    "direction": "direction",
+    "target_ns": "target",
+    "order": "model order",
+    "t_hat_ns": "t_hat (predicted)",
+    "delay_ns": "delay T_d",
+    "t_cmd_ns": "command at",
+    "t_start_ns": "start at",
+    "t_depart_ns": "depart at",
+    "t_arrive_ns": "arrive at",
+    "operating_ns": "operating time",
+    "total_ns": "total",
+    "error_ns": "error",
+    "dead_ns": "dead time",
+    "lateness_ns": "start lateness",
+    "temperature_c": "temperature",
+    "frequency_hz": "frequency",
+    "wall_ns": "time",
+    "run_id": "run",
+}
+
+
+def field_label(name: str) -> str:
+    """A record field's name for people ("target_ns" -> "target")."""
+    return FIELD_LABELS.get(name, name.removesuffix("_ns"))
+
+
 def record_rows(rec: CycleRecord) -> list[list[str]]:
-    """One stroke as (field, value) rows: durations in units, stamps as raw clock ns."""
+    """One stroke as (label, value) rows: durations in units, stamps as raw clock ns."""
     rows: list[list[str]] = []
     for name in FIELDS:
         value = rec.get(name)  # type: ignore[misc]
-        if name == "direction":
+        if value is None:
+            text = "-"
+        elif name == "direction":
             text = direction_name(value)
         elif name == "flags":
             text = flag_names(value)
@@ -75,18 +107,60 @@ def record_rows(rec: CycleRecord) -> list[list[str]]:
             text = ", ".join(f"{c:.6g}" for c in value) or "-"
         elif name == "wall_ns":
             text = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(value / 1e9))
-        elif name.startswith("t_") and name.endswith("_ns") and name != "t_hat_ns":
-            text = "-" if value is None else f"{value} ns (clock)"  # instants: differences mean something
+        elif is_instant_field(name):
+            text = f"{value} ns (clock)"  # instants: only differences mean something
         elif name.endswith("_ns"):
             text = show_ns(value)
-        elif value is None:
-            text = "-"
+        elif name == "temperature_c":
+            text = f"{value:.2f} °C"
+        elif name == "frequency_hz":
+            text = show_hz(value)
         elif isinstance(value, float):
             text = f"{value:.6g}"
         else:
             text = str(value)
-        rows.append([name, text])
+        rows.append([field_label(name), text])
     return rows
+
+
+def show_hz(value: float | None) -> str:
+    """An excitation frequency for people: "40.0000 kHz"."""
+    return "-" if value is None else f"{value / 1000:.4f} kHz"
+
+
+def status_table(st: dict[str, Any]) -> str:
+    """The status reply for people: one row per figure, uptime as a person reads it."""
+    answering = {True: " (answering)", False: " (NOT answering)"}.get(st.get("driver_ok"), "")
+    rows = [
+        ["state", st["state"]],
+        ["fault", st["fault"] or "-"],
+        ["mode", st["mode"]],
+        ["target on", show_ns(st["target_on_ns"])],
+        ["target off", show_ns(st["target_off_ns"])],
+        ["next cycle", str(st["cycle"])],
+        ["driver", st["driver"] + answering],
+        ["version", f"{st['version']} (protocol {st['protocol_version']})"],
+        ["uptime", format_elapsed(st["uptime_ns"])],
+    ]
+    return table(rows, right_from=2)
+
+
+#: The drive reply's fields as a person reads them: label and formatter.
+_DRIVE_ROWS: dict[str, tuple[str, Callable[[Any], str]]] = {
+    "frequency_hz": ("frequency", show_hz),
+    "voltage_vpp": ("voltage", lambda v: f"{v:g} Vpp"),
+    "temperature_c": ("temperature", lambda v: f"{v:.2f} °C"),
+    "enabled": ("drive", lambda v: "on" if v else "off"),
+}
+
+
+def drive_table(result: dict[str, Any]) -> str:
+    """The set_drive reply for people: "frequency 40.0000 kHz", "voltage 500 Vpp", ..."""
+    rows = []
+    for key, value in result.items():
+        label, fmt = _DRIVE_ROWS.get(key, (key, str))
+        rows.append([label, "-" if value is None else fmt(value)])
+    return table(rows, right_from=2)
 
 
 HISTORY_HEADER = (
@@ -221,6 +295,14 @@ class RunningStats:
     def max_abs(self) -> int:
         return self.errors.max_abs
 
+    def footer(self) -> str:
+        """The live line under the strokes: the running figures so far."""
+        mean, std, worst = (show_ns(x) if self.n else "-" for x in (self.mean, self.std, self.max_abs))
+        return (
+            f"strokes {self.strokes} | error mean {mean} std {std} max |error| {worst}"
+            f" | late {self.late} | stall/fault/estop {self.faulted} | Ctrl-C ends"
+        )
+
     def summary(self) -> str:
         """One line for people: what the watched strokes did."""
         return (
@@ -230,19 +312,142 @@ class RunningStats:
         )
 
 
-def watch_line(cells: Sequence[str], widths: list[int]) -> str:
-    # Widths only grow, so a live view stays aligned without knowing future values.
-    while len(widths) < len(cells):
-        widths.append(0)
-    for i, cell in enumerate(cells):
-        widths[i] = max(widths[i], len(cell))
-    return "  ".join(
-        c.ljust(widths[i]) if i < 3 else c.rjust(widths[i]) for i, c in enumerate(cells)
-    ).rstrip()
+#: The watch view's columns: (header, width, left-aligned). Widths fit any value the column shows
+#: ("-999.999 ms", a 9-digit cycle), so one header lines up with every row under it; the flags,
+#: the one column of varying width, come last.
+WATCH_COLUMNS: tuple[tuple[str, int, bool], ...] = (
+    ("cycle", 9, False),
+    ("dir", 3, True),
+    ("mode", 6, True),
+    *((name, 11, False) for name in HISTORY_HEADER[3:-1]),
+    ("err std", 11, False),
+    ("max |err|", 11, False),
+    ("flags", 0, True),
+)
+
+
+def watch_line(cells: Sequence[str]) -> str:
+    """One line of the watch view, in WATCH_COLUMNS' fixed widths."""
+    out = [
+        cell.ljust(width) if left else cell.rjust(width)
+        for cell, (_, width, left) in zip(cells, WATCH_COLUMNS, strict=True)
+    ]
+    return "  ".join(out).rstrip()
+
+
+class WatchView:
+    """`watch`'s output: a line per stroke under a header that lines up with it, a line per state
+    change, and on a terminal a live footer with the running figures (rich redraws it in place
+    while the stroke lines scroll above it; a pipe gets the lines only)."""
+
+    def __init__(self, out: IO[str] | None = None, *, live: bool | None = None) -> None:
+        self.out = out or sys.stdout
+        self.running = RunningStats()
+        self.lines = 0
+        self._live_wanted = _isatty(self.out) if live is None else live
+        self._live: Any = None
+
+    def __enter__(self) -> WatchView:
+        if self._live_wanted:
+            from rich.console import Console  # the live footer only: a pipe never loads rich
+            from rich.live import Live
+            from rich.text import Text
+
+            console = Console(file=self.out, highlight=False)
+            self._live = Live(
+                console=console,
+                transient=True,
+                refresh_per_second=4,
+                redirect_stdout=False,
+                get_renderable=lambda: Text(self.running.footer(), style="bold"),
+            )
+            self._live.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._live is not None:
+            self._live.stop()
+            self._live = None
+
+    def _print(self, line: str) -> None:
+        if self._live is not None:
+            self._live.console.print(line, markup=False, highlight=False, soft_wrap=True)
+        else:
+            print(line, file=self.out, flush=True)
+
+    def stroke(self, rec: CycleRecord) -> None:
+        """Count a stroke and print its line (the header first, and again every WATCH_HEADER_EVERY)."""
+        self.running.add(rec)
+        if self.lines % WATCH_HEADER_EVERY == 0:
+            self._print(watch_line([name for name, _, _ in WATCH_COLUMNS]))
+        row = history_row(rec)
+        self._print(
+            watch_line([*row[:-1], show_ns(self.running.std), show_ns(self.running.max_abs), row[-1]])
+        )
+        self.lines += 1
+
+    def state(self, payload: dict[str, Any]) -> None:
+        """A state change, as a comment line among the strokes."""
+        fault = f" ({payload['fault']})" if payload.get("fault") else ""
+        self._print(f"# state {payload.get('state')}{fault}")
+
+
+class CycleProgress:
+    """`cycle --count N --wait` on a terminal: a progress bar of the strokes made (rich); else nothing."""
+
+    def __init__(self, first_cycle: int, count: int, out: IO[str] | None = None) -> None:
+        self.first_cycle = first_cycle
+        self.count = count
+        self.out = out or sys.stdout
+        self._progress: Any = None
+        self._task: Any = None
+
+    def __enter__(self) -> CycleProgress:
+        if self.count and _isatty(self.out):
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self._progress = Progress(
+                TextColumn("strokes"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TimeRemainingColumn(),
+                console=Console(file=self.out),
+                transient=True,
+            )
+            self._progress.start()
+            self._task = self._progress.add_task("cycle", total=self.count)
+        return self
+
+    def update(self, next_cycle: int) -> None:
+        """The daemon's next cycle number, from a status reply."""
+        if self._progress is not None:
+            self._progress.update(
+                self._task, completed=min(self.count, max(0, next_cycle - self.first_cycle))
+            )
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+
+
+def _isatty(stream: IO[str]) -> bool:
+    with contextlib.suppress(AttributeError, ValueError):
+        return stream.isatty()
+    return False
+
+
+#: Columns a CSV export adds after the record's fields: the direction and flags as names beside
+#: their numbers (`on`/`off`, `LATE|CLAMPED`), for a person reading the sheet; readers that rebuild
+#: records (`CycleRecord.from_row`) ignore them.
+CSV_NAME_COLUMNS: tuple[str, ...] = ("direction_name", "flag_names")
+CSV_HEADER: tuple[str, ...] = (*FIELDS, *CSV_NAME_COLUMNS)
 
 
 def csv_row(rec: CycleRecord) -> list[Any]:
-    """One record as a CSV row in FIELDS order: coefficients as JSON text, None as an empty cell."""
+    """One record as a CSV row in CSV_HEADER order: coefficients as JSON text, None as an empty cell."""
     out: list[Any] = []
     for name in FIELDS:
         value = rec[name]  # type: ignore[literal-required]
@@ -253,13 +458,15 @@ def csv_row(rec: CycleRecord) -> list[Any]:
         elif isinstance(value, float):
             value = repr(value)  # shortest text that reads back to the same float
         out.append(value)
+    flags = flag_names(rec["flags"])
+    out += [direction_name(rec["direction"]), "" if flags == "-" else flags]
     return out
 
 
 def write_csv(records: Iterable[CycleRecord], out: IO[str]) -> int:
-    """Write the header (the CycleRecord field names) and the records; returns how many."""
+    """Write the header (CSV_HEADER) and the records; returns how many."""
     writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(FIELDS)
+    writer.writerow(CSV_HEADER)
     n = 0
     for rec in records:
         writer.writerow(csv_row(rec))

@@ -11,6 +11,7 @@ import csv
 import io
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -156,10 +157,10 @@ def test_tcp_with_token(idle: Rig) -> None:
 def test_switch_prints_the_record(idle: Rig) -> None:
     r = run(idle, "switch", "on")
     assert r.returncode == 0, r.stderr
-    rows = {line.split()[0]: line.split(None, 1)[1] for line in r.stdout.splitlines()}
-    assert set(rows) == set(FIELDS)
-    assert rows["direction"] == "on" and rows["target_ns"] == "12.000 ms"
-    assert rows["total_ns"].endswith(" ms") and rows["t_cmd_ns"].endswith("ns (clock)")
+    rows = dict(re.split(r"\s{2,}", line, maxsplit=1) for line in r.stdout.splitlines())
+    assert set(rows) == {ctl_out.field_label(f) for f in FIELDS}
+    assert rows["direction"] == "on" and rows["target"] == "12.000 ms"  # names for people, not target_ns
+    assert rows["total"].endswith(" ms") and rows["command at"].endswith("ns (clock)")
     r = run(idle, "--json", "switch", "off")
     rec = json.loads(r.stdout)
     assert r.returncode == 0 and rec["direction"] == 1
@@ -326,8 +327,12 @@ def test_cycle_wait_exits_4_when_the_run_faults(idle: Rig) -> None:
 
 def _read_csv(text: str) -> list[CycleRecord]:
     reader = csv.DictReader(io.StringIO(text))
-    assert tuple(reader.fieldnames or ()) == FIELDS
-    return [CycleRecord.from_row(row) for row in reader]
+    assert tuple(reader.fieldnames or ()) == (*FIELDS, "direction_name", "flag_names")
+    rows = list(reader)
+    for row in rows:  # the names beside the numbers, for a person reading the sheet
+        assert row["direction_name"] == ("on", "off")[int(row["direction"])]
+        assert row["flag_names"] == ctl_out.flag_names(int(row["flags"])).replace("-", "")
+    return [CycleRecord.from_row(row) for row in rows]
 
 
 def test_export_csv_round_trip(idle: Rig, tmp_path: Path) -> None:
