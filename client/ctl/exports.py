@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import sqlite3
 import sys
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import IO
 
 from usmswitch.daemon.record import CycleRecord as Record
 
@@ -26,6 +28,14 @@ def _records_from_file(state_dir: Path, first: int, last: int | None) -> Iterato
         yield from records.records(first, last)  # type: ignore[misc]
 
 
+def _write(records: Iterable[CycleRecord], out: IO[str], where: str) -> int:
+    """write_csv, with a records source that fails midway (a corrupt row, a file gone) named as such."""
+    try:
+        return write_csv(records, out)
+    except (RecordsFileError, sqlite3.Error, ValueError) as exc:
+        raise UsageError(f"export: reading the records failed partway through {where}: {exc}") from None
+
+
 def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
     """Write cycle records as CSV: all of them from the SQLite file, or the last n over the socket."""
     if args.csv is None:
@@ -37,17 +47,21 @@ def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
             raise UsageError("export: --first/--last read the SQLite file; give --state-dir too")
         with connect() as client:
             records = client.history(args.n)
-    try:
-        if args.csv == "-":
-            n = write_csv(records, sys.stdout)
-            sys.stdout.flush()
-        else:
-            tmp = Path(f"{args.csv}.partial")
+    if args.csv == "-":
+        n = _write(records, sys.stdout, "standard output")
+        sys.stdout.flush()
+    else:
+        tmp = Path(f"{args.csv}.partial")
+        try:
             with open(tmp, "w", newline="", encoding="utf-8") as fh:
-                n = write_csv(records, fh)
+                n = _write(records, fh, args.csv)
             os.replace(tmp, args.csv)  # a reader never sees half a file
-    except OSError as exc:
-        raise UsageError(f"export: cannot write {args.csv}: {exc.strerror or exc}") from None
+        except OSError as exc:
+            raise UsageError(f"export: cannot write {args.csv}: {exc.strerror or exc}") from None
+        finally:
+            # Whatever ended the export early (the daemon lost, a bad records file, Ctrl-C):
+            # no half file is left behind under a name that looks like a result.
+            tmp.unlink(missing_ok=True)
     if args.csv != "-":
         message = {"records": n, "file": str(args.csv)}
         if args.json:

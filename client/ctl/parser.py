@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import json
+import re
 import sys
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from usmswitch.daemon.version import version_text
 from usmswitch.daemon.wire import MAX_HISTORY, PROTOCOL_VERSION
@@ -22,9 +24,24 @@ from .args import (
 
 # -- arguments ---------------------------------------------------------------------------------------
 class _Parser(argparse.ArgumentParser):
-    """argparse that exits with EXIT_USAGE (as it does) but names the program consistently."""
+    """argparse that exits with EXIT_USAGE (as it does) but names the program consistently, and
+    answers in JSON when the command line asked for JSON (scripts parse every error the same way)."""
+
+    #: Whether the command line being parsed has --json (set by the top parser, read by any).
+    json_errors = False
+
+    def parse_known_args(self, args: Any = None, namespace: Any = None) -> Any:
+        if self.prog == PROG:  # the top parser sees the whole command line first
+            words = list(sys.argv[1:] if args is None else args)
+            _Parser.json_errors = (
+                "--json" in words[: words.index("--")] if "--" in words else "--json" in words
+            )
+        return super().parse_known_args(args, namespace)
 
     def error(self, message: str) -> NoReturn:
+        if _Parser.json_errors:
+            err = {"exit": EXIT_USAGE, "message": message, "usage": self.format_usage().strip()}
+            self.exit(EXIT_USAGE, json.dumps({"error": err}, sort_keys=True) + "\n")
         self.print_usage(sys.stderr)
         self.exit(EXIT_USAGE, f"{PROG}: error: {message}\n")
 
@@ -81,6 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     c = command("target", "get or set the target total time T")
     c.add_argument("action", nargs="?", choices=("get", "set"), help="get (default) or set")
     c.add_argument("value", nargs="?", help="the new T for `set`, e.g. 12ms, 10500us, 0.012s")
+    c.add_argument("unit", nargs="?", help=argparse.SUPPRESS)  # `target set 12 ms`: the unit apart
     c.add_argument("--direction", choices=("on", "off", "both"), default="both", help="default both")
     c = command("switch", "make one stroke and print its record")
     c.add_argument("direction", nargs="?", choices=("on", "off", "next"), default="next")
@@ -130,7 +148,23 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+_NUMBER = re.compile(r"[+-]?(\d[\d_]*(\.\d*)?|\.\d+)([eE][+-]?\d+)?")
+
+
 def check_args(args: argparse.Namespace) -> None:
+    """Checks argparse cannot make; `target set 12 ms` is taken as `12ms`."""
+    if args.command == "target" and args.unit is not None:
+        if args.value is not None and _NUMBER.fullmatch(args.value):
+            args.value = f"{args.value}{args.unit}"
+        else:
+            raise UsageError(
+                f"target takes one duration, got {args.value!r} {args.unit!r}: e.g. `target set 12ms`"
+            )
+    if args.command == "target" and args.action == "set" and args.value is not None:
+        try:  # before connecting: a bad unit is a usage error wherever the daemon is
+            positive_duration_arg(args.value)
+        except argparse.ArgumentTypeError as exc:
+            raise UsageError(f"target: {exc}") from None
     if args.command == "history" and not 1 <= args.n <= MAX_HISTORY:
         raise UsageError(f"history: -n must be in 1..{MAX_HISTORY}, got {args.n}")
     if args.command == "export" and not 1 <= args.n <= MAX_HISTORY:

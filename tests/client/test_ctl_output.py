@@ -7,6 +7,7 @@ import io
 import os
 import re
 import select
+import signal
 import subprocess
 import sys
 import time
@@ -187,3 +188,21 @@ def test_live_views_on_a_terminal(sock: Path) -> None:
     assert code == 0, text
     assert re.search(r"strokes \d+ \| error mean", text)  # the live footer under the stroke lines
     assert "watched 25 strokes" in text and text.count("closed") >= 25
+
+
+def test_ctrl_c_during_cycle_wait_exits_130(sock: Path) -> None:
+    proc = subprocess.Popen(
+        [*CTL, "--socket", str(sock), "cycle", "--period", "20ms", "--wait"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().startswith("cycling every")
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        subprocess.run([*CTL, "--socket", str(sock), "stop"], timeout=30, check=False)
+    assert proc.returncode == 130 and "interrupted; the daemon keeps cycling" in err
