@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
-from usmswitch.client.plots import plot_run
+from usmswitch.client.plots import plot_run, run_marks
 from usmswitch.daemon.loop import ControlLoop
 from usmswitch.daemon.records import RecordStore
 from usmswitch.predictor import ARPredictor
@@ -33,3 +34,26 @@ def test_plot_of_a_recorded_run(tmp_path: Path) -> None:
 def test_nothing_to_plot_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="no completed strokes"):
         plot_run([], tmp_path / "x.png")
+
+
+def test_a_sweep_is_marked_by_run_and_target_and_every_axis_has_its_unit(tmp_path: Path) -> None:
+    store = RecordStore(tmp_path / "records.sqlite")
+    daq = SimDaq(seed=5)
+    daq.open()
+    loop = ControlLoop(daq, [ARPredictor(nominal_ns=10_500_000) for _ in range(2)], target_ns=12_000_000,
+                       sink=store.submit)  # fmt: skip
+    loop.run_cycles(40_000_000, 60)
+    loop.set_targets([14_000_000, 14_000_000])
+    loop.run_cycles(40_000_000, 60)
+    store.close()
+    records = list(RecordStore(tmp_path / "records.sqlite", readonly=True).iter_records())
+    # Two runs as the daemon stamps them (the loop alone leaves run_id to the daemon).
+    records = [replace(r, run_id=1 if r.cycle <= 60 else 2) for r in records]
+    marks = run_marks(records)
+    assert [(m.cycle, m.kind) for m in marks] == [(1, "run"), (61, "run"), (61, "target"), (62, "target")]
+    assert [m.label for m in marks if m.kind == "target"] == ["T on 14.000 ms", "T off 14.000 ms"]
+    assert run_marks([replace(r, run_id=None) for r in records[:60]]) == []  # one T, no runs: no marks
+    svg = plot_run(records, tmp_path / "sweep.svg").read_text()
+    for text in ("run 2", "T on 14.000 ms", "cycle", "operating time t, predicted t_hat (ms)",
+                 "error = total - T (us)", "strokes (count)", "T = 12.000 ms, 14.000 ms"):  # fmt: skip
+        assert text in svg, text
