@@ -22,8 +22,9 @@ from .realtime import drop_realtime
 
 
 def board_spec(cfg: ModbusConfig) -> str:
-    """The driver's spec string from [modbus] url and unit."""
-    return cfg.url if "?" in cfg.url else f"{cfg.url}?unit={cfg.unit}"
+    """The driver's spec string from [modbus] url, unit, timeout and (RTU only) parity."""
+    spec = f"{cfg.url}?unit={cfg.unit}&timeout_ms={cfg.timeout_ns // 1_000_000}"
+    return spec + f"&parity={cfg.parity}" if cfg.url.startswith("rtu:") else spec
 
 
 class BoardPoller:

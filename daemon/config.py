@@ -41,6 +41,11 @@ SIM_STATE_SUBDIR = "sim"
 # Bounds that match the socket's checks (docs/protocol.md): a target or a delay past 10 s is a typo.
 MAX_TARGET_NS = 10_000_000_000
 MAX_DEBOUNCE_NS = 10_000_000
+# Modbus RTU parity (the serial line spec's default is even) and the request timeout's bounds,
+# the driver's own (drivers/modbus_board.py: timeout_ms 10..10000).
+MODBUS_PARITIES = ("E", "O", "N")
+MIN_MODBUS_TIMEOUT_NS = 10_000_000
+MAX_MODBUS_TIMEOUT_NS = 10_000_000_000
 # The socket's mode may give the group read and write, never anything to others or any execute bit.
 SOCKET_MODE_ALLOWED = 0o660
 
@@ -180,6 +185,8 @@ class ModbusConfig:
     enabled: bool = False
     url: str = "tcp:127.0.0.1:502"  # or "rtu:/dev/ttyUSB1:19200"
     unit: int = 1
+    parity: str = "E"  # RTU only: "E" (even, the Modbus serial line default), "O" or "N"
+    timeout_ns: int = 200_000_000  # one request's answer; a dead board costs this per poll
     frequency_hz: float = 40_000.0
     voltage_vpp: float = 500.0
     poll_interval_ns: int = 1_000_000_000  # temperature and status reads, off the timing path
@@ -530,6 +537,10 @@ def _modbus(t: _Table) -> ModbusConfig:
         enabled=t.get("enabled", _bool, False),
         url=url,
         unit=_t_int(t, "unit", 1, 0, 247),
+        parity=t.get("parity", _choice(MODBUS_PARITIES), ModbusConfig.parity),
+        timeout_ns=t.get(
+            "timeout", _duration_range(MIN_MODBUS_TIMEOUT_NS, MAX_MODBUS_TIMEOUT_NS), 200_000_000
+        ),
         frequency_hz=t.get("frequency_hz", _positive_float, ModbusConfig.frequency_hz),
         voltage_vpp=t.get("voltage_vpp", _positive_float, ModbusConfig.voltage_vpp),
         poll_interval_ns=t.get("poll_interval", _duration_pos, ModbusConfig.poll_interval_ns),
@@ -653,6 +664,18 @@ def _duration_max(limit_ns: int, positive: bool = False) -> Callable[[str, Any],
         ns = _duration_pos(key, v) if positive else _duration(key, v)
         if ns > limit_ns:
             raise ConfigError(key, f"{duration_text(ns)} is longer than the limit {duration_text(limit_ns)}")
+        return ns
+
+    return parse
+
+
+def _duration_range(lo_ns: int, hi_ns: int) -> Callable[[str, Any], int]:
+    def parse(key: str, v: Any) -> int:
+        ns = _duration(key, v)
+        if not lo_ns <= ns <= hi_ns:
+            raise ConfigError(
+                key, f"{duration_text(ns)} is outside {duration_text(lo_ns)}..{duration_text(hi_ns)}"
+            )
         return ns
 
     return parse

@@ -137,13 +137,13 @@ class ModbusSpec:
     target: str  # host, or serial path
     port_or_baud: int
     unit: int = 1
-    parity: str = "N"
+    parity: str = "E"  # the Modbus serial line spec's default (RTU; TCP has none)
     timeout_ms: int = DEFAULT_TIMEOUT_MS
 
 
 def parse_modbus_spec(spec: str) -> ModbusSpec:
     """`tcp:HOST:PORT[?...]` or `rtu:PATH:BAUD[?...]`; ValueError naming the bad part."""
-    example = "'tcp:127.0.0.1:5020' or 'rtu:/dev/ttyUSB1:19200', options ?unit=1&timeout_ms=200&parity=N"
+    example = "'tcp:127.0.0.1:5020' or 'rtu:/dev/ttyUSB1:19200', options ?unit=1&timeout_ms=200&parity=E"
     if not isinstance(spec, str):
         raise ValueError(f"modbus spec must be a string like {example}, got {spec!r}")
     kind, sep, rest = spec.partition(":")
