@@ -9,20 +9,30 @@ import pytest
 
 from usmswitch.client.plots import plot_run, run_marks
 from usmswitch.daemon.loop import ControlLoop
+from usmswitch.daemon.record import CycleRecord
 from usmswitch.daemon.records import RecordStore
 from usmswitch.predictor import ARPredictor
 from usmswitch.sim import SimDaq
 
 
-def test_plot_of_a_recorded_run(tmp_path: Path) -> None:
+def recorded(tmp_path: Path, seed: int, *targets_and_counts: tuple[int, int]) -> list[CycleRecord]:
+    """Strokes of the simulated rig through the loop into a real records file, read back: `count`
+    strokes at each target in turn."""
     store = RecordStore(tmp_path / "records.sqlite")
-    daq = SimDaq(seed=4)
+    daq = SimDaq(seed=seed)
     daq.open()
-    loop = ControlLoop(daq, [ARPredictor(nominal_ns=10_500_000) for _ in range(2)], target_ns=12_000_000,
+    first_target = targets_and_counts[0][0]
+    loop = ControlLoop(daq, [ARPredictor(nominal_ns=10_500_000) for _ in range(2)], target_ns=first_target,
                        sink=store.submit)  # fmt: skip
-    loop.run_cycles(40_000_000, 300)
+    for target_ns, count in targets_and_counts:
+        loop.set_targets([target_ns, target_ns])
+        loop.run_cycles(40_000_000, count)
     store.close()
-    records = list(RecordStore(tmp_path / "records.sqlite", readonly=True).iter_records())
+    return list(RecordStore(tmp_path / "records.sqlite", readonly=True).iter_records())
+
+
+def test_plot_of_a_recorded_run(tmp_path: Path) -> None:
+    records = recorded(tmp_path, 4, (12_000_000, 300))
     assert len(records) == 300
     png = plot_run(records, tmp_path / "run.png")
     data = png.read_bytes()
@@ -37,16 +47,7 @@ def test_nothing_to_plot_is_a_clear_error(tmp_path: Path) -> None:
 
 
 def test_a_sweep_is_marked_by_run_and_target_and_every_axis_has_its_unit(tmp_path: Path) -> None:
-    store = RecordStore(tmp_path / "records.sqlite")
-    daq = SimDaq(seed=5)
-    daq.open()
-    loop = ControlLoop(daq, [ARPredictor(nominal_ns=10_500_000) for _ in range(2)], target_ns=12_000_000,
-                       sink=store.submit)  # fmt: skip
-    loop.run_cycles(40_000_000, 60)
-    loop.set_targets([14_000_000, 14_000_000])
-    loop.run_cycles(40_000_000, 60)
-    store.close()
-    records = list(RecordStore(tmp_path / "records.sqlite", readonly=True).iter_records())
+    records = recorded(tmp_path, 5, (12_000_000, 60), (14_000_000, 60))
     # Two runs as the daemon stamps them (the loop alone leaves run_id to the daemon).
     records = [replace(r, run_id=1 if r.cycle <= 60 else 2) for r in records]
     marks = run_marks(records)
