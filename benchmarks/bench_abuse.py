@@ -68,7 +68,7 @@ def load_unread_history(path: str, stop: Any, conns: int = 1) -> None:
 
 
 def load_exports(path: str, stop: Any) -> None:
-    with Client(path, timeout_ns=60_000 * MS) as c:
+    with Client(path, timeout=60) as c:
         while not stop.is_set():
             c.history(10_000)
 
@@ -243,7 +243,7 @@ def main() -> int:
         end = time.monotonic() + 30
         while True:
             try:
-                with Client(str(sock), timeout_ns=5_000 * MS) as c:
+                with Client(str(sock), timeout=5) as c:
                     c.stats()
                 break
             except (OSError, RpcError):
@@ -251,7 +251,7 @@ def main() -> int:
                     raise RuntimeError("the daemon did not start") from None
                 time.sleep(0.05)
         db = tmp / "state" / "records.sqlite"
-        control = Client(str(sock), timeout_ns=30_000 * MS)
+        control = Client(str(sock), timeout=30)
         control.ping()
         estopper = Estopper(sock, control)
         time.sleep(1.0)

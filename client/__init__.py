@@ -1,44 +1,58 @@
-"""What a lab machine uses to work with a usmswitch rig: the socket client, reading records files,
-plots and `usmswitchctl`. Nothing here runs the daemon; a lab machine needs only this package.
+"""What a lab machine uses to work with a usmswitch rig: the socket client (blocking and asyncio),
+runs, a callback notifier, reading records files, plots and `usmswitchctl`. Nothing here runs the
+daemon; a lab machine needs only this package.
 
     from usmswitch.client import Client
 
-    with Client("/run/usmswitch/usmswitchd.sock") as rig:
-        rig.set_target(12_000_000)
+    with Client() as rig:
+        for rec in rig.run(count=500, period="50ms", target="12ms"):
+            print(rec["cycle"], rec["error_ns"])
 """
 
 from usmswitch.daemon.sockdir import client_socket_paths
+from usmswitch.daemon.wire import ErrorCode, RpcError
 
-from .connection import (
-    Client,
-    ConnectionClosed,
+from .aio import AsyncClient, AsyncRun
+from .api import Duration, find_socket
+from .connection import Client, ConnectionClosed, Subscription, UntrustedSocketError
+from .notifier import Listener, Notifier
+from .records import RecordsFile, RecordsFileError
+from .run import Run, RunLost
+from .types import (
     CycleRecord,
+    Cycling,
     DirectionStats,
-    ErrorCode,
     Notification,
-    RpcError,
+    RunInfo,
     Stats,
     Status,
-    Subscription,
     Targets,
-    UntrustedSocketError,
 )
-from .records import RecordsFile, RecordsFileError
 
 __all__ = [
+    "AsyncClient",
+    "AsyncRun",
     "Client",
     "ConnectionClosed",
     "CycleRecord",
+    "Cycling",
     "DirectionStats",
+    "Duration",
     "ErrorCode",
+    "Listener",
     "Notification",
+    "Notifier",
     "RecordsFile",
     "RecordsFileError",
     "RpcError",
+    "Run",
+    "RunInfo",
+    "RunLost",
     "Stats",
     "Status",
     "Subscription",
     "Targets",
     "UntrustedSocketError",
     "client_socket_paths",
+    "find_socket",
 ]

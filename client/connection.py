@@ -1,16 +1,17 @@
-"""The Python client lab scripts use to drive the rig through the daemon's socket.
+"""The blocking client lab scripts use to drive the rig through the daemon's socket.
 
     from usmswitch.client import Client
 
-    with Client("/run/usmswitch/usmswitch.sock") as rig:
-        rig.set_target(12_000_000)
-        rig.start_cycling(period_ns=50_000_000, count=500)
-        for rec in rig.subscribe():
+    with Client() as rig:                      # finds the socket as usmswitchctl does
+        run = rig.run(count=500, period="50ms", target="12ms")
+        for rec in run:                        # this run's strokes, then the loop ends
             print(rec["cycle"], rec["error_ns"])
+        print(run.stats()["all"]["error_std_ns"])
 
-Synchronous, one socket, msgpack-RPC as in docs/protocol.md. Server errors raise `RpcError` with the
-server's `code`; a lost connection raises `ConnectionClosed`, and idempotent calls are retried once on
-a fresh connection.
+One socket, msgpack-RPC as in docs/protocol.md; timeouts are float seconds. Server errors raise
+`RpcError` with the server's `code`; a lost connection raises `ConnectionClosed`, and idempotent
+calls are retried once on a fresh connection. Not thread-safe: one Client per thread (a
+`Notifier` opens its own).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import os
 import socket
 from collections import deque
 from collections.abc import Iterable, Iterator
-from typing import Any, NamedTuple, TypedDict
+from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
 import msgpack
@@ -35,22 +36,14 @@ from usmswitch.daemon.wire import (
     estop_socket_path,
 )
 
-__all__ = [
-    "Client",
-    "ConnectionClosed",
-    "CycleRecord",
-    "DirectionStats",
-    "ErrorCode",
-    "Notification",
-    "RpcError",
-    "Stats",
-    "Status",
-    "Subscription",
-    "Targets",
-    "UntrustedSocketError",
-]
+from .api import Api, Duration, find_socket
+from .run import Run
+from .types import Notification
 
-DEFAULT_TIMEOUT_NS = 10_000_000_000
+__all__ = ["Client", "ConnectionClosed", "Subscription", "UntrustedSocketError", "parse_address"]
+
+#: Seconds a call waits for its reply unless told otherwise.
+DEFAULT_TIMEOUT = 10.0
 #: Calls that are safe to send twice, so a broken connection may retry them once.
 IDEMPOTENT = frozenset(
     {
@@ -60,6 +53,7 @@ IDEMPOTENT = frozenset(
         "set_target",
         "stats",
         "history",
+        "runs",
         "set_mode",
         "stop_cycling",
         "estop",
@@ -76,105 +70,6 @@ class ConnectionClosed(ConnectionError):
     def __init__(self, message: str, code: int | None = None) -> None:
         super().__init__(message)
         self.code = code
-
-
-class Targets(TypedDict):
-    target_on_ns: int
-    target_off_ns: int
-    from_cycle: int  # the first stroke armed with these targets
-
-
-class Status(TypedDict):
-    state: str  # "idle", "cycling", "fault", "stopped"
-    mode: str  # "closed" or "open"
-    fault: str  # why FAULT is latched; "" when not
-    driver: str
-    driver_ok: bool  # the device answers (link up)
-    protocol_version: int
-    version: str
-    uptime_ns: int
-    cycle: int  # the number the next stroke will get
-    target_on_ns: int
-    target_off_ns: int
-    driver_counters: dict[str, int]  # what the driver dropped or repaired (bounces, link errors, ...)
-    records: dict[str, Any]  # the record writer: path, backlog, dropped, rejected, writer_error, ...
-
-
-class DirectionStats(TypedDict, total=False):
-    count: int  # completed strokes
-    strokes: int  # completed + stalled
-    operating_mean_ns: float
-    operating_std_ns: float
-    operating_max_abs_ns: int
-    total_mean_ns: float
-    total_std_ns: float
-    total_max_abs_ns: int
-    error_mean_ns: float
-    error_std_ns: float
-    error_max_abs_ns: int
-    max_abs_error_pct: float
-    abs_error_p50_ns: int | None
-    abs_error_p95_ns: int | None
-    abs_error_p99_ns: int | None
-    lateness_p50_ns: int | None
-    lateness_p99_ns: int | None
-    lateness_p99_9_ns: int | None
-    lateness_max_ns: int | None
-    late: int
-    stalls: int
-    bounces: int
-    faults: int
-    order: int  # "on" and "off" only
-    coefficients: list[float]
-    ready: bool
-
-
-class Stats(TypedDict):
-    state: str
-    mode: str
-    fault: str
-    cycle: int
-    target_on_ns: int
-    target_off_ns: int
-    spurious_edges: int
-    overruns: int
-    driver_bounces: int
-    all: DirectionStats
-    on: DirectionStats
-    off: DirectionStats
-
-
-class CycleRecord(TypedDict):
-    cycle: int
-    direction: int  # 0 = on (A -> B), 1 = off (B -> A)
-    mode: str
-    target_ns: int
-    order: int
-    coefficients: list[float]
-    t_hat_ns: int
-    delay_ns: int
-    t_cmd_ns: int
-    t_start_ns: int | None
-    t_depart_ns: int | None
-    t_arrive_ns: int | None
-    operating_ns: int | None
-    total_ns: int | None
-    error_ns: int | None
-    dead_ns: int | None
-    lateness_ns: int | None
-    temperature_c: float | None
-    frequency_hz: float | None
-    flags: int  # usmswitch.daemon.record.Flag bits
-    wall_ns: int
-    driver: str | None  # the driver that made the stroke ("sim", "serial", "usb")
-    rig: str | None  # the rig's identity ([daemon] rig, the host name by default)
-
-
-class Notification(NamedTuple):
-    """One notification: its topic ("stroke", "state", ...) and its single payload."""
-
-    topic: str
-    payload: Any
 
 
 def parse_address(address: str | os.PathLike[str]) -> tuple[str, Any, str | None]:
@@ -197,27 +92,38 @@ def parse_address(address: str | os.PathLike[str]) -> tuple[str, Any, str | None
     return "unix", text, None
 
 
-class Client:
-    """A synchronous connection to the daemon; one call at a time unless `pipeline` is used."""
+def check_timeout(name: str, value: float | None) -> float | None:
+    """A timeout in seconds (None: wait forever); ValueError for anything else."""
+    if value is not None and (isinstance(value, bool) or not isinstance(value, int | float) or value <= 0):
+        raise ValueError(f"{name} must be a positive number of seconds or None, got {value!r}")
+    return None if value is None else float(value)
+
+
+class Client(Api):
+    """A blocking connection to the daemon; one call at a time unless `pipeline` is used.
+
+    `address`: a socket path, "unix:PATH" or "tcp://host:port?token=..."; None finds the local
+    daemon's socket as `usmswitchctl` does (`rig` names a rig's instance). `timeout`: seconds a
+    call waits for its reply (None: forever).
+    """
 
     def __init__(
         self,
-        address: str | os.PathLike[str],
+        address: str | os.PathLike[str] | None = None,
         *,
-        timeout_ns: int | None = DEFAULT_TIMEOUT_NS,
+        timeout: float | None = DEFAULT_TIMEOUT,
         token: str | None = None,
         retry: bool = True,
         max_reply_bytes: int = 64 << 20,
+        rig: str | None = None,
     ) -> None:
-        if timeout_ns is not None and (type(timeout_ns) is not int or timeout_ns <= 0):
-            raise ValueError(
-                f"timeout_ns must be a positive integer of nanoseconds or None, got {timeout_ns!r}"
-            )
+        self.timeout = check_timeout("timeout", timeout)
+        if address is None:
+            address = find_socket(rig)
         self.family, self.address, url_token = parse_address(address)
         self.token = (
             token or url_token or (os.environ.get("USMSWITCH_TOKEN") if self.family == "tcp" else None)
         )
-        self.timeout_ns = timeout_ns
         self.retry = retry
         self.max_reply_bytes = max_reply_bytes
         #: Notifications lost on this side because nobody read them (see MAX_BUFFERED_NOTIFICATIONS).
@@ -227,6 +133,8 @@ class Client:
         self._msgid = 0
         self._replies: dict[int, list[Any]] = {}
         self._notes: deque[Notification] = deque()
+        #: The topics this connection is subscribed to (as the server last said).
+        self.topics: set[str] = set()
         self._pending_out: list[bytes] = []
         self._abandoned: set[int] = set()  # timed-out calls whose late replies are discarded
         self._packer = msgpack.Packer(use_bin_type=True, autoreset=True)
@@ -236,14 +144,14 @@ class Client:
     def connect(self) -> None:
         """Open the connection (and authenticate over TCP); called by the constructor."""
         if self.family == "tcp":
-            sock = socket.create_connection(self.address, timeout=self._timeout_s())
+            sock = socket.create_connection(self.address, timeout=self.timeout)
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         else:
             # Trust only a socket this user or root owns, or one in a private directory root placed
             # (docs/config.md): in a directory another user can write, the socket may be theirs.
             owner = check_socket_owner(self.address)
             sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-            sock.settimeout(self._timeout_s())
+            sock.settimeout(self.timeout)
             try:
                 sock.connect(self.address)
                 check_peer(sock, owner)
@@ -253,6 +161,7 @@ class Client:
         self._sock = sock
         self._unpacker = msgpack.Unpacker(raw=False, max_buffer_size=self.max_reply_bytes)
         self._replies.clear()
+        self.topics = set()
         if self.family == "tcp":
             if not self.token:
                 self.close()
@@ -283,9 +192,6 @@ class Client:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _timeout_s(self) -> float | None:
-        return None if self.timeout_ns is None else self.timeout_ns / 1e9
-
     # -- calls -----------------------------------------------------------------------------------
     def call(self, method: str, *params: Any, retry: bool | None = None) -> Any:
         """Send one request and wait for its result; raises RpcError with the server's code."""
@@ -300,7 +206,7 @@ class Client:
 
     def _call_once(self, method: str, params: list[Any]) -> Any:
         msgid = self._send(method, params)
-        return _result(self._wait(msgid))
+        return result_of(self._wait(msgid))
 
     def pipeline(self, calls: Iterable[tuple[str, list[Any]]]) -> list[Any]:
         """Send every request before reading any reply; results (or RpcError instances) in order."""
@@ -309,7 +215,7 @@ class Client:
         out: list[Any] = []
         for msgid in ids:
             try:
-                out.append(_result(self._wait(msgid)))
+                out.append(result_of(self._wait(msgid)))
             except RpcError as exc:
                 out.append(exc)
         return out
@@ -347,114 +253,96 @@ class Client:
             raise
         return self._replies.pop(msgid)
 
-    def _read(self, timeout_ns: int | None = None, override: bool = False) -> None:
-        """Read once from the socket and sort what arrives into replies and notifications."""
+    def _read(self, timeout: float | None = None, override: bool = False) -> None:
+        """Read once from the socket and sort what arrives into replies and notifications.
+
+        `override`: wait up to `timeout` (a notification's wait) instead of the call timeout.
+        """
         sock, unpacker = self._sock, self._unpacker
         if sock is None or unpacker is None:
             raise ConnectionClosed("not connected: call reconnect()")
         if override:
-            sock.settimeout(None if timeout_ns is None else timeout_ns / 1e9)
+            sock.settimeout(timeout)
         try:
             data = sock.recv(262_144)
         except TimeoutError:
-            raise TimeoutError(f"no reply from {self.address} within the timeout") from None
+            if override:
+                raise TimeoutError(f"no notification from {self.address} within {timeout:g} s") from None
+            raise TimeoutError(f"no reply from {self.address} within {self.timeout:g} s") from None
         except (ConnectionResetError, BrokenPipeError) as exc:
             self.close()
             raise ConnectionClosed(f"connection to {self.address} broke: {exc}") from exc
         finally:
             if override and self._sock is not None:
-                self._sock.settimeout(self._timeout_s())
+                self._sock.settimeout(self.timeout)
         if not data:
             self.close()
             raise self._closed_error()
         unpacker.feed(data)
         for msg in unpacker:
-            if type(msg) is list and len(msg) == 4 and msg[0] == RESPONSE:
-                if msg[1] in self._abandoned:
-                    self._abandoned.discard(msg[1])
+            reply, note = sort_message(msg)
+            if reply is not None:
+                if reply[1] in self._abandoned:
+                    self._abandoned.discard(reply[1])
                 else:
-                    self._replies[msg[1]] = msg
-            elif type(msg) is list and len(msg) == 3 and msg[0] == NOTIFICATION:
-                params = msg[2]
-                payload = params[0] if type(params) is list and len(params) == 1 else params
+                    self._replies[reply[1]] = reply
+            elif note is not None:
                 if len(self._notes) >= MAX_BUFFERED_NOTIFICATIONS:
                     self._notes.popleft()
                     self.local_dropped += 1
-                self._notes.append(Notification(msg[1], payload))
+                self._notes.append(note)
 
     def _closed_error(self) -> ConnectionClosed:
-        # The server's "error" notification, when it sent one, says why it closed.
-        for note in reversed(self._notes):
-            if note.topic == "error" and type(note.payload) is list and len(note.payload) == 2:
-                code, message = note.payload
-                return ConnectionClosed(f"server closed the connection: [{code}] {message}", code)
-        return ConnectionClosed(f"server closed the connection ({self.address})")
+        return closed_error(self._notes, self.address)
 
     # -- notifications ---------------------------------------------------------------------------
-    def next_notification(self, timeout_ns: int | None = None) -> Notification:
-        """The next notification, waiting up to `timeout_ns` (None: forever); TimeoutError if none."""
+    def next_notification(self, timeout: float | None = None) -> Notification:
+        """The next notification, waiting up to `timeout` seconds (None: forever); TimeoutError if none."""
+        timeout = check_timeout("timeout", timeout)
         while not self._notes:
-            self._read(timeout_ns, override=True)
+            self._read(timeout, override=True)
         return self._notes.popleft()
 
-    def subscribe(self, *topics: str, timeout_ns: int | None = None) -> Subscription:
-        """Subscribe to topics (default "stroke") and return an iterator over their notifications."""
+    def subscribe(self, *topics: str, timeout: float | None = None) -> Subscription:
+        """Subscribe to topics (default "stroke"); iterating the result yields `Notification`s
+        (topic, payload), waiting up to `timeout` seconds for each (None: forever)."""
         wanted = list(topics) or ["stroke"]
-        self.call("subscribe", wanted)
-        return Subscription(self, wanted, timeout_ns)
+        self._subscribed(self.call("subscribe", wanted))
+        return Subscription(self, wanted, check_timeout("timeout", timeout))
 
     def unsubscribe(self, *topics: str) -> list[str]:
         """Stop notifications of `topics` (all when none given); returns the topics still subscribed."""
         result = self.call("unsubscribe", list(topics)) if topics else self.call("unsubscribe")
-        return list(result["topics"])
+        return sorted(self._subscribed(result))
 
-    # -- typed methods (docs/protocol.md) --------------------------------------------------------
-    def ping(self) -> str:
-        """Check that the daemon's server answers ("pong")."""
-        return self.call("ping")
+    def _subscribed(self, reply: dict[str, Any]) -> set[str]:
+        self.topics = set(reply["topics"])
+        return self.topics
 
-    def status(self) -> Status:
-        """State, mode, fault, driver, versions, uptime and targets."""
-        return self.call("status")
+    def run(
+        self,
+        count: int = 0,
+        period: Duration = "50ms",
+        target: Duration | None = None,
+        *,
+        allow_late: bool = False,
+        timeout: float | None = None,
+    ) -> Run:
+        """Start a run and return it: iterating the `Run` yields its stroke records (none missed:
+        the subscription is made before the start) and ends when the run ends. `timeout`: seconds
+        to wait for each stroke (None: forever)."""
+        added = [t for t in ("stroke", "run") if t not in self.topics]
+        if added:
+            self._subscribed(self.call("subscribe", added))
+        try:
+            started = self.start_cycling(period, count, target=target, allow_late=allow_late)
+        except BaseException:
+            if added and self.connected:
+                self.unsubscribe(*added)
+            raise
+        return Run(self, started, added, check_timeout("timeout", timeout))
 
-    def get_target(self) -> Targets:
-        """The target total time T of each direction, in ns."""
-        return self.call("get_target")
-
-    def set_target(self, target_ns: int, direction: str = "both") -> Targets:
-        """Set T (ns) for "on", "off" or "both"; takes effect from the next armed stroke."""
-        return self.call("set_target", target_ns, direction)
-
-    def stats(self) -> Stats:
-        """Running statistics per direction and combined, as of the last finished stroke."""
-        return self.call("stats")
-
-    def history(self, n: int = 20) -> list[CycleRecord]:
-        """The last `n` stroke records, oldest first."""
-        return self.call("history", n)
-
-    def switch(self, direction: str = "next") -> CycleRecord:
-        """Make one stroke ("on", "off" or "next") and return its record once it has finished."""
-        return self.call("switch", direction)
-
-    def start_cycling(self, period_ns: int, count: int = 0) -> dict[str, int]:
-        """Alternate on/off strokes every `period_ns`; `count` strokes, 0 for until stopped."""
-        return self.call("start_cycling", period_ns, count)
-
-    def stop_cycling(self) -> dict[str, Any]:
-        """Stop cycling after the stroke in progress."""
-        return self.call("stop_cycling")
-
-    def set_mode(self, mode: str, open_delay_ns: int | None = None) -> dict[str, Any]:
-        """Open loop ("open": fixed delay) or closed loop ("closed": AR-predicted delay)."""
-        if open_delay_ns is None:
-            return self.call("set_mode", mode)
-        return self.call("set_mode", mode, open_delay_ns)
-
-    def reset_fault(self) -> dict[str, Any]:
-        """Clear a latched FAULT so strokes may run again."""
-        return self.call("reset_fault")
-
+    # -- methods with a transport of their own ----------------------------------------------------
     def estop(self) -> dict[str, Any]:
         """Stop the drive now and latch FAULT until reset_fault.
 
@@ -466,53 +354,34 @@ class Client:
             urgent = estop_socket_path(self.address)
             if urgent.exists():
                 try:
-                    with Client(urgent, timeout_ns=self.timeout_ns, retry=False) as c:
+                    with Client(urgent, timeout=self.timeout, retry=False) as c:
                         return c.call("estop")
                 except (ConnectionClosed, OSError):
                     pass  # busy or gone: the main connection still carries it
         return self.call("estop")
 
-    def set_drive(
-        self,
-        *,
-        frequency_hz: float | None = None,
-        voltage_vpp: float | None = None,
-        enabled: bool | None = None,
-    ) -> dict[str, Any]:
-        """Set the drive board's excitation (only the given keys); returns the drive's state."""
-        settings: dict[str, Any] = {}
-        if frequency_hz is not None:
-            settings["frequency_hz"] = frequency_hz
-        if voltage_vpp is not None:
-            settings["voltage_vpp"] = voltage_vpp
-        if enabled is not None:
-            settings["enabled"] = enabled
-        return self.call("set_drive", settings)
-
 
 class Subscription:
-    """Iterates a subscription's notifications: payloads for one topic, `Notification`s for several."""
+    """Iterates a subscription's notifications, each a `Notification` (topic, payload)."""
 
-    def __init__(self, client: Client, topics: list[str], timeout_ns: int | None) -> None:
+    def __init__(self, client: Client, topics: list[str], timeout: float | None) -> None:
         self.client = client
         self.topics = topics
-        self.timeout_ns = timeout_ns
+        self.timeout = timeout
         #: Notifications the server dropped for this connection because it read too slowly.
         self.dropped = 0
 
     def notifications(self) -> Iterator[Notification]:
         """Every notification of the subscribed topics, with its topic; counts "dropped" ones."""
         while True:
-            note = self.client.next_notification(self.timeout_ns)
+            note = self.client.next_notification(self.timeout)
             if note.topic == "dropped":
                 self.dropped += int(note.payload.get("count", 0)) if type(note.payload) is dict else 0
                 continue
             if note.topic in self.topics:
                 yield note
 
-    def __iter__(self) -> Iterator[Any]:
-        if len(self.topics) == 1:
-            return (note.payload for note in self.notifications())
+    def __iter__(self) -> Iterator[Notification]:
         return self.notifications()
 
     def close(self) -> None:
@@ -527,7 +396,28 @@ class Subscription:
         self.close()
 
 
-def _result(reply: list[Any]) -> Any:
+def sort_message(msg: object) -> tuple[list[Any] | None, Notification | None]:
+    """A decoded frame from the server: (a response, None), (None, a notification) or (None, None)."""
+    if type(msg) is list and len(msg) == 4 and msg[0] == RESPONSE:
+        return msg, None
+    if type(msg) is list and len(msg) == 3 and msg[0] == NOTIFICATION:
+        params = msg[2]
+        payload = params[0] if type(params) is list and len(params) == 1 else params
+        return None, Notification(msg[1], payload)
+    return None, None
+
+
+def closed_error(notes: Iterable[Notification], address: object) -> ConnectionClosed:
+    """Why the server closed: its "error" notification when it sent one."""
+    for note in reversed(list(notes)):
+        if note.topic == "error" and type(note.payload) is list and len(note.payload) == 2:
+            code, message = note.payload
+            return ConnectionClosed(f"server closed the connection: [{code}] {message}", code)
+    return ConnectionClosed(f"server closed the connection ({address})")
+
+
+def result_of(reply: list[Any]) -> Any:
+    """A response's result, or its error raised as RpcError."""
     error = reply[2]
     if error is None:
         return reply[3]

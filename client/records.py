@@ -10,7 +10,8 @@
 
 The file is opened read-only (SQLite `mode=ro`): a running daemon keeps writing beside the reader
 (WAL), and each chunk is its own short read, so a long analysis never pins the daemon's log.
-Schema: docs/records.md (versions 1 and 2; version 1 rows read `driver` and `rig` as None).
+Schema: docs/records.md (versions 1 to 3; columns an older file lacks read as None: `driver` and
+`rig` before 2, `run_id` before 3, and such a file has no runs).
 """
 
 from __future__ import annotations
@@ -22,10 +23,10 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
-from usmswitch.daemon.record import FIELDS, SOURCE_FIELDS, CycleRecord
+from usmswitch.daemon.record import FIELDS, LATER_FIELDS, CycleRecord, RunRecord
 
 RECORDS_FILE = "records.sqlite"
-KNOWN_SCHEMAS = ("1", "2")
+KNOWN_SCHEMAS = ("1", "2", "3")
 
 
 class RecordsFileError(Exception):
@@ -54,6 +55,7 @@ class RecordsFile:
             )
         have = {r[1] for r in self._db.execute("PRAGMA table_info(cycles)")}
         self._columns = ", ".join(f'"{f}"' if f in have else f'NULL AS "{f}"' for f in FIELDS)
+        self._has_runs = "run_id" in have
 
     def close(self) -> None:
         self._db.close()
@@ -72,14 +74,38 @@ class RecordsFile:
         """The highest cycle number in the file (0 when empty)."""
         return int(self._db.execute("SELECT coalesce(max(cycle), 0) FROM cycles").fetchone()[0])
 
-    def records(self, first: int = 1, last: int | None = None, chunk: int = 1000) -> Iterator[dict[str, Any]]:
-        """Every record from cycle `first` to `last` (inclusive) in cycle order, as plain dicts."""
+    def runs(self) -> list[dict[str, Any]]:
+        """Every run in the file, oldest first (none in a file from before runs)."""
+        if not self._has_runs:
+            return []
+        rows = self._db.execute("SELECT * FROM runs ORDER BY run_id").fetchall()
+        return [RunRecord.from_row(r).to_dict() for r in rows]
+
+    def run(self, run_id: int) -> dict[str, Any]:
+        """One run's record; RecordsFileError naming the runs there are when it is not in the file."""
+        for run in self.runs():
+            if run["run_id"] == run_id:
+                return run
+        ids = [r["run_id"] for r in self.runs()]
+        have = f"runs {ids[0]}..{ids[-1]}" if ids else "no runs"
+        raise RecordsFileError(f"{self.path} has no run {run_id} ({have})")
+
+    def records(
+        self, first: int = 1, last: int | None = None, chunk: int = 1000, run: int | None = None
+    ) -> Iterator[dict[str, Any]]:
+        """Every record from cycle `first` to `last` (inclusive; of one run) in cycle order, as dicts."""
         after = first - 1
         stop = last if last is not None else (1 << 63) - 1
+        where = "cycle > ? AND cycle <= ?"
+        args: tuple[Any, ...] = ()
+        if run is not None:
+            self.run(run)  # a run the file lacks is an error, not an empty result
+            where += " AND run_id = ?"
+            args = (run,)
         while True:
             rows = self._db.execute(
-                f"SELECT {self._columns} FROM cycles WHERE cycle > ? AND cycle <= ? ORDER BY cycle LIMIT ?",
-                (after, stop, chunk),
+                f"SELECT {self._columns} FROM cycles WHERE {where} ORDER BY cycle LIMIT ?",
+                (after, stop, *args, chunk),
             ).fetchall()
             if not rows:
                 return
@@ -95,7 +121,7 @@ class RecordsFile:
         missing, for the timing fields; int64 for the ones always present)."""
         import numpy as np
 
-        if field not in FIELDS or field in ("coefficients", "mode", *SOURCE_FIELDS):
+        if field not in FIELDS or field in ("coefficients", "mode", *LATER_FIELDS):
             raise ValueError(f"column takes a numeric record field, got {field!r}")
         if f'"{field}"' not in self._columns:
             raise ValueError(f"{self.path} has no column {field!r} (schema {self.schema_version})")

@@ -13,7 +13,6 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
-from importlib.metadata import PackageNotFoundError, version
 from typing import Any, Protocol
 
 from usmswitch.drivers import Daq, DaqError, Direction
@@ -24,6 +23,7 @@ from .loop import ControlLoop, LoopError, Mode, State
 from .record import CycleRecord, RunRecord
 from .records import RecordStore
 from .rpc import RpcServer
+from .version import PACKAGE_VERSION
 from .wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, estop_socket_path
 
 
@@ -43,11 +43,6 @@ class Daemon(Protocol):
 
     def records_status(self) -> dict[str, Any]: ...
 
-
-try:
-    PACKAGE_VERSION = version("usmswitch")
-except PackageNotFoundError:  # running from a source tree that was never installed
-    PACKAGE_VERSION = "0+unknown"
 
 ESTOP_REASON = "estop (socket)"
 DIRECTIONS = {"on": (Direction.ON,), "off": (Direction.OFF,), "both": (Direction.ON, Direction.OFF)}
@@ -295,7 +290,9 @@ class Methods:
         def finished(fut: Future[dict[str, Any]]) -> None:
             exc = fut.exception()
             if exc is not None:
-                done.set_exception(RpcError(ErrorCode.UNAVAILABLE, f"set_drive: {exc}"))
+                # An out-of-range value is the caller's; anything else is the board's.
+                code = ErrorCode.INVALID_PARAMS if isinstance(exc, ValueError) else ErrorCode.UNAVAILABLE
+                done.set_exception(RpcError(code, f"set_drive: {exc}"))
                 return
             applied = dict(fut.result())
             self.store.record_event("drive", **applied)

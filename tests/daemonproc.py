@@ -41,7 +41,7 @@ def wait_serving(sock: Path, proc: subprocess.Popen[bytes], timeout_s: float = 2
             err = proc.stderr.read().decode() if proc.stderr else ""
             raise AssertionError(f"daemon exited {proc.returncode}: {err[-3000:]}")
         try:
-            with Client(str(sock), timeout_ns=5_000 * MS) as c:
+            with Client(str(sock), timeout=5) as c:
                 c.stats()
             return
         except (OSError, RpcError):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
 from collections.abc import Callable
@@ -17,18 +16,21 @@ from .args import (
     EXIT_INTERRUPTED,
     EXIT_OK,
     PROG,
-    WAIT_POLL_NS,
     UsageError,
     positive_duration_arg,
 )
 from .output import (
     HISTORY_HEADER,
+    RUN_HEADER,
     CycleProgress,
     WatchView,
     drive_table,
     history_row,
     print_json,
     record_rows,
+    run_row,
+    run_strokes,
+    scope_line,
     show_ns,
     stats_table,
     status_table,
@@ -58,12 +60,26 @@ def cmd_status(client: Client, args: argparse.Namespace) -> int:
 
 
 def cmd_stats(client: Client, args: argparse.Namespace) -> int:
-    """The daemon's running statistics as one aligned table."""
-    stats = client.stats()
+    """A run's statistics (the current or last one by default) or a range of cycles', as a table."""
+    cycles = None if args.first is None else (args.first, args.last if args.last is not None else 2**62)
+    stats = client.stats(args.run, cycles=cycles)
     if args.json:
         print_json(stats)
     else:
+        print(scope_line(stats))
         print(stats_table(stats))
+    return EXIT_OK
+
+
+def cmd_runs(client: Client, args: argparse.Namespace) -> int:
+    """The last runs as a table, oldest first."""
+    runs = client.runs(args.n)
+    if args.json:
+        print_json(runs)
+    elif not runs:
+        print("no run recorded yet (`cycle` starts one)")
+    else:
+        print(table([run_row(r) for r in runs], RUN_HEADER))
     return EXIT_OK
 
 
@@ -90,7 +106,7 @@ def cmd_target(client: Client, args: argparse.Namespace) -> int:
             target_ns = positive_duration_arg(args.value)
         except argparse.ArgumentTypeError as exc:
             raise UsageError(f"target: {exc}") from None
-        result = client.set_target(target_ns, args.direction)
+        result = client.set_target(target_ns, args.direction, allow_late=args.allow_late)
         for warning in result.get("warnings", []):
             print(f"warning: {warning}", file=sys.stderr)
     if args.json:
@@ -111,41 +127,38 @@ def cmd_switch(client: Client, args: argparse.Namespace) -> int:
 
 
 def cmd_cycle(client: Client, args: argparse.Namespace) -> int:
-    """Start periodic on/off strokes; with --wait, block until they are done and report how it ended."""
-    if args.wait:
-        client.subscribe("state")  # before starting, so the end of a short run cannot slip past
-    result = client.start_cycling(args.period, args.count)
+    """Start a run of on/off strokes; with --wait, follow it to its end and report how it ended."""
+    if args.wait:  # subscribed before the start: the end of a short run cannot slip past
+        run = client.run(args.count, args.period, args.target, allow_late=args.allow_late)
+        result = run.started
+    else:
+        result = client.start_cycling(args.period, args.count, target=args.target, allow_late=args.allow_late)
     if args.json:
         print_json(result)
     else:
         count = f"{args.count} strokes" if args.count else "until stopped"
         print(
-            f"cycling every {show_ns(result['period_ns'])}, {count}, from cycle {result['first_cycle']}",
+            f"run {result['run_id']}: every {show_ns(result['period_ns'])}, {count}, "
+            f"T on {show_ns(result['target_on_ns'])} / off {show_ns(result['target_off_ns'])}, "
+            f"from cycle {result['first_cycle']}",
             flush=True,
         )
+        for warning in result.get("warnings", []):
+            print(f"{PROG}: warning: {warning}", file=sys.stderr)
     if not args.wait:
         return EXIT_OK
     try:
         with CycleProgress(result["first_cycle"], args.count if not args.json else 0) as progress:
-            while True:
-                # A state notification says when cycling ends; status confirms it (and covers a change
-                # the daemon coalesced between two of its slack checks).
-                with contextlib.suppress(TimeoutError):
-                    client.next_notification(WAIT_POLL_NS)
-                st = client.status()
-                progress.update(st["cycle"])
-                if st["state"] != "cycling":
-                    break
+            for rec in run:
+                progress.update(rec["cycle"] + 1)
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted; the daemon keeps cycling (`{PROG} stop` stops it)", file=sys.stderr)
         return EXIT_INTERRUPTED
+    info = run.info
+    assert info is not None
     if not args.json:
-        print(
-            f"finished: {st['state']}"
-            + (f" ({st['fault']})" if st["fault"] else "")
-            + f", next cycle {st['cycle']}"
-        )
-    return EXIT_FAULT if st["state"] == "fault" else EXIT_OK
+        print(f"run {info['run_id']} ended: {info['end_reason']}, {run_strokes(info)} strokes")
+    return EXIT_FAULT if info["end_reason"].startswith("fault") else EXIT_OK
 
 
 def cmd_stop(client: Client, args: argparse.Namespace) -> int:
@@ -179,11 +192,11 @@ def cmd_mode(client: Client, args: argparse.Namespace) -> int:
 
 def cmd_history(client: Client, args: argparse.Namespace) -> int:
     """The last n stroke records as a table, oldest first."""
-    records = client.history(args.n)
+    records = client.history(args.n, args.run)
     if args.json:
         print_json(records)
     elif not records:
-        print("no strokes recorded yet")
+        print("no strokes recorded yet" if args.run is None else f"run {args.run} has no strokes")
     else:
         print(table([history_row(r) for r in records], HISTORY_HEADER))
     return EXIT_OK
@@ -253,6 +266,7 @@ COMMANDS: dict[str, Callable[[Client, argparse.Namespace], int]] = {
     "ping": cmd_ping,
     "status": cmd_status,
     "stats": cmd_stats,
+    "runs": cmd_runs,
     "target": cmd_target,
     "switch": cmd_switch,
     "cycle": cmd_cycle,

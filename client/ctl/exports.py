@@ -12,20 +12,25 @@ from typing import IO
 
 from usmswitch.daemon.record import CycleRecord as Record
 
-from ..connection import Client, CycleRecord
+from ..connection import Client
 from ..records import RecordsFile, RecordsFileError
+from ..types import CycleRecord
 from .args import EXIT_OK, UsageError
 from .output import print_json, write_csv
 
 
-def _records_from_file(state_dir: Path, first: int, last: int | None) -> Iterator[CycleRecord]:
+def _records_from_file(
+    state_dir: Path, first: int, last: int | None, run: int | None = None
+) -> Iterator[CycleRecord]:
     # Read-only straight from the daemon's SQLite file: every stroke, without the socket's limit.
     try:
         records = RecordsFile(state_dir)
+        if run is not None:
+            records.run(run)  # a run the file lacks: said before any output is written
     except RecordsFileError as exc:
         raise UsageError(f"export: {exc}") from None
     with records:
-        yield from records.records(first, last)  # type: ignore[misc]
+        yield from records.records(first, last, run=run)  # type: ignore[misc]
 
 
 def _write(records: Iterable[CycleRecord], out: IO[str], where: str) -> int:
@@ -41,12 +46,14 @@ def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
     if args.csv is None:
         raise UsageError("export needs --csv FILE (or --csv - for standard output)")
     if args.state_dir is not None:
-        records: Iterable[CycleRecord] = _records_from_file(Path(args.state_dir), args.first, args.last)
+        records: Iterable[CycleRecord] = _records_from_file(
+            Path(args.state_dir), args.first, args.last, args.run
+        )
     else:
         if args.first != 1 or args.last is not None:
             raise UsageError("export: --first/--last read the SQLite file; give --state-dir too")
         with connect() as client:
-            records = client.history(args.n)
+            records = client.history(args.n, args.run)
     if args.csv == "-":
         n = _write(records, sys.stdout, "standard output")
         sys.stdout.flush()
@@ -76,10 +83,12 @@ def cmd_plot(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
     from ..plots import plot_run  # matplotlib: only for this command
 
     if args.state_dir is not None:
-        rows: Iterable[CycleRecord] = _records_from_file(Path(args.state_dir), args.first, args.last)
+        rows: Iterable[CycleRecord] = _records_from_file(
+            Path(args.state_dir), args.first, args.last, args.run
+        )
     else:
         with connect() as client:
-            rows = client.history(args.n)
+            rows = client.history(args.n, args.run)
     try:
         out = plot_run((Record.from_row(r) for r in rows), args.out, title=args.title or "")
     except ValueError as exc:

@@ -19,10 +19,10 @@ import signal
 import sys
 from typing import Any
 
-from usmswitch.daemon.sockdir import client_socket_paths, rig_socket_path
-from usmswitch.daemon.wire import estop_socket_path
+from usmswitch.daemon.wire import ErrorCode, RpcError, estop_socket_path
 
-from ..connection import Client, ConnectionClosed, ErrorCode, RpcError, parse_address
+from ..api import find_socket
+from ..connection import DEFAULT_TIMEOUT, Client, ConnectionClosed, parse_address
 from .args import EXIT_CONNECT, EXIT_FAULT, EXIT_INTERRUPTED, EXIT_REFUSED, EXIT_USAGE, PROG, UsageError
 from .commands import COMMANDS
 from .exports import cmd_export, cmd_plot
@@ -37,17 +37,13 @@ def resolve_address(args: argparse.Namespace) -> str:
         return args.socket
     if args.rig is not None:
         try:
-            return str(rig_socket_path(args.rig))
+            return str(find_socket(args.rig))
         except ValueError as exc:
             raise UsageError(f"--rig: {exc}") from None
-
-    candidates = client_socket_paths()
-    for path in candidates:
-        if path.exists():
-            return str(path)
-    raise ConnectionError(
-        f"no daemon socket found (looked at {', '.join(map(str, candidates))}); give --socket"
-    )
+    try:
+        return str(find_socket())
+    except FileNotFoundError as exc:
+        raise ConnectionError(f"{exc} (or give --socket)") from None
 
 
 def _fail(args: argparse.Namespace, code: int, message: str, rpc_code: int | None = None) -> int:
@@ -87,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     address = "the daemon"
     try:
         check_args(args)
-        timeout_ns = args.timeout if args.timeout is not None else 10_000_000_000
+        timeout = args.timeout / 1e9 if args.timeout is not None else DEFAULT_TIMEOUT
 
         def connect() -> Client:
             nonlocal address
@@ -95,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
             if args.command == "estop":
                 address = estop_address(address)
             try:
-                return Client(address, timeout_ns=timeout_ns, token=args.token)
+                return Client(address, timeout=timeout, token=args.token)
             except ValueError as exc:  # a malformed address, a TCP connection without a token
                 raise UsageError(str(exc)) from None
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import datetime
 import json
 import math
 import sys
@@ -16,7 +17,7 @@ from usmswitch.daemon.record import FIELDS, UNUSABLE, Flag
 from usmswitch.daemon.stats import Running
 from usmswitch.daemon.units import format_elapsed, format_ns, is_instant_field
 
-from ..connection import CycleRecord
+from ..types import CycleRecord
 from .args import DIRECTION_NAMES, WATCH_HEADER_EVERY
 
 
@@ -472,3 +473,51 @@ def write_csv(records: Iterable[CycleRecord], out: IO[str]) -> int:
         writer.writerow(csv_row(rec))
         n += 1
     return n
+
+
+# -- runs ------------------------------------------------------------------------------------------
+RUN_HEADER = ("run", "kind", "cycles", "strokes", "started", "period", "T on", "T off", "mode", "ended")
+
+
+def run_strokes(run: dict[str, Any]) -> str:
+    """How many strokes a run has ("running" while it runs)."""
+    if run["last_cycle"] is None:
+        return "running"
+    return str(run["last_cycle"] - run["first_cycle"] + 1)
+
+
+def _wall(ns: int | None) -> str:
+    if ns is None:
+        return "-"
+    return datetime.datetime.fromtimestamp(ns / 1e9).strftime("%Y-%m-%d %H:%M:%S")
+
+
+def run_row(run: dict[str, Any]) -> list[str]:
+    """One run for people: its cycles, when it started, its settings, how it ended."""
+    st = run.get("settings", {})
+    last = run["last_cycle"]
+    cycles = f"{run['first_cycle']}.." + ("" if last is None else str(last))
+    return [
+        str(run["run_id"]),
+        run["kind"],
+        cycles,
+        run_strokes(run),
+        _wall(run["started_wall_ns"]),
+        show_ns(st.get("period_ns")),
+        show_ns(st.get("target_on_ns")),
+        show_ns(st.get("target_off_ns")),
+        str(st.get("mode", "-")),
+        run["end_reason"] or "running",
+    ]
+
+
+def scope_line(stats: dict[str, Any]) -> str:
+    """What a stats reply covers: its run, or its cycles, or every stroke since the daemon started."""
+    first, last = stats.get("first_cycle"), stats.get("last_cycle")
+    cycles = "no strokes yet" if first is None else f"cycles {first}..{'' if last is None else last}"
+    run = stats.get("run")
+    if run is None:
+        live = "state" in stats  # the daemon's own figures, not a range read from the records
+        return f"{cycles} (no run yet: every stroke since the daemon started)" if live else cycles
+    state = "running" if run["end_reason"] is None else f"ended: {run['end_reason']}"
+    return f"run {run['run_id']} ({run['kind']}, {state}), {cycles}"

@@ -94,12 +94,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     command("ping", "check that the daemon answers")
     command("status", "state, mode, fault, targets, versions (exit 4 when FAULT is latched)")
-    command("stats", "running statistics per direction and combined, as a table")
+    c = command("stats", "statistics of a run (default: the current or last) per direction, as a table")
+    c.add_argument("--run", type=int, help="this run's (see `runs`)")
+    c.add_argument("--first", type=int, help="statistics of cycles --first..--last instead of a run")
+    c.add_argument("--last", type=int, help="with --first: the last cycle (default: the newest)")
+    c = command("runs", "the last runs: id, strokes, settings, how each ended")
+    c.add_argument("-n", type=int, default=20, help="how many (1..1000, default 20)")
     c = command("target", "get or set the target total time T")
     c.add_argument("action", nargs="?", choices=("get", "set"), help="get (default) or set")
     c.add_argument("value", nargs="?", help="the new T for `set`, e.g. 12ms, 10500us, 0.012s")
     c.add_argument("unit", nargs="?", help=argparse.SUPPRESS)  # `target set 12 ms`: the unit apart
     c.add_argument("--direction", choices=("on", "off", "both"), default="both", help="default both")
+    c.add_argument(
+        "--allow-late", action="store_true", help="take a T below what the rig reaches (late strokes)"
+    )
     c = command("switch", "make one stroke and print its record")
     c.add_argument("direction", nargs="?", choices=("on", "off", "next"), default="next")
     c = command("cycle", "start alternating on/off strokes")
@@ -107,13 +115,18 @@ def build_parser() -> argparse.ArgumentParser:
         "--period", type=positive_duration_arg, default=50_000_000, help="command to command, default 50ms"
     )
     c.add_argument("--count", type=int, default=0, help="strokes to make, 0 (default) until `stop`")
-    c.add_argument("--wait", action="store_true", help="return when cycling ends (exit 4 if in FAULT)")
+    c.add_argument("--target", type=positive_duration_arg, help="T for this run (default: the current T)")
+    c.add_argument(
+        "--allow-late", action="store_true", help="take a target below what the rig reaches (late strokes)"
+    )
+    c.add_argument("--wait", action="store_true", help="return when the run ends (exit 4 if in FAULT)")
     command("stop", "stop cycling after the stroke in progress")
     c = command("mode", "closed loop (T_d = T - t_hat) or open loop (fixed delay)")
     c.add_argument("mode", choices=("open", "closed"))
     c.add_argument("--delay", type=duration_arg, help="the open loop's fixed delay, e.g. 1ms")
     c = command("history", "the last strokes as a table")
     c.add_argument("-n", type=int, default=20, help="how many (1..10000, default 20)")
+    c.add_argument("--run", type=int, help="of this run only")
     c = command("watch", "print every stroke as it finishes, with running error figures")
     c.add_argument("--count", type=int, help="stop after this many strokes (default: until Ctrl-C)")
     c = command("export", "write cycle records as CSV")
@@ -128,6 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("--first", type=int, default=1, help="with --state-dir: first cycle (default 1)")
     c.add_argument("--last", type=int, help="with --state-dir: last cycle (default: the newest)")
+    c.add_argument("--run", type=int, help="this run's strokes only")
     c = command("plot", "draw a run to an image (PNG, SVG or PDF by the file's suffix)")
     c.add_argument("--out", required=True, metavar="FILE", help="e.g. run.png")
     c.add_argument("--state-dir", help="read the records from this state directory, read-only")
@@ -136,6 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("--first", type=int, default=1, help="with --state-dir: first cycle (default 1)")
     c.add_argument("--last", type=int, help="with --state-dir: last cycle (default: the newest)")
+    c.add_argument("--run", type=int, help="this run's strokes only")
     c.add_argument("--title", help="the plot's title")
     command("reset", "clear a latched FAULT")
     command("estop", "emergency stop: drive off, latch FAULT")
@@ -171,6 +186,14 @@ def check_args(args: argparse.Namespace) -> None:
         raise UsageError(f"export: -n must be in 1..{MAX_HISTORY}, got {args.n}")
     if args.command == "export" and args.first < 1:
         raise UsageError(f"export: --first must be >= 1, got {args.first}")
+    if getattr(args, "run", None) is not None and args.run < 1:
+        raise UsageError(f"{args.command}: --run must be a run id >= 1, got {args.run}")
+    if args.command == "stats" and args.last is not None and args.first is None:
+        raise UsageError("stats: --last needs --first")
+    if args.command == "stats" and args.first is not None and args.run is not None:
+        raise UsageError("stats: give --run or --first/--last, not both")
+    if args.command == "runs" and not 1 <= args.n <= 1000:
+        raise UsageError(f"runs: -n must be in 1..1000, got {args.n}")
     if args.command == "cycle" and args.count < 0:
         raise UsageError(f"cycle: --count must be >= 0, got {args.count}")
     if args.command == "watch" and args.count is not None and args.count < 0:

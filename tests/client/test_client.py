@@ -22,6 +22,7 @@ from usmswitch.daemon.wire import ErrorCode, Limits, RpcError
 
 TOKEN = "client-test-token-0123"
 METHODS = (
+    "runs",
     "status",
     "get_target",
     "set_target",
@@ -92,14 +93,17 @@ def test_every_typed_method_sends_the_documented_params(server: RpcServer, rec: 
         c.status()
         c.get_target()
         c.set_target(24_000_000)
-        c.set_target(12_000_000, "off")
+        c.set_target("12ms", "off")
+        c.set_target("10.5 ms", allow_late=True)
         c.history()
-        c.history(5)
+        c.history(5, run=3)
+        c.runs()
         assert c.switch("on") == {"cycle": 41, "direction": 0}
         c.start_cycling(50_000_000, 1000)
-        c.start_cycling(period_ns=20_000_000)
+        c.start_cycling(period="20ms", target="12ms")
         c.stop_cycling()
         c.set_mode("open")
+        c.set_mode("open", "2ms")
         c.estop()
         c.set_drive(frequency_hz=40_500.0, enabled=True)
         c.set_drive()
@@ -109,15 +113,18 @@ def test_every_typed_method_sends_the_documented_params(server: RpcServer, rec: 
     assert rec.calls == [
         ("status", []),
         ("get_target", []),
-        ("set_target", [24_000_000, "both"]),
-        ("set_target", [12_000_000, "off"]),
-        ("history", [20]),
-        ("history", [5]),
+        ("set_target", [24_000_000, "both", False]),
+        ("set_target", [12_000_000, "off", False]),
+        ("set_target", [10_500_000, "both", True]),
+        ("history", [20, None]),
+        ("history", [5, 3]),
+        ("runs", [20]),
         ("switch", ["on"]),
-        ("start_cycling", [50_000_000, 1000]),
-        ("start_cycling", [20_000_000, 0]),
+        ("start_cycling", [50_000_000, 1000, None, False]),
+        ("start_cycling", [20_000_000, 0, 12_000_000, False]),
         ("stop_cycling", []),
         ("set_mode", ["open", None]),
+        ("set_mode", ["open", 2_000_000]),
         ("estop", []),
         ("set_drive", [{"frequency_hz": 40_500.0, "enabled": True}]),
         ("set_drive", [{}]),
@@ -138,9 +145,9 @@ def test_server_errors_raise_with_the_code(server: RpcServer) -> None:
         assert isinstance(results[1], RpcError) and results[1].code == ErrorCode.INVALID_PARAMS
 
 
-def test_subscription_iterates_payloads_and_counts_drops(server: RpcServer) -> None:
+def test_subscription_iterates_notifications_and_counts_drops(server: RpcServer) -> None:
     with Client(server.unix_path) as c:
-        sub = c.subscribe(timeout_ns=1_000_000_000)
+        sub = c.subscribe(timeout=1)
         assert sub.topics == ["stroke"]
         n = 3000  # 900 kB: past the 256 kB buffer and what the kernel holds (under the 4096 backlog)
         for i in range(n):
@@ -150,20 +157,22 @@ def test_subscription_iterates_payloads_and_counts_drops(server: RpcServer) -> N
         # Read only once the server process has handled every stroke (the channel keeps order):
         # until then this client would be reading while they are still being sent.
         with Client(server.unix_path) as witness:
-            witness.subscribe("state", timeout_ns=5_000_000_000)
+            witness.subscribe("state", timeout=5)
             server.publish("state", {"state": "idle"})
-            assert witness.next_notification(5_000_000_000).topic == "state"
+            assert witness.next_notification(5).topic == "state"
         seen: list[int] = []
         strokes = iter(sub)
         with contextlib.suppress(TimeoutError):  # when the last strokes were dropped
             while len(seen) + sub.dropped < n:
-                seen.append(next(strokes)["cycle"])
+                note = next(strokes)
+                assert note.topic == "stroke"
+                seen.append(note.payload["cycle"])
         assert sub.dropped > 0, "this client never read while 900 kB were published: some must drop"
         assert len(seen) + sub.dropped == n and seen == sorted(seen)
         sub.close()
         assert c.unsubscribe() == []
 
-        both = c.subscribe("stroke", "state", timeout_ns=500_000_000)
+        both = c.subscribe("stroke", "state", timeout=0.5)
         server.publish("state", {"state": "cycling"})
         note = next(iter(both))
         assert (note.topic, note.payload) == ("state", {"state": "cycling"})
@@ -191,7 +200,7 @@ def test_tcp_with_token_and_refusals(server: RpcServer) -> None:
 
 def test_timeout_then_the_connection_still_works(server: RpcServer, rec: Recorder) -> None:
     rec.slow.set()
-    with Client(server.unix_path, timeout_ns=100_000_000) as c:
+    with Client(server.unix_path, timeout=0.1) as c:
         with pytest.raises(TimeoutError):
             c.status()
         rec.slow.clear()
@@ -229,7 +238,11 @@ def test_parse_address() -> None:
     assert parse_address("tcp://127.0.0.1:7770?token=abc") == ("tcp", ("127.0.0.1", 7770), "abc")
     with pytest.raises(ValueError, match="needs a host and a port"):
         parse_address("tcp://127.0.0.1")
-    with pytest.raises(ValueError, match="timeout_ns"):
-        Client("/nonexistent.sock", timeout_ns=0)
+    with pytest.raises(ValueError, match="timeout must be a positive number of seconds"):
+        Client("/nonexistent.sock", timeout=0)
+    with pytest.raises(ValueError, match="target: duration '12': needs a unit"):
+        Client.set_target(None, "12")  # type: ignore[arg-type]  # refused before any I/O
+    with pytest.raises(ValueError, match="a float has no unit"):
+        Client.start_cycling(None, 0.05)  # type: ignore[arg-type]
     with pytest.raises(FileNotFoundError):
         Client("/nonexistent-dir/usm.sock")

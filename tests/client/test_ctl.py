@@ -45,7 +45,7 @@ class Rig:
     proc: subprocess.Popen[bytes]
 
     def client(self) -> Client:
-        return Client(str(self.sock), timeout_ns=5_000 * MS)
+        return Client(str(self.sock), timeout=5)
 
 
 def _free_port() -> int:
@@ -171,16 +171,18 @@ def test_switch_prints_the_record(idle: Rig) -> None:
 
 
 def test_target_takes_human_units(idle: Rig) -> None:
-    r = run(idle, "target", "set", "10500us", "--direction", "on")
+    r = run(idle, "target", "set", "11500us", "--direction", "on")
     assert r.returncode == 0, r.stderr
-    assert "10.500 ms" in r.stdout
+    assert "11.500 ms" in r.stdout
     r = run(idle, "--json", "target", "set", "0.013s", "--direction", "off")
     t = json.loads(r.stdout)
-    assert (t["target_on_ns"], t["target_off_ns"]) == (10_500_000, 13_000_000)
+    assert (t["target_on_ns"], t["target_off_ns"]) == (11_500_000, 13_000_000)
     got = json.loads(run(idle, "--json", "target", "get").stdout)
     assert t.pop("warnings") == [] and got == t
-    short = run(idle, "target", "set", "5ms")  # below the ~10.5 ms stroke: taken, and said
-    assert short.returncode == 0 and "shorter than the predicted stroke" in short.stderr
+    short = run(idle, "target", "set", "5ms")  # below the ~10.5 ms stroke: refused, naming the shortest
+    assert short.returncode == 1 and "shortest the rig reaches" in short.stderr
+    late = run(idle, "target", "set", "5ms", "--allow-late")  # asked for: taken, and said
+    assert late.returncode == 0 and "shorter than the predicted stroke" in late.stderr
     assert run(idle, "target", "set", "13ms").returncode == 0
     plain = run(idle, "target")  # bare `target` reads
     assert plain.returncode == 0 and "13.000 ms" in plain.stdout
@@ -212,7 +214,7 @@ def test_mode_open_closed_and_delay(idle: Rig) -> None:
 def test_cycle_wait_stats_and_history(idle: Rig) -> None:
     r = run(idle, "cycle", "--period", "20ms", "--count", "10", "--wait")
     assert r.returncode == 0, r.stderr
-    assert "cycling every 20.000 ms, 10 strokes" in r.stdout and "finished: idle" in r.stdout
+    assert "every 20.000 ms, 10 strokes" in r.stdout and "ended: done, 10 strokes" in r.stdout
     r = run(idle, "stats")
     assert r.returncode == 0, r.stderr
     lines = r.stdout.splitlines()
@@ -322,7 +324,7 @@ def test_cycle_wait_exits_4_when_the_run_faults(idle: Rig) -> None:
             proc.kill()
             proc.communicate()
     assert proc.returncode == 4, err
-    assert "finished: fault" in out
+    assert "ended: fault: estop" in out
 
 
 def _read_csv(text: str) -> list[CycleRecord]:

@@ -42,7 +42,7 @@ def start(
 
 
 def client(sock: Path) -> Client:
-    return Client(str(sock), timeout_ns=5_000 * MS)
+    return Client(str(sock), timeout=5)
 
 
 def logs(stderr: bytes) -> list[dict]:
@@ -77,9 +77,9 @@ def wait_until(fn: Callable[[], object], timeout_s: float = 10.0, what: str = ""
 def strokes(c: Client, n: int) -> int:
     """Wait for `n` more strokes; returns the last cycle number seen."""
     last = 0
-    with c.subscribe("stroke", timeout_ns=5_000 * MS) as sub:
-        for i, rec in enumerate(sub, 1):
-            last = rec["cycle"]
+    with c.subscribe("stroke", timeout=5) as sub:
+        for i, note in enumerate(sub, 1):
+            last = note.payload["cycle"]
             if i >= n:
                 return last
     return last

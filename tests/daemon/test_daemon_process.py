@@ -26,7 +26,7 @@ def start(tmp: Path, *extra: str) -> subprocess.Popen[bytes]:
 
 def wait_for_socket(tmp: Path, proc: subprocess.Popen[bytes]) -> Client:
     daemonproc.wait_serving(tmp / "d.sock", proc)
-    return Client(str(tmp / "d.sock"), timeout_ns=5_000 * MS)
+    return Client(str(tmp / "d.sock"), timeout=5)
 
 
 def rows(tmp: Path) -> list[tuple[int, int | None]]:
@@ -56,8 +56,8 @@ def test_starts_cycles_and_sigterm_exits_0_with_every_row(tmp_path: Path) -> Non
                 time.sleep(0.02)
                 status = client.status()
             assert status["driver"] == "sim" and status["state"] == "cycling"
-            with client.subscribe("stroke", timeout_ns=5_000 * MS) as sub:
-                seen = [rec for _, rec in zip(range(15), sub, strict=False)]
+            with client.subscribe("stroke", timeout=5) as sub:
+                seen = [note.payload for _, note in zip(range(15), sub, strict=False)]
             assert [r["cycle"] for r in seen] == list(range(seen[0]["cycle"], seen[0]["cycle"] + 15))
             stats = client.stats()
             assert stats["all"]["count"] >= 15
@@ -91,9 +91,9 @@ def test_kill_9_loses_no_completed_stroke_and_restart_warm_starts(tmp_path: Path
     proc = start(tmp_path)
     try:
         with wait_for_socket(tmp_path, proc) as client:
-            sub = client.subscribe("stroke", timeout_ns=5_000 * MS)
+            sub = client.subscribe("stroke", timeout=5)
             last = None
-            for rec in sub:
+            for rec in (note.payload for note in sub):
                 last = rec
                 if rec["cycle"] >= 60:
                     break

@@ -37,14 +37,14 @@ def test_closed_loop_over_serial_records_every_stroke(tmp_path: Path) -> None:
         args = ["--driver", "serial", "--port", str(link), "--target", "12ms", "--period", "24ms"]
         daemon = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False))
         daemonproc.wait_serving(sock, daemon)
-        with Client(str(sock), timeout_ns=5_000 * MS) as c:
+        with Client(str(sock), timeout=5) as c:
             st = c.status()
         # On hardware the daemon starts idle: a motor never moves unasked.
         assert st["state"] == "idle" and st["driver"] == "serial"
-        with Client(str(sock), timeout_ns=30_000 * MS) as c:
+        with Client(str(sock), timeout=30) as c:
             c.start_cycling(24 * MS, STROKES)
-            with c.subscribe("stroke", timeout_ns=5_000 * MS) as sub:
-                for rec in sub:
+            with c.subscribe("stroke", timeout=5) as sub:
+                for rec in (note.payload for note in sub):
                     if rec["cycle"] >= STROKES:
                         break
             stats = c.stats()
@@ -81,10 +81,10 @@ def test_unplug_mid_run_faults_reconnects_and_loses_no_record(tmp_path: Path) ->
     daemon = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False))
     try:
         daemonproc.wait_serving(sock, daemon)
-        with Client(str(sock), timeout_ns=30_000 * MS) as c:
+        with Client(str(sock), timeout=30) as c:
             c.start_cycling(24 * MS, 0)
-            with c.subscribe("stroke", timeout_ns=5_000 * MS) as sub:
-                for rec in sub:
+            with c.subscribe("stroke", timeout=5) as sub:
+                for rec in (note.payload for note in sub):
                     if rec["cycle"] >= 30:
                         break
             link.unplug()

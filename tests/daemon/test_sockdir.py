@@ -108,7 +108,7 @@ def test_the_client_refuses_a_socket_owned_by_another_user(tmp_path: Path):
     try:
         os.chown(path, NOBODY, NOBODY)
         with pytest.raises(UntrustedSocketError) as info:
-            Client(str(path), timeout_ns=1_000_000_000)
+            Client(str(path), timeout=1)
         assert str(path) in str(info.value) and f"uid {NOBODY}" in str(info.value)
         os.chown(path, os.geteuid(), os.getegid())
         assert check_socket_owner(path) == os.geteuid()
@@ -162,7 +162,7 @@ def test_the_client_refuses_a_listener_running_as_another_user(tmp_path: Path):
         assert proc.stdout.readline().strip() == "listening"
         assert os.stat(path).st_uid == 0
         with pytest.raises(UntrustedSocketError, match=f"runs as .*uid {NOBODY}"):
-            Client(str(path), timeout_ns=2_000_000_000)
+            Client(str(path), timeout=2)
     finally:
         proc.kill()
         proc.wait(timeout=10)
@@ -173,9 +173,9 @@ def test_a_path_that_is_not_a_socket_is_refused(tmp_path: Path):
     f = tmp_path / "usmswitchd.sock"
     f.write_text("")
     with pytest.raises(UntrustedSocketError, match="not a socket"):
-        Client(str(f), timeout_ns=1_000_000_000)
+        Client(str(f), timeout=1)
     with pytest.raises(FileNotFoundError):
-        Client(str(tmp_path / "missing.sock"), timeout_ns=1_000_000_000)
+        Client(str(tmp_path / "missing.sock"), timeout=1)
 
 
 def test_a_rig_instance_socket_is_looked_for_after_usmswitch_socket() -> None:

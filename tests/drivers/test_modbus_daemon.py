@@ -38,7 +38,7 @@ def test_board_set_at_start_on_request_and_read_into_records(tmp_path: Path, boa
     proc, sock = start_daemon(tmp_path, board.port)
     try:
         assert (board.state.frequency_hz, board.state.voltage_vpp, board.state.enabled) == (40_500, 480, 1)
-        with Client(str(sock), timeout_ns=10_000 * MS) as c:
+        with Client(str(sock), timeout=10) as c:
             time.sleep(0.2)  # a poll or two
             rec = c.switch()
             assert rec["temperature_c"] == pytest.approx(31.25)
@@ -46,6 +46,9 @@ def test_board_set_at_start_on_request_and_read_into_records(tmp_path: Path, boa
             drive = c.set_drive(frequency_hz=39_800.0, voltage_vpp=500.0)
             assert drive["frequency_hz"] == 39_800.0 and drive["voltage_vpp"] == 500.0
             assert board.state.frequency_hz == 39_800
+            with pytest.raises(RpcError) as err:  # beyond what the board takes: the caller's error
+                c.set_drive(voltage_vpp=5000.0)
+            assert err.value.code == ErrorCode.INVALID_PARAMS and "5000" in err.value.message
             # The board stops answering: a logged fault, the daemon and its strokes carry on.
             board.state.hang = True
             with pytest.raises(RpcError) as err:

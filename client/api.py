@@ -1,0 +1,140 @@
+"""The daemon's methods as Python calls, shared by the blocking `Client` and the `AsyncClient`.
+
+Each method turns friendly arguments into the documented params (docs/protocol.md) and returns
+`self.call(...)`: the result for `Client`, an awaitable of it for `AsyncClient`. Durations are
+taken as text with a unit ("12ms", "10.5 ms") or integers of nanoseconds; a bare number in text
+is refused, so a target is never silently taken in the wrong unit.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from usmswitch.daemon.sockdir import client_socket_paths, rig_socket_path
+from usmswitch.daemon.units import parse_duration_ns
+
+from .types import CycleRecord, Cycling, RunInfo, Stats, Status, Targets
+
+#: A duration as the client takes it: "12ms", "10.5 ms", "250us", or integer nanoseconds.
+Duration = str | int
+
+
+def duration_ns(name: str, value: Duration) -> int:
+    """`value` in integer nanoseconds; ValueError naming the argument and the form it wants."""
+    if isinstance(value, float):
+        raise ValueError(
+            f"{name}={value!r}: a float has no unit; write text with one, e.g. '12ms', or integer ns"
+        )
+    try:
+        return parse_duration_ns(value)
+    except ValueError as exc:
+        raise ValueError(f"{name}: {exc}") from None
+
+
+def find_socket(rig: str | None = None, env: Mapping[str, str] | None = None) -> Path:
+    """The daemon's socket as `usmswitchctl` finds it: rig's instance when named, else the first
+    of $USMSWITCH_SOCKET, $USMSWITCH_RIG's instance, this user's daemon, the service's."""
+    if rig is not None:
+        return rig_socket_path(rig)
+    candidates = client_socket_paths(os.environ if env is None else env)
+    for path in candidates:
+        if path.exists():
+            return path
+    raise FileNotFoundError(
+        f"no daemon socket found (looked at {', '.join(map(str, candidates))}); "
+        "pass its path, or set USMSWITCH_SOCKET"
+    )
+
+
+class Api:
+    """The documented methods; a subclass provides `call(method, *params)`."""
+
+    def call(self, method: str, *params: Any) -> Any:  # pragma: no cover - the transports define it
+        raise NotImplementedError
+
+    def ping(self) -> str:
+        """Check that the daemon's server answers ("pong")."""
+        return self.call("ping")
+
+    def status(self) -> Status:
+        """State, mode, fault, driver, versions, uptime and targets."""
+        return self.call("status")
+
+    def get_target(self) -> Targets:
+        """The target total time T of each direction, in ns."""
+        return self.call("get_target")
+
+    def set_target(self, target: Duration, direction: str = "both", *, allow_late: bool = False) -> Targets:
+        """Set T ("12ms" or ns) for "on", "off" or "both", from the next armed stroke.
+
+        A target below what the rig reaches (its predicted stroke plus the loop's margin) is refused
+        with INVALID_PARAMS naming the shortest reachable one, unless `allow_late`.
+        """
+        target_ns = duration_ns("target", target)  # checked before anything is sent
+        return self.call("set_target", target_ns, direction, allow_late)
+
+    def stats(self, run: int | None = None, *, cycles: tuple[int, int] | None = None) -> Stats:
+        """Statistics of a run (default: the current or last one) or of cycles (first, last)."""
+        first, last = (None, None) if cycles is None else cycles
+        return self.call("stats", run, first, last)
+
+    def history(self, n: int = 20, run: int | None = None) -> list[CycleRecord]:
+        """The last `n` stroke records (of one run, or any), oldest first."""
+        return self.call("history", n, run)
+
+    def runs(self, n: int = 20) -> list[RunInfo]:
+        """The last `n` runs, oldest first."""
+        return self.call("runs", n)
+
+    def switch(self, direction: str = "next") -> CycleRecord:
+        """Make one stroke ("on", "off" or "next") and return its record once it has finished."""
+        return self.call("switch", direction)
+
+    def start_cycling(
+        self,
+        period: Duration,
+        count: int = 0,
+        *,
+        target: Duration | None = None,
+        allow_late: bool = False,
+    ) -> Cycling:
+        """Open a run: alternate on/off strokes every `period`, `count` of them (0: until stopped),
+        at `target` when given (else the current targets). Fails with STATE while cycling."""
+        period_ns = duration_ns("period", period)
+        target_ns = None if target is None else duration_ns("target", target)
+        return self.call("start_cycling", period_ns, count, target_ns, allow_late)
+
+    def stop_cycling(self) -> dict[str, Any]:
+        """Stop cycling after the stroke in progress; the reply carries the ended run."""
+        return self.call("stop_cycling")
+
+    def set_mode(self, mode: str, open_delay: Duration | None = None) -> dict[str, Any]:
+        """Closed loop ("closed": AR-predicted delay) or open loop ("open": a fixed delay)."""
+        if open_delay is None:
+            return self.call("set_mode", mode)
+        delay_ns = duration_ns("open_delay", open_delay)
+        return self.call("set_mode", mode, delay_ns)
+
+    def reset_fault(self) -> dict[str, Any]:
+        """Clear a latched FAULT so strokes may run again."""
+        return self.call("reset_fault")
+
+    def set_drive(
+        self,
+        *,
+        frequency_hz: float | None = None,
+        voltage_vpp: float | None = None,
+        enabled: bool | None = None,
+    ) -> dict[str, Any]:
+        """Set the drive board's excitation (only the given keys); returns the drive's state."""
+        settings: dict[str, Any] = {}
+        if frequency_hz is not None:
+            settings["frequency_hz"] = frequency_hz
+        if voltage_vpp is not None:
+            settings["voltage_vpp"] = voltage_vpp
+        if enabled is not None:
+            settings["enabled"] = enabled
+        return self.call("set_drive", settings)
