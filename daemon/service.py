@@ -32,7 +32,7 @@ from .logsetup import configure_logging
 from .loop import ControlLoop, State, direction_from_levels
 from .methods import start_rpc
 from .realtime import apply_realtime, lift_helpers
-from .record import CycleRecord, Flag
+from .record import CycleRecord, Flag, RunRecord
 from .records import RecordStore, RecordStoreError
 from .sdnotify import Notifier
 from .sockdir import ensure_private_dir, prepare_socket_dir
@@ -181,7 +181,7 @@ class Daemon:
             sink=self.store.submit,
             first_cycle=self.store.last_cycle() + 1,
             first_run_id=self.store.last_run_id() + 1,
-            run_sink=self.store.submit_run,
+            run_sink=self._on_run,
             next_direction=first_direction(self.daq, last_rec),
             conditions=conditions,
         )
@@ -330,6 +330,13 @@ class Daemon:
             "written": store.written,
             "error_count": store.error_count,
         }
+
+    def _on_run(self, run: RunRecord) -> None:
+        """A run opened or ended (loop thread): the stats snapshot first, then the record, so a
+        client told of the run's end by its notification already finds it ended in `stats`."""
+        self.refresh_snapshot()
+        assert self.store is not None
+        self.store.submit_run(run)
 
     def refresh_snapshot(self) -> None:
         """Hand the server process the statistics as of now (answered without waking the loop)."""

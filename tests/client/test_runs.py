@@ -76,6 +76,7 @@ def test_a_sweep_gets_each_targets_own_strokes_and_statistics(rig: Rig) -> None:
         assert {r["target_ns"] for r in strokes} == {target_ns}
         errors = [r["error_ns"] for r in strokes]
         assert stats["run"]["run_id"] == run.run_id and stats["all"]["strokes"] == 20
+        assert stats["run"]["end_reason"] == "done"  # told of the end, stats already shows it
         assert stats["all"]["error_std_ns"] == pytest.approx(statistics.stdev(errors), abs=0.1)
         assert stats["all"]["error_max_abs_ns"] == max(abs(e) for e in errors)
         seen_runs.add(run.run_id)
