@@ -3,10 +3,14 @@
  *
  *   usmswitch-avrsim --elf ELF --link PATH [--truth CSV] [--seed N] [--ppm N]
  *                    [--clock-start-us N] [--start-at A|B] [--python PY] [--helper SCRIPT]
+ *                    [--rt-priority N]
  *   usmswitch-avrsim --elf ELF --lockstep [...]     UART over stdin/stdout, time on command
  *
  * Real time (--link): emulated time is paced to the wall clock (scaled by --ppm, the crystal's
- * error); the UART is bridged to a pty whose slave gets a symlink at PATH.
+ * error); the UART is bridged to a pty whose slave gets a symlink at PATH. The emulated board is
+ * hardware of its own, not one more process of the host under test: where allowed it runs at
+ * SCHED_FIFO --rt-priority (default 60, above a daemon's loop at 50; 0: do not ask), else at
+ * nice -10, so that the host's load cannot make emulated time fall behind the wall clock.
  * Lockstep: as fast as the CPU goes, time advancing only on command; the UART's bytes are
  * exchanged on stdin/stdout. Commands on stdin (both modes, one a line):
  *   send HEX     bytes to the firmware's UART (lockstep)
@@ -32,6 +36,7 @@
 #include <libelf.h>
 #include <math.h>
 #include <poll.h>
+#include <sched.h>
 #include <signal.h>
 #include <stdarg.h>
 #include <stdint.h>
@@ -67,6 +72,7 @@ static avr_t *avr;
 static int fix_bugs = 1;
 static int lockstep;
 static double ppm;
+static int rt_priority = 60;
 static uint32_t clock_start_us;
 static uint16_t clock_ovf_addr;
 static avr_cycle_count_t origin_cycle, max_lag; /* cycle of the firmware's TCNT4 = 0 */
@@ -665,6 +671,8 @@ int main(int argc, char **argv)
             seed = atoi(v);
         else if (ARG("--ppm"))
             ppm = atof(v);
+        else if (ARG("--rt-priority"))
+            rt_priority = atoi(v);
         else if (ARG("--clock-start-us"))
             clock_start_us = (uint32_t)strtoul(v, NULL, 0);
         else if (ARG("--start-at"))
@@ -675,7 +683,8 @@ int main(int argc, char **argv)
             fix_bugs = 0;
         else
             die("usage: %s --elf ELF (--link PATH | --lockstep) [--truth CSV] [--seed N] [--ppm N] "
-                "[--clock-start-us N] [--start-at A|B] [--python PY] [--helper SCRIPT] [--emulator-bugs]",
+                "[--clock-start-us N] [--start-at A|B] [--python PY] [--helper SCRIPT] [--rt-priority N] "
+                "[--emulator-bugs]",
                 argv[0]);
     }
     if (!elf || (!link_path[0] && !lockstep))
@@ -738,11 +747,19 @@ int main(int argc, char **argv)
     signal(SIGPIPE, SIG_IGN);
     signal(SIGTERM, on_signal);
     signal(SIGINT, on_signal);
-    if (!lockstep && setpriority(PRIO_PROCESS, 0, -10) == 0)
+    if (!lockstep) {
         /* The emulated board is hardware of its own, not one more process of the host: where
-         * allowed (root, CAP_SYS_NICE), it and its rig model (a child, which inherits this) get
-         * ahead of the host's load, so emulated time keeps pace with the wall clock. */
-        fprintf(stderr, "usmswitch-avrsim: running at nice -10\n");
+         * allowed (root, CAP_SYS_NICE) it and its rig model (a child, which inherits this) run
+         * ahead of the host's load, so emulated time keeps pace with the wall clock. Under
+         * SCHED_OTHER, even at nice -10, a loaded 2-core machine left it 40 ms behind at times:
+         * the firmware's frames then came that late, and a host timed them out as stalls. It
+         * sleeps between interrupts, so the priority costs the host little CPU. */
+        struct sched_param sp = {.sched_priority = rt_priority};
+        if (rt_priority > 0 && sched_setscheduler(0, SCHED_FIFO, &sp) == 0)
+            fprintf(stderr, "usmswitch-avrsim: running at SCHED_FIFO %d\n", rt_priority);
+        else if (setpriority(PRIO_PROCESS, 0, -10) == 0)
+            fprintf(stderr, "usmswitch-avrsim: running at nice -10\n");
+    }
     helper_start(python, helper, seed, start_at);
     helper_ask("init");
     drive_sensor_pins();
