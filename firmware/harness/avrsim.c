@@ -21,13 +21,19 @@
  * --truth CSV gets a row per stroke: stroke,direction,start_us,depart_us,arrive_us,off_us,
  * cut_ns (arrival edge to drive off), on the firmware's microsecond clock, from emulator cycles.
  *
- * simavr 1.6 (Debian bookworm) gets four corrections here, none in the firmware (--emulator-bugs
+ * simavr 1.6 (Debian bookworm) gets these corrections here, none in the firmware (--emulator-bugs
  * leaves them out, for the test that shows each one):
  *  1. a write to TIFRn cleared every pending flag of the timer, not only the bits written as 1;
  *  2. SEI and RETI enabled interrupts two instructions late instead of one;
  *  3. FOCnx (force output compare) was ignored;
  *  4. in normal mode the OCnx pin was set or cleared at every overflow as in PWM modes: the
- *     drive pin here is the harness's own model of the OC4A latch and the COM4A mux.
+ *     drive pin here is the harness's own model of the OC4A latch and the COM4A mux;
+ *  5. GTCCR's TSM (prescaler halt) was ignored: timers zeroed one instruction apart while the
+ *     prescaler was halted counted a few cycles apart, so ICR5 stamps were a tick behind ICR4's
+ *     (1 us off in one edge of six); when the firmware releases TSM the harness restarts timers 4
+ *     and 5 from the values written to them meanwhile, as the chip starts them together;
+ *  (and the sensor pins are driven as the port's external state: simavr let the internal pull-up
+ *  override a line the sensor pulls low).
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -63,6 +69,7 @@
 #define A_TCCR4A 0xA0
 #define A_TCCR4C 0xA2
 #define A_TCNT4L 0xA4
+#define A_TCNT5L 0x124
 #define A_GTCCR 0x43
 #define BIT_FOC4A 7
 /* Real time: the longest sleep once emulated time has caught up with the wall clock. */
@@ -327,15 +334,51 @@ static void w_watch(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
     drive_update(); /* simavr's own handler has stored the value */
 }
 
-/* The firmware zeroes TCNT4 (its clock's origin) and releases the prescaler. */
+/* Correction 5: TSM. While GTCCR.TSM holds the prescaler, a counter written keeps its value;
+ * simavr counts on. The values written to TCNT4 and TCNT5 meanwhile are kept here, and both
+ * counters restart from them, through simavr's own write handlers, when TSM is released. */
+static int tsm_on;
+static int tcnt_held[2];
+static uint16_t tcnt_written[2];
+
+static void hold_tcnt(int i, avr_io_addr_t addr, uint8_t v)
+{
+    if (tsm_on) {
+        tcnt_held[i] = 1;
+        tcnt_written[i] = (uint16_t)(v | (avr->data[addr + 1] << 8));
+    }
+}
+
+/* The firmware zeroes TCNT4 (its clock's origin) and releases the prescaler: the origin is where
+ * timer 4 starts counting from zero. */
 static void w_tcnt4l(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
 {
     (void)a;
-    (void)addr;
     (void)param;
+    hold_tcnt(0, addr, v);
     if (v == 0 && avr->data[A_TCNT4L + 1] == 0) {
         origin_cycle = avr->cycle;
         origin_set = 1;
+    }
+}
+
+static void w_tcnt5l(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
+{
+    (void)a;
+    (void)param;
+    hold_tcnt(1, addr, v);
+}
+
+static void restart_tcnt(void)
+{
+    static const avr_io_addr_t lo[2] = {A_TCNT4L, A_TCNT5L};
+    for (int i = 1; i >= 0; i--) { /* timer 4 last: its handler sets the origin here */
+        if (!tcnt_held[i])
+            continue;
+        tcnt_held[i] = 0;
+        avr_io_addr_t io = AVR_DATA_TO_IO(lo[i]);
+        avr->data[lo[i] + 1] = (uint8_t)(tcnt_written[i] >> 8);
+        avr->io[io].w.c(avr, lo[i], (uint8_t)tcnt_written[i], avr->io[io].w.param);
     }
 }
 
@@ -344,6 +387,10 @@ static void w_gtccr(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
     (void)a;
     (void)param;
     avr->data[addr] = v;
+    int released = tsm_on && !(v & 0x80);
+    tsm_on = fix_bugs && (v & 0x80);
+    if (released)
+        restart_tcnt();
     if (!(v & 0x80) && clock_ovf_addr) { /* TSM released: the clock starts; preset its high part */
         uint32_t ovf = clock_start_us / 32768u;
         for (int i = 0; i < 4; i++)
@@ -620,6 +667,7 @@ static int stdin_command(char *line)
         printf("unplugged\n");
     } else if (strncmp(line, "replug", 6) == 0) {
         avr_reset(avr);
+        tsm_on = tcnt_held[0] = tcnt_held[1] = 0;
         oc4a_latch = 0;
         origin_set = 0;
         drive_update();
@@ -723,6 +771,7 @@ int main(int argc, char **argv)
     avr_register_io_write(avr, A_TCCR4A, w_watch, NULL);
     avr_register_io_write(avr, A_PORTH, w_watch, NULL);
     avr_register_io_write(avr, A_TCNT4L, w_tcnt4l, NULL);
+    avr_register_io_write(avr, A_TCNT5L, w_tcnt5l, NULL);
     avr_register_io_write(avr, A_GTCCR, w_gtccr, NULL);
 
     uint32_t flags = 0;

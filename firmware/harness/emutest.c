@@ -4,7 +4,9 @@
  *   "sei N": N = bits of GPIOR0 set before a pending interrupt was taken after SEI (1 is right:
  *   exactly one instruction after SEI runs first);
  *   "foc done" after FOC4A with COM4A = set, which must drive OC4A high (the harness reports
- *   the drive pin: "drive 1").
+ *   the drive pin: "drive 1");
+ *   "tsm ok" if timers 4 and 5, zeroed 5 ticks apart while GTCCR.TSM halts the prescaler, count
+ *   in lockstep once it is released, "tsm bug" if timer 5 lags.
  */
 #include <avr/interrupt.h>
 #include <avr/io.h>
@@ -65,6 +67,22 @@ int main(void)
     TCCR4A = _BV(COM4A1) | _BV(COM4A0);
     TCCR4C = _BV(FOC4A);
     put("foc done\n"); /* the harness prints "drive 1" if OC4A went high */
+
+    /* 4. TSM: halt the prescaler, zero timer 4, wait 40 cycles (5 ticks at clk/8), zero timer 5,
+     * release: both start together, so reading them back to back gives the same tick (or the next
+     * one, as the reads are 2 cycles apart). */
+    TCCR4A = 0; /* OC4A back to the port: the drive pin goes low */
+    TCCR5A = 0;
+    GTCCR = _BV(TSM) | _BV(PSRSYNC);
+    TCCR4B = _BV(CS41);
+    TCCR5B = _BV(CS51);
+    TCNT4 = 0;
+    __builtin_avr_delay_cycles(40);
+    TCNT5 = 0;
+    GTCCR = 0;
+    uint8_t t4 = TCNT4L;
+    uint8_t t5 = TCNT5L;
+    put((uint8_t)(t5 - t4) <= 1 ? "tsm ok\n" : "tsm bug\n");
 
     while (!(UCSR0A & _BV(TXC0)))
         ;
