@@ -668,6 +668,12 @@ static int stdin_command(char *line)
     } else if (strncmp(line, "replug", 6) == 0) {
         avr_reset(avr);
         tsm_on = tcnt_held[0] = tcnt_held[1] = 0;
+        /* The sensors go on pulling their lines through the MCU's reset. simavr's reset cleared
+         * PINL but not the pins' IRQ values, and it passes a pin change on only when the value
+         * changes: toggle each line to put its level back (capture is off after a reset). */
+        for (int ch = 0; ch < 2; ch++)
+            avr_raise_irq(sensor_irq[ch], sensor_active[ch] ? 1 : 0);
+        drive_sensor_pins();
         oc4a_latch = 0;
         origin_set = 0;
         drive_update();
