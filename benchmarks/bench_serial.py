@@ -19,7 +19,8 @@ import time
 
 from benchmarks.table import print_table
 from usmswitch.drivers import Direction, EventKind
-from usmswitch.drivers.mcu import McuDaq, Transport, TransportLost
+from usmswitch.drivers.mcu import McuDaq
+from usmswitch.drivers.mcu_link import Transport, TransportLost
 from usmswitch.drivers.mcu_protocol import (
     Ack,
     Arm,

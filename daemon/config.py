@@ -14,20 +14,43 @@ from __future__ import annotations
 import copy
 import grp
 import os
-import re
 import tomllib
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
-from socket import gethostname
 from types import MappingProxyType
 from typing import Any
 
 from usmswitch.predictor import MAX_ORDER, MODELS, check_stroke_ns, min_samples
 from usmswitch.sim import FaultPlan
 
+from .config_values import (
+    ConfigError,
+    Table,
+    bool_value,
+    choice,
+    cpu_list,
+    default_rig,
+    duration,
+    duration_at_most,
+    duration_in,
+    duration_text,
+    file_mode_value,
+    nonempty_text,
+    order_value,
+    parse_host_port,
+    parse_modbus_url,
+    path_value,
+    positive_duration,
+    positive_duration_at_most,
+    positive_float,
+    rig_name,
+    show,
+    table_int,
+    text_value,
+)
 from .sockdir import default_socket_path
-from .units import UNITS_NS, format_ns, parse_duration_ns
+from .units import format_ns
 
 DRIVERS = ("sim", "serial", "usb")
 SIM_CLOCKS = ("real", "virtual")
@@ -46,16 +69,6 @@ MAX_DEBOUNCE_NS = 10_000_000
 MODBUS_PARITIES = ("E", "O", "N")
 MIN_MODBUS_TIMEOUT_NS = 10_000_000
 MAX_MODBUS_TIMEOUT_NS = 10_000_000_000
-# The socket's mode may give the group read and write, never anything to others or any execute bit.
-SOCKET_MODE_ALLOWED = 0o660
-
-
-class ConfigError(ValueError):
-    """A bad configuration value; the message starts with the key ("control.window: ...")."""
-
-    def __init__(self, key: str, message: str) -> None:
-        super().__init__(f"{key}: {message}" if key else message)
-        self.key = key
 
 
 # -- default paths ---------------------------------------------------------------------------------
@@ -325,56 +338,21 @@ def _set_dotted(raw: dict[str, Any], key: str, value: Any) -> None:
     node[parts[-1]] = value
 
 
-class _Table:
-    """One TOML table being read: typed getters that name the key, and a check for unknown keys."""
-
-    def __init__(self, raw: Any, name: str) -> None:
-        if not isinstance(raw, dict):
-            raise ConfigError(name, f"expected a table, got {_show(raw)}")
-        self.raw = raw
-        self.name = name
-        self.seen: set[str] = set()
-
-    def key(self, k: str) -> str:
-        return f"{self.name}.{k}" if self.name else k
-
-    def has(self, k: str) -> bool:
-        self.seen.add(k)
-        return k in self.raw
-
-    def get(self, k: str, parse: Callable[[str, Any], Any], default: Any) -> Any:
-        self.seen.add(k)
-        if k not in self.raw:
-            return default
-        return parse(self.key(k), self.raw[k])
-
-    def table(self, k: str) -> _Table:
-        self.seen.add(k)
-        return _Table(self.raw.get(k, {}), self.key(k))
-
-    def done(self) -> None:
-        unknown = sorted(set(self.raw) - self.seen)
-        if unknown:
-            known = ", ".join(sorted(self.seen))
-            where = f"in [{self.name}]" if self.name else "sections"
-            raise ConfigError(self.key(unknown[0]), f"unknown key (known {where}: {known})")
-
-
 def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
-    top = _Table(raw, "")
+    top = Table(raw, "")
     t = top.table("driver")
     s, u = t.table("serial"), t.table("usb")
     driver = DriverConfig(
-        kind=t.get("kind", _choice(DRIVERS), "sim"),
-        debounce_ns=t.get("debounce", _duration_max(MAX_DEBOUNCE_NS), 100_000),
+        kind=t.get("kind", choice(DRIVERS), "sim"),
+        debounce_ns=t.get("debounce", duration_at_most(MAX_DEBOUNCE_NS), 100_000),
         serial=SerialConfig(
-            port=s.get("port", _nonempty_str, SerialConfig.port),
-            baudrate=_t_int(s, "baudrate", SerialConfig.baudrate, 50, 20_000_000),
+            port=s.get("port", nonempty_text, SerialConfig.port),
+            baudrate=table_int(s, "baudrate", SerialConfig.baudrate, 50, 20_000_000),
         ),
         usb=UsbConfig(
-            vid=_t_int(u, "vid", UsbConfig.vid, 0, 0xFFFF),
-            pid=_t_int(u, "pid", UsbConfig.pid, 0, 0xFFFF),
-            serial=u.get("serial", _str, ""),
+            vid=table_int(u, "vid", UsbConfig.vid, 0, 0xFFFF),
+            pid=table_int(u, "pid", UsbConfig.pid, 0, 0xFFFF),
+            serial=u.get("serial", text_value, ""),
         ),
     )
     s.done()
@@ -383,11 +361,11 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
 
     t = top.table("daemon")
     daemon = DaemonConfig(
-        state_dir=t.get("state_dir", _path, default_state_dir(env, sim=driver.kind == "sim")),
-        log_format=t.get("log_format", _choice(LOG_FORMATS), "auto"),
-        log_level=t.get("log_level", _choice(LOG_LEVELS), "info"),
-        summary_interval_ns=t.get("summary_interval", _duration_pos, 5_000_000_000),
-        rig=t.get("rig", _rig_name, None) or _default_rig(),
+        state_dir=t.get("state_dir", path_value, default_state_dir(env, sim=driver.kind == "sim")),
+        log_format=t.get("log_format", choice(LOG_FORMATS), "auto"),
+        log_level=t.get("log_level", choice(LOG_LEVELS), "info"),
+        summary_interval_ns=t.get("summary_interval", positive_duration, 5_000_000_000),
+        rig=t.get("rig", rig_name, None) or default_rig(),
     )
     t.done()
 
@@ -399,8 +377,8 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     except ValueError as exc:
         raise ConfigError("sim.faults", str(exc)) from None
     sim = SimConfig(
-        clock=t.get("clock", _choice(SIM_CLOCKS), "real"),
-        seed=_t_int(t, "seed", 1, 0, 2**64 - 1),
+        clock=t.get("clock", choice(SIM_CLOCKS), "real"),
+        seed=table_int(t, "seed", 1, 0, 2**64 - 1),
         faults=MappingProxyType(copy.deepcopy(faults)),
     )
     t.done()
@@ -409,9 +387,9 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
 
     t = top.table("cycle")
     cycle = CycleConfig(
-        autostart=t.get("autostart", _bool, None),
-        period_ns=t.get("period", _duration_pos, 50_000_000),
-        count=_t_int(t, "count", 0, 0, None),
+        autostart=t.get("autostart", bool_value, None),
+        period_ns=t.get("period", positive_duration, 50_000_000),
+        count=table_int(t, "count", 0, 0, None),
     )
     longest = max(control.target_on_ns, control.target_off_ns)
     if cycle.period_ns <= longest:
@@ -423,11 +401,11 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     t.done()
 
     t = top.table("realtime")
-    prio = _t_int(t, "sched_fifo_priority", 0, 0, 99)
+    prio = table_int(t, "sched_fifo_priority", 0, 0, 99)
     realtime = RealtimeConfig(
         sched_fifo_priority=prio,
-        cpu_affinity=t.get("cpu_affinity", _cpu_list, ()),
-        mlockall=t.get("mlockall", _bool, False),
+        cpu_affinity=t.get("cpu_affinity", cpu_list, ()),
+        mlockall=t.get("mlockall", bool_value, False),
     )
     t.done()
 
@@ -437,16 +415,16 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     return Config(daemon, driver, sim, control, cycle, realtime, socket, modbus)
 
 
-def _control(t: _Table) -> ControlConfig:
+def _control(t: Table) -> ControlConfig:
     d = ControlConfig()
-    target_ns = _duration_pos_max(MAX_TARGET_NS)
+    target_ns = positive_duration_at_most(MAX_TARGET_NS)
     target = t.get("target", target_ns, None)
     on = t.get("target_on", target_ns, target if target is not None else d.target_on_ns)
     off = t.get("target_off", target_ns, target if target is not None else d.target_off_ns)
-    model = t.get("model", _choice(MODELS), d.model)
-    order = t.get("order", _order, d.order)
-    max_order = _t_int(t, "max_order", d.max_order, 1, MAX_ORDER)
-    window = _t_int(t, "window", d.window, 1, 1_000_000)
+    model = t.get("model", choice(MODELS), d.model)
+    order = t.get("order", order_value, d.order)
+    max_order = table_int(t, "max_order", d.max_order, 1, MAX_ORDER)
+    window = table_int(t, "window", d.window, 1, 1_000_000)
     if order == "auto":
         need = min_samples(max_order, model)
         if window < need:
@@ -460,14 +438,14 @@ def _control(t: _Table) -> ControlConfig:
             raise ConfigError(t.key("window"), f"{window} is less than order + 2 = {order + 2}")
         if t.has("max_order") and max_order < order:
             raise ConfigError(t.key("max_order"), f"{max_order} is less than order = {order}")
-    nominal = t.get("nominal", _duration_pos, d.nominal_ns)
+    nominal = t.get("nominal", positive_duration, d.nominal_ns)
     try:
         check_stroke_ns(nominal)
     except ValueError as exc:
         raise ConfigError(t.key("nominal"), str(exc)) from None
     # More than the window would be read and thrown away: take what the predictor can hold.
-    warm = min(_t_int(t, "warm_start", d.warm_start, 0, None), window)
-    timeout = t.get("stroke_timeout", _duration_pos, d.stroke_timeout_ns)
+    warm = min(table_int(t, "warm_start", d.warm_start, 0, None), window)
+    timeout = t.get("stroke_timeout", positive_duration, d.stroke_timeout_ns)
     if timeout <= nominal:
         raise ConfigError(
             t.key("stroke_timeout"),
@@ -477,8 +455,8 @@ def _control(t: _Table) -> ControlConfig:
     cfg = ControlConfig(
         target_on_ns=on,
         target_off_ns=off,
-        mode=t.get("mode", _choice(MODES), d.mode),
-        open_delay_ns=t.get("open_delay", _duration_max(MAX_TARGET_NS), d.open_delay_ns),
+        mode=t.get("mode", choice(MODES), d.mode),
+        open_delay_ns=t.get("open_delay", duration_at_most(MAX_TARGET_NS), d.open_delay_ns),
         model=model,
         order=order,
         max_order=max_order,
@@ -486,22 +464,22 @@ def _control(t: _Table) -> ControlConfig:
         nominal_ns=nominal,
         warm_start=warm,
         stroke_timeout_ns=timeout,
-        late_margin_ns=t.get("late_margin", _duration, d.late_margin_ns),
+        late_margin_ns=t.get("late_margin", duration, d.late_margin_ns),
     )
     t.done()
     return cfg
 
 
-def _socket(t: _Table, env: Mapping[str, str]) -> SocketConfig:
-    mode = t.get("mode", _file_mode, 0o660)
-    group = t.get("group", _str, "")
+def _socket(t: Table, env: Mapping[str, str]) -> SocketConfig:
+    mode = t.get("mode", file_mode_value, 0o660)
+    group = t.get("group", text_value, "")
     if group:
         try:
             grp.getgrnam(group)
         except KeyError:
             raise ConfigError(t.key("group"), f"no group named {group!r} on this system") from None
-    tcp = t.get("tcp", _str, "")
-    token = t.get("tcp_token", _str, "")
+    tcp = t.get("tcp", text_value, "")
+    token = t.get("tcp_token", text_value, "")
     if tcp:
         try:
             parse_host_port(tcp)
@@ -515,35 +493,33 @@ def _socket(t: _Table, env: Mapping[str, str]) -> SocketConfig:
                 f"{len(token)} characters is too short to resist guessing (>= {MIN_TOKEN_CHARS})",
             )
     cfg = SocketConfig(
-        path=t.get("path", _path, default_socket_path(env)),
+        path=t.get("path", path_value, default_socket_path(env)),
         mode=mode,
         group=group,
         tcp=tcp,
         tcp_token=token,
-        max_clients=_t_int(t, "max_clients", SocketConfig.max_clients, 1, 4096),
-        max_tcp_clients=_t_int(t, "max_tcp_clients", SocketConfig.max_tcp_clients, 1, 1024),
+        max_clients=table_int(t, "max_clients", SocketConfig.max_clients, 1, 4096),
+        max_tcp_clients=table_int(t, "max_tcp_clients", SocketConfig.max_tcp_clients, 1, 1024),
     )
     t.done()
     return cfg
 
 
-def _modbus(t: _Table) -> ModbusConfig:
-    url = t.get("url", _str, ModbusConfig.url)
+def _modbus(t: Table) -> ModbusConfig:
+    url = t.get("url", text_value, ModbusConfig.url)
     try:
         parse_modbus_url(url)
     except ValueError as exc:
         raise ConfigError(t.key("url"), str(exc)) from None
     cfg = ModbusConfig(
-        enabled=t.get("enabled", _bool, False),
+        enabled=t.get("enabled", bool_value, False),
         url=url,
-        unit=_t_int(t, "unit", 1, 0, 247),
-        parity=t.get("parity", _choice(MODBUS_PARITIES), ModbusConfig.parity),
-        timeout_ns=t.get(
-            "timeout", _duration_range(MIN_MODBUS_TIMEOUT_NS, MAX_MODBUS_TIMEOUT_NS), 200_000_000
-        ),
-        frequency_hz=t.get("frequency_hz", _positive_float, ModbusConfig.frequency_hz),
-        voltage_vpp=t.get("voltage_vpp", _positive_float, ModbusConfig.voltage_vpp),
-        poll_interval_ns=t.get("poll_interval", _duration_pos, ModbusConfig.poll_interval_ns),
+        unit=table_int(t, "unit", 1, 0, 247),
+        parity=t.get("parity", choice(MODBUS_PARITIES), ModbusConfig.parity),
+        timeout_ns=t.get("timeout", duration_in(MIN_MODBUS_TIMEOUT_NS, MAX_MODBUS_TIMEOUT_NS), 200_000_000),
+        frequency_hz=t.get("frequency_hz", positive_float, ModbusConfig.frequency_hz),
+        voltage_vpp=t.get("voltage_vpp", positive_float, ModbusConfig.voltage_vpp),
+        poll_interval_ns=t.get("poll_interval", positive_duration, ModbusConfig.poll_interval_ns),
         registers=t.get("registers", _register_map, MappingProxyType({})),
     )
     t.done()
@@ -552,7 +528,7 @@ def _modbus(t: _Table) -> ModbusConfig:
 
 def _register_map(key: str, v: Any) -> Mapping[str, Any]:
     if not isinstance(v, Mapping):
-        raise ConfigError(key, f"expected a table of registers, got {_show(v)}")
+        raise ConfigError(key, f"expected a table of registers, got {show(v)}")
     from usmswitch.drivers.modbus_board import RegisterMap  # pymodbus only when a map is given
 
     try:
@@ -560,213 +536,6 @@ def _register_map(key: str, v: Any) -> Mapping[str, Any]:
     except ValueError as exc:
         raise ConfigError(key, str(exc)) from None
     return MappingProxyType({k: dict(spec) for k, spec in v.items()})
-
-
-# -- endpoint strings ------------------------------------------------------------------------------
-def parse_host_port(text: str) -> tuple[str, int]:
-    """Split "127.0.0.1:7770" or "[::1]:7770" into host and port (0 = any free port)."""
-    host, sep, port = text.rpartition(":")
-    if not sep or not host or not port.isdigit():
-        raise ValueError(f"{text!r} is not host:port (e.g. '127.0.0.1:7770')")
-    if host.startswith("[") and host.endswith("]"):
-        host = host[1:-1]
-    if not 0 <= int(port) <= 65535:
-        raise ValueError(f"{text!r}: port {port} is outside 0..65535")
-    return host, int(port)
-
-
-def parse_modbus_url(url: str) -> tuple[str, str, int]:
-    """Split "tcp:host:port" or "rtu:/dev/tty...:baudrate" into (kind, host or device, port or baudrate)."""
-    kind, sep, rest = url.partition(":")
-    if not sep or kind not in ("tcp", "rtu"):
-        raise ValueError(f"{url!r} is not 'tcp:host:port' or 'rtu:/dev/ttyX:baudrate'")
-    if kind == "tcp":
-        try:
-            host, port = parse_host_port(rest)
-        except ValueError as exc:
-            raise ValueError(f"{url!r}: {exc}") from None
-        if port == 0:
-            raise ValueError(f"{url!r}: port 0 is not a Modbus server's port")
-        return kind, host, port
-    device, sep, baud = rest.rpartition(":")
-    if not sep or not device.startswith("/") or not baud.isdigit() or int(baud) <= 0:
-        raise ValueError(f"{url!r} is not 'rtu:/dev/ttyX:baudrate' (e.g. 'rtu:/dev/ttyUSB1:19200')")
-    return kind, device, int(baud)
-
-
-# -- value parsers: each gets the key for its message ------------------------------------------------
-def _show(v: Any) -> str:
-    return f"{v!r} ({type(v).__name__})"
-
-
-def _str(key: str, v: Any) -> str:
-    if not isinstance(v, str):
-        raise ConfigError(key, f"expected text, got {_show(v)}")
-    return v
-
-
-def _nonempty_str(key: str, v: Any) -> str:
-    if not _str(key, v):
-        raise ConfigError(key, "must not be empty")
-    return v
-
-
-def _bool(key: str, v: Any) -> bool:
-    if not isinstance(v, bool):
-        raise ConfigError(key, f"expected true or false, got {_show(v)}")
-    return v
-
-
-def _int(key: str, v: Any, lo: int, hi: int | None) -> int:
-    # Text is refused, even "100": a quoted number in the file is a mistake worth naming (the
-    # command line's integer flags are converted by argparse before they get here).
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise ConfigError(key, f"expected an integer, got {_show(v)}")
-    if v < lo or (hi is not None and v > hi):
-        bound = f">= {lo}" if hi is None else f"in {lo}..{hi}"
-        raise ConfigError(key, f"{v} is outside the allowed range ({bound})")
-    return v
-
-
-def _t_int(t: _Table, k: str, default: int, lo: int, hi: int | None) -> int:
-    return t.get(k, lambda key, v: _int(key, v, lo, hi), default)
-
-
-def _positive_float(key: str, v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        raise ConfigError(key, f"expected a number, got {_show(v)}")
-    if not v > 0 or v == float("inf"):
-        raise ConfigError(key, f"{v} must be a positive finite number")
-    return float(v)
-
-
-def _duration(key: str, v: Any) -> int:
-    if isinstance(v, int) and not isinstance(v, bool) and v != 0:
-        # A bare number is ambiguous (12 meant as ms would be a 12 ns target): only 0 is safe.
-        raise ConfigError(
-            key, f'{v} has no unit: write "{v}ms" (or "{v}us", "{v}s", "{v}ns": text with a unit)'
-        )
-    try:
-        return parse_duration_ns(v)
-    except ValueError as exc:
-        raise ConfigError(key, str(exc)) from None
-
-
-def _duration_pos(key: str, v: Any) -> int:
-    ns = _duration(key, v)
-    if ns == 0:
-        raise ConfigError(key, f"{v!r} must be longer than 0")
-    return ns
-
-
-def _duration_max(limit_ns: int, positive: bool = False) -> Callable[[str, Any], int]:
-    def parse(key: str, v: Any) -> int:
-        ns = _duration_pos(key, v) if positive else _duration(key, v)
-        if ns > limit_ns:
-            raise ConfigError(key, f"{duration_text(ns)} is longer than the limit {duration_text(limit_ns)}")
-        return ns
-
-    return parse
-
-
-def _duration_range(lo_ns: int, hi_ns: int) -> Callable[[str, Any], int]:
-    def parse(key: str, v: Any) -> int:
-        ns = _duration(key, v)
-        if not lo_ns <= ns <= hi_ns:
-            raise ConfigError(
-                key, f"{duration_text(ns)} is outside {duration_text(lo_ns)}..{duration_text(hi_ns)}"
-            )
-        return ns
-
-    return parse
-
-
-def _duration_pos_max(limit_ns: int) -> Callable[[str, Any], int]:
-    return _duration_max(limit_ns, positive=True)
-
-
-def duration_text(ns: int) -> str:
-    """Integer ns as the exact text the loader reads back, in the largest unit that divides it."""
-    for unit in ("s", "ms", "us"):
-        scale = UNITS_NS[unit]
-        if ns % scale == 0:
-            return f"{ns // scale}{unit}"
-    return f"{ns}ns"
-
-
-def _default_rig() -> str:
-    return gethostname() or "localhost"
-
-
-def _rig_name(key: str, v: Any) -> str:
-    name = _str(key, v).strip()
-    if not name:
-        raise ConfigError(key, "must not be empty (unset it to use the host name)")
-    if len(name) > 64 or not name.isprintable():
-        raise ConfigError(key, f"{v!r} is not a printable name of at most 64 characters")
-    return name
-
-
-def _choice(choices: tuple[str, ...]) -> Callable[[str, Any], str]:
-    def parse(key: str, v: Any) -> str:
-        if v not in choices:
-            raise ConfigError(key, f"{v!r} is not one of {', '.join(repr(c) for c in choices)}")
-        return v
-
-    return parse
-
-
-def _order(key: str, v: Any) -> int | str:
-    if v == "auto":
-        return v
-    if isinstance(v, str):
-        raise ConfigError(key, f"{v!r} is not an order 1..{MAX_ORDER} or 'auto'")
-    return _int(key, v, 1, MAX_ORDER)
-
-
-def _path(key: str, v: Any) -> Path:
-    if isinstance(v, Path):
-        v = str(v)
-    if not _str(key, v):
-        raise ConfigError(key, "must not be empty")
-    return Path(v).expanduser().absolute()
-
-
-def _file_mode(key: str, v: Any) -> int:
-    if isinstance(v, str):
-        if not re.fullmatch(r"(0o?)?[0-7]{1,4}", v.strip()):
-            raise ConfigError(key, f"{v!r} is not an octal file mode like 0o660")
-        v = int(v.strip().removeprefix("0o"), 8)
-    m = _int(key, v, 0, 0o777)
-    if m & 0o600 != 0o600:
-        raise ConfigError(key, f"{oct(m)} leaves the daemon's own user without read and write")
-    if m & ~SOCKET_MODE_ALLOWED:
-        raise ConfigError(
-            key,
-            f"{oct(m)} is looser than {oct(SOCKET_MODE_ALLOWED)}: others may get nothing and nobody"
-            " execute (anyone who can connect can stop the rig)",
-        )
-    return m
-
-
-def existing_cpus() -> frozenset[int]:
-    """The CPU numbers this machine has (those the process may run on, and every configured one)."""
-    cpus = set(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else set()
-    return frozenset(cpus | set(range(os.cpu_count() or 1)))
-
-
-def _cpu_list(key: str, v: Any) -> tuple[int, ...]:
-    if not isinstance(v, list):
-        raise ConfigError(key, f"expected a list of CPU numbers like [2, 3], got {_show(v)}")
-    cpus = tuple(_int(f"{key}[{i}]", c, 0, 4095) for i, c in enumerate(v))
-    if len(set(cpus)) != len(cpus):
-        raise ConfigError(key, f"{list(cpus)} names a CPU twice")
-    have = existing_cpus()
-    missing = [c for c in cpus if c not in have]
-    if missing:
-        listed = ", ".join(map(str, sorted(have)))
-        raise ConfigError(key, f"CPU {missing[0]} does not exist on this machine (CPUs: {listed})")
-    return cpus
 
 
 def _section_to_dict(obj: Any) -> dict[str, Any]:
@@ -810,10 +579,6 @@ __all__ = [
     "UsbConfig",
     "apply_overrides",
     "default_state_dir",
-    "duration_text",
-    "existing_cpus",
     "load_config",
     "overrides_from",
-    "parse_host_port",
-    "parse_modbus_url",
 ]

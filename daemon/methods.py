@@ -17,7 +17,8 @@ from typing import Any, Protocol
 
 from usmswitch.drivers import Daq, DaqError, Direction
 
-from .config import Config, parse_host_port
+from .config import Config
+from .config_values import parse_host_port
 from .estop_socket import EstopSocket
 from .loop import ControlLoop, LoopError, Mode, State
 from .record import CycleRecord, RunRecord

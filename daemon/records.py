@@ -37,97 +37,23 @@ from urllib.parse import quote
 import structlog
 
 from .realtime import drop_realtime
-from .record import FIELDS, RUN_FIELDS, SOURCE_FIELDS, UNUSABLE, CycleRecord, RunRecord
+from .record import UNUSABLE, CycleRecord, RunRecord
+from .records_schema import (
+    INSERT_CYCLE,
+    INSERT_EVENT,
+    MIGRATIONS,
+    READABLE_VERSIONS,
+    SCHEMA,
+    SCHEMA_VERSION,
+    SELECT_BY_VERSION,
+    SELECT_CYCLES,
+    UPSERT_RUN,
+)
 
 log = structlog.get_logger("usmswitch.records")
 
-SCHEMA_VERSION = 3
-#: Versions this code reads; a writer migrates an older file to SCHEMA_VERSION at open.
-READABLE_VERSIONS = (1, 2, 3)
 #: How often an idle writer checks that its file is still the one at its path.
 FILE_CHECK_NS = 200_000_000
-
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta (
-    key TEXT PRIMARY KEY,
-    value TEXT NOT NULL
-) WITHOUT ROWID;
-CREATE TABLE IF NOT EXISTS cycles (
-    cycle INTEGER PRIMARY KEY CHECK (cycle >= 1),
-    direction INTEGER NOT NULL CHECK (direction IN (0, 1)),
-    mode TEXT NOT NULL CHECK (mode IN ('closed', 'open')),
-    target_ns INTEGER NOT NULL,
-    "order" INTEGER NOT NULL,
-    coefficients TEXT NOT NULL,
-    t_hat_ns INTEGER NOT NULL,
-    delay_ns INTEGER NOT NULL CHECK (delay_ns >= 0),
-    t_cmd_ns INTEGER NOT NULL,
-    t_start_ns INTEGER,
-    t_depart_ns INTEGER,
-    t_arrive_ns INTEGER,
-    operating_ns INTEGER,
-    total_ns INTEGER,
-    error_ns INTEGER,
-    dead_ns INTEGER,
-    lateness_ns INTEGER,
-    temperature_c REAL,
-    frequency_hz REAL,
-    flags INTEGER NOT NULL DEFAULT 0,
-    wall_ns INTEGER NOT NULL,
-    driver TEXT,
-    rig TEXT,
-    run_id INTEGER
-);
-CREATE INDEX IF NOT EXISTS cycles_direction ON cycles (direction, cycle);
-CREATE INDEX IF NOT EXISTS cycles_source ON cycles (driver, rig, direction, cycle);
-CREATE INDEX IF NOT EXISTS cycles_run ON cycles (run_id, cycle);
-CREATE TABLE IF NOT EXISTS runs (
-    run_id INTEGER PRIMARY KEY CHECK (run_id >= 1),
-    kind TEXT NOT NULL,
-    first_cycle INTEGER NOT NULL,
-    started_wall_ns INTEGER NOT NULL,
-    settings TEXT NOT NULL,
-    last_cycle INTEGER,
-    ended_wall_ns INTEGER,
-    end_reason TEXT,
-    driver TEXT,
-    rig TEXT
-);
-CREATE TABLE IF NOT EXISTS events (
-    id INTEGER PRIMARY KEY,
-    wall_ns INTEGER NOT NULL,
-    after_cycle INTEGER,
-    kind TEXT NOT NULL,
-    data TEXT NOT NULL
-);
-CREATE INDEX IF NOT EXISTS events_kind ON events (kind, id);
-"""
-
-_COLUMNS = ", ".join(f'"{f}"' for f in FIELDS)
-_INSERT_CYCLE = f"INSERT INTO cycles ({_COLUMNS}) VALUES ({', '.join('?' * len(FIELDS))})"
-_INSERT_EVENT = "INSERT INTO events (wall_ns, after_cycle, kind, data) VALUES (?, ?, ?, ?)"
-_SELECT_CYCLES = f"SELECT {_COLUMNS} FROM cycles"
-
-
-def _select_without(missing: tuple[str, ...]) -> str:
-    """The cycles SELECT for an older file (read-only): the columns it lacks read as NULL."""
-    return "SELECT {} FROM cycles".format(
-        ", ".join(f'NULL AS "{f}"' if f in missing else f'"{f}"' for f in FIELDS)
-    )
-
-
-# What an older file (opened read-only) lacks, by its schema version.
-_SELECT_BY_VERSION = {1: _select_without((*SOURCE_FIELDS, "run_id")), 2: _select_without(("run_id",))}
-_UPSERT_RUN = "INSERT INTO runs ({}) VALUES ({}) ON CONFLICT (run_id) DO UPDATE SET {}".format(
-    ", ".join(RUN_FIELDS),
-    ", ".join("?" * len(RUN_FIELDS)),
-    ", ".join(f"{f} = excluded.{f}" for f in RUN_FIELDS if f != "run_id"),
-)
-# Migrations, each from the version before. Old rows keep NULL ("unknown" source, no run).
-_MIGRATIONS = {
-    2: "ALTER TABLE cycles ADD COLUMN driver TEXT; ALTER TABLE cycles ADD COLUMN rig TEXT;",
-    3: "ALTER TABLE cycles ADD COLUMN run_id INTEGER;",
-}
 
 _EVENT_KIND = re.compile(r"^[a-z][a-z0-9_]{0,31}$")
 _EVENT_RESERVED = frozenset({"id", "wall_ns", "after_cycle", "kind"})
@@ -179,7 +105,7 @@ class RecordStore:
             raise ValueError(f"file_mode {oct(file_mode)} has bits beyond read and write")
         self._file_mode = file_mode
         self._identity: tuple[int, int] | None = None  # (st_dev, st_ino) of the file the writer opened
-        self._select = _SELECT_CYCLES
+        self._select = SELECT_CYCLES
         self.schema_version = SCHEMA_VERSION
         if synchronous.upper() not in ("OFF", "NORMAL", "FULL", "EXTRA"):
             raise ValueError(f"synchronous must be OFF, NORMAL, FULL or EXTRA, got {synchronous!r}")
@@ -227,7 +153,7 @@ class RecordStore:
             self._writer = None
             self._closed = True  # nothing may be submitted to a read-only store
             self.schema_version = self._check_schema(self._reader())
-            self._select = _SELECT_BY_VERSION.get(self.schema_version, _SELECT_CYCLES)
+            self._select = SELECT_BY_VERSION.get(self.schema_version, SELECT_CYCLES)
             return
         self._writer = self._open_writer(synchronous.upper())
         row = self._writer.execute("SELECT max(cycle) FROM cycles").fetchone()
@@ -512,7 +438,7 @@ class RecordStore:
         """An older file brought to SCHEMA_VERSION in one transaction, every row kept: the columns
         added since read NULL (unknown source, no run)."""
         rows = conn.execute("SELECT count(*) FROM cycles").fetchone()[0]
-        steps = " ".join(_MIGRATIONS[v] for v in range(version + 1, SCHEMA_VERSION + 1))
+        steps = " ".join(MIGRATIONS[v] for v in range(version + 1, SCHEMA_VERSION + 1))
         conn.executescript(
             f"BEGIN IMMEDIATE; {steps}"
             f" UPDATE meta SET value = '{SCHEMA_VERSION}' WHERE key = 'schema_version'; COMMIT;"
@@ -721,7 +647,7 @@ class RecordStore:
         try:
             conn.execute("SAVEPOINT batch")
             try:
-                conn.executemany(_INSERT_CYCLE, cycles)
+                conn.executemany(INSERT_CYCLE, cycles)
                 rejected: list[int] = []
             except (sqlite3.IntegrityError, OverflowError):
                 # One bad row (a duplicate cycle, a CHECK, an int past 64 bits) fails the statement
@@ -731,9 +657,9 @@ class RecordStore:
                 rejected = self._insert_one_by_one(conn, cycles)
             conn.execute("RELEASE batch")
             if events:
-                conn.executemany(_INSERT_EVENT, events)
+                conn.executemany(INSERT_EVENT, events)
             if runs:
-                conn.executemany(_UPSERT_RUN, runs)
+                conn.executemany(UPSERT_RUN, runs)
             conn.execute("COMMIT")
         except BaseException:
             if conn.in_transaction:
@@ -778,7 +704,7 @@ class RecordStore:
         rejected: list[int] = []
         for row in rows:
             try:
-                conn.execute(_INSERT_CYCLE, row)
+                conn.execute(INSERT_CYCLE, row)
             except (sqlite3.IntegrityError, OverflowError) as exc:
                 rejected.append(row[0])
                 self.last_error = f"cycle {row[0]} rejected: {exc}"

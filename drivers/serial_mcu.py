@@ -24,7 +24,8 @@ from urllib.parse import parse_qs
 
 import serial
 
-from .mcu import McuDaq, Transport, TransportLost
+from .mcu import McuDaq
+from .mcu_link import Transport, TransportLost
 
 log = logging.getLogger(__name__)
 

@@ -15,7 +15,8 @@ from typing import Any
 import usb.core
 import usb.util
 
-from .mcu import McuDaq, Transport, TransportLost
+from .mcu import McuDaq
+from .mcu_link import Transport, TransportLost
 
 log = logging.getLogger(__name__)
 

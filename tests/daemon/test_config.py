@@ -16,8 +16,8 @@ from usmswitch.daemon.config import (
     apply_overrides,
     default_state_dir,
     load_config,
-    parse_modbus_url,
 )
+from usmswitch.daemon.config_values import parse_modbus_url
 from usmswitch.daemon.sockdir import client_socket_paths, default_socket_path
 
 ENV = {"HOME": "/home/lab", "XDG_RUNTIME_DIR": "/run/user/1000"}
