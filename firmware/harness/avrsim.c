@@ -82,7 +82,8 @@ static double ppm;
 static int rt_priority = 60;
 static uint32_t clock_start_us;
 static uint16_t clock_ovf_addr;
-static avr_cycle_count_t origin_cycle, max_lag; /* cycle of the firmware's TCNT4 = 0 */
+static avr_cycle_count_t origin_cycle; /* cycle of the firmware's TCNT4 = 0 */
+static avr_cycle_count_t max_lag, max_lag_at; /* the worst lag behind the wall clock, and when */
 static int origin_set;
 
 static void die(const char *fmt, ...)
@@ -844,8 +845,10 @@ int main(int argc, char **argv)
             double now = wall_s();
             avr_cycle_count_t target = c0 + (avr_cycle_count_t)((now - w0) * f_eff());
             /* At most 200 us of emulated time between two looks at the pty. */
-            if (target > avr->cycle && target - avr->cycle > max_lag)
+            if (target > avr->cycle && target - avr->cycle > max_lag) {
                 max_lag = target - avr->cycle;
+                max_lag_at = avr->cycle;
+            }
             avr_cycle_count_t chunk = avr->cycle + 3200;
             run_until(target < chunk ? target : chunk);
             pty_io();
@@ -878,8 +881,8 @@ int main(int argc, char **argv)
         }
         pty_unplug();
         /* How far emulated time fell behind the wall clock at worst (a slow or starved host). */
-        fprintf(stderr, "usmswitch-avrsim: max lag %.0f us, %lu bytes dropped\n", (double)max_lag * 1e6 / f_eff(),
-                dropped_bytes);
+        fprintf(stderr, "usmswitch-avrsim: max lag %.0f us (at %.3f s of emulated time), %lu bytes dropped\n",
+                (double)max_lag * 1e6 / f_eff(), (double)max_lag_at / f_eff(), dropped_bytes);
     }
     if (truth)
         fclose(truth);

@@ -57,6 +57,7 @@ def test_closed_loop_on_the_firmware_in_simavr(avrsim: Path, firmware_elf: Path,
                     if rec["cycle"] >= STROKES:
                         break
             stats = c.stats()
+            counters = c.status()["driver_counters"]
     finally:
         if daemon is not None:
             err = daemonproc.stop(daemon)
@@ -78,6 +79,10 @@ def test_closed_loop_on_the_firmware_in_simavr(avrsim: Path, firmware_elf: Path,
     assert [r[0] for r in rows] == list(range(1, STROKES + 1))
     assert len(truth) == STROKES  # one drive-on per recorded stroke, none unasked
     assert stats["all"]["stalls"] == 0 and stats["all"]["faults"] == 0
+    # No lost frame: none missing by sequence number, none damaged, no stroke rebuilt from its report.
+    lost = {k: counters[k] for k in ("lost_frames", "crc_errors", "framing_errors", "format_errors",
+                                  "recovered_strokes", "unrecovered_strokes", "disconnects")}  # fmt: skip
+    assert not any(lost.values()), lost
 
     def us_diff(a: str, b: str) -> int:
         return (int(a) - int(b)) % U32
