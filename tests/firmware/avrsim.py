@@ -82,3 +82,9 @@ class FirmwareDevice:
 
     def run(self, us: int) -> list[tuple[int, Message]]:
         return self.decoder.feed(self.sim.run(us))
+
+
+def since_us(t_us: int, t0_us: int) -> int:
+    """Signed microseconds from t0_us to t_us on the protocol's 32-bit clock."""
+    d = (t_us - t0_us) % (1 << 32)
+    return d - (1 << 32) if d >= 1 << 31 else d

@@ -9,7 +9,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from avrsim import FirmwareDevice, Lockstep
+from avrsim import FirmwareDevice, Lockstep, since_us
 
 from usmswitch.drivers import mcu_protocol as mp
 from usmswitch.drivers.mcu_protocol import FrameDecoder, Message, cobs_encode, crc16, encode_frame
@@ -239,6 +239,25 @@ def test_bounce_is_reported_edge_by_edge(device: Device) -> None:
     b_edges = [m for m in got if isinstance(m, mp.Edge) and m.channel == 1]
     assert stopped.reason == mp.StopReason.ARRIVED and stopped.t_us == b_edges[0].t_us
     assert 0 < (b_edges[2].t_us - b_edges[0].t_us) % U32 < 1000  # the chatter is tens of us
+
+
+@pytest.mark.parametrize("delay_us", [40_000, 1_000_000])
+def test_delays_over_timer_periods_start_on_time(device: Device, delay_us: int) -> None:
+    """Past one 16-bit period (32.768 ms at 0.5 us ticks), up to max_delay_us (30 periods): the
+    start falls in the right period, on the tick."""
+    hello = _hello(device, watchdog_ms=5000)
+    t_cmd = (hello.t_us + 3000) % U32
+    device.send(mp.Arm(1, 0, delay_us, 100_000), 1)
+    device.send(mp.Command(1, t_cmd, 1), 2)
+    got = _msgs(device.run(delay_us + 20_000))
+    due = (t_cmd + delay_us) % U32
+    (start,) = [m for m in got if isinstance(m, mp.Start)]
+    assert start.late_us == 0 and abs(since_us(start.t_us, due)) <= 1, (start, due)
+    (stroke,) = [m for m in got if isinstance(m, mp.Stroke)]
+    assert stroke.flags & mp.StrokeFlags.ARRIVED and not stroke.flags & mp.StrokeFlags.LATE
+    if isinstance(device, Firmware):  # the drive pin itself, from emulator cycles
+        (on_us,) = [fw_us for level, _, fw_us in device.sim.drive if level == 1]
+        assert abs(since_us(on_us, due)) <= 1, (on_us, due)
 
 
 def test_clock_wrap_inside_a_stroke(make_device: Callable[..., Device]) -> None:

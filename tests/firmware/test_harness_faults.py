@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from avrsim import FirmwareDevice, Lockstep
+from avrsim import FirmwareDevice, Lockstep, since_us
 
 from usmswitch.drivers import DaqDisconnected, Direction, EventKind, FaultCode
 from usmswitch.drivers.events import Channel
@@ -58,15 +58,9 @@ def test_clock_error_in_ppm_is_on_the_firmware_timebase(avrsim: Path, firmware_e
     assert plan.depart_ns is not None and plan.arrive_ns is not None
     scale = 1 + ppm * 1e-6  # the firmware's microseconds per physical microsecond
     for fw_us, phys_ns in ((stroke.t_depart_us, plan.depart_ns), (stroke.t_arrive_us, plan.arrive_ns)):
-        on_firmware = _since(fw_us, on_fw_us)
+        on_firmware = since_us(fw_us, on_fw_us)
         assert abs(on_firmware - (phys_ns - t_on_ns) * scale / 1000) <= 1, (ppm, on_firmware, phys_ns)
-    assert abs(_since(start.t_us, on_fw_us)) <= 1  # START is stamped at the drive's instant
-
-
-def _since(t_us: int, t0_us: int) -> int:
-    """Signed microseconds from t0_us to t_us on the 32-bit clock."""
-    d = (t_us - t0_us) % U32
-    return d - U32 if d >= U32 // 2 else d
+    assert abs(since_us(start.t_us, on_fw_us)) <= 1  # START is stamped at the drive's instant
 
 
 def _truth(path: Path) -> list[dict[str, str]]:
