@@ -164,6 +164,24 @@ def test_retransmitted_command_and_late_start(device: Device) -> None:
     assert stroke.flags & mp.StrokeFlags.LATE and stroke.flags & mp.StrokeFlags.ARRIVED
 
 
+def test_requests_during_a_stroke_are_busy(device: Device) -> None:
+    _hello(device, watchdog_ms=5000)
+    device.send(mp.Arm(1, 0, 1000, 100_000), 1)
+    device.send(mp.Command(1, 0, 0), 2)
+    first = _msgs(device.run(4000))  # started 1 ms in: about 3 ms into a stroke of 8 ms or more
+    kinds = [type(m).__name__ for m in first]
+    assert "Start" in kinds and "Stroke" not in kinds, kinds
+    device.send(mp.Arm(2, 1, 1000, 100_000), 3)
+    device.send(mp.Command(2, 0, 0), 4)
+    got = _msgs(device.run(30_000))
+    assert [(m.acked_seq, m.status, m.stroke) for m in got if isinstance(m, mp.Ack)] == [
+        (3, mp.Status.BUSY, 2),
+        (4, mp.Status.BUSY, 2),
+    ]
+    (stroke,) = [m for m in got if isinstance(m, mp.Stroke)]
+    assert stroke.stroke == 1 and stroke.flags & mp.StrokeFlags.ARRIVED  # the running one goes on
+
+
 def test_watchdog_stops_a_stroke(device: Device) -> None:
     hello = _hello(device, watchdog_ms=20)
     device.send(mp.Arm(4, 0, 200_000, 100_000), 1)  # starts 200 ms on: the watchdog acts first
