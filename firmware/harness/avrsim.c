@@ -49,6 +49,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/prctl.h>
 #include <sys/resource.h>
 #include <sys/wait.h>
 #include <termios.h>
@@ -803,6 +804,8 @@ int main(int argc, char **argv)
     signal(SIGPIPE, SIG_IGN);
     signal(SIGTERM, on_signal);
     signal(SIGINT, on_signal);
+    /* A harness whose parent (a test, a bench) dies goes too, rather than run on unattended. */
+    prctl(PR_SET_PDEATHSIG, SIGTERM);
     if (!lockstep) {
         /* The emulated board is hardware of its own, not one more process of the host: where
          * allowed (root, CAP_SYS_NICE) it and its rig model (a child, which inherits this) run

@@ -59,14 +59,17 @@ def test_closed_loop_on_the_firmware_in_simavr(avrsim: Path, firmware_elf: Path,
             stats = c.stats()
             counters = c.status()["driver_counters"]
     finally:
-        if daemon is not None:
-            err = daemonproc.stop(daemon)
-            # On a failure pytest shows this: the daemon's warnings say what went wrong.
-            print("\n".join(ln for ln in err.decode().splitlines() if '"level": "INFO"' not in ln)[-6000:])
-            assert daemon.returncode == 0, err.decode()[-3000:]
-        sim.terminate()
-        _, sim_err = sim.communicate(timeout=10)
-        print(sim_err.decode()[-2000:])
+        try:
+            if daemon is not None:
+                err = daemonproc.stop(daemon)
+                # On a failure pytest shows this: the daemon's warnings say what went wrong.
+                warnings = [ln for ln in err.decode().splitlines() if '"level": "INFO"' not in ln]
+                print("\n".join(warnings)[-6000:])
+                assert daemon.returncode == 0, err.decode()[-3000:]
+        finally:  # the harness goes whatever the daemon did (it was left running when it failed)
+            sim.terminate()
+            _, sim_err = sim.communicate(timeout=10)
+            print(sim_err.decode()[-2000:])
     con = sqlite3.connect(tmp_path / "state" / "records.sqlite")
     rows = list(
         con.execute(
