@@ -316,7 +316,10 @@ class SimDaq(Daq):
             level = self._planned_level(ch, tg)
             width = frng.randint(p.glitch_width_min_ns, p.glitch_width_max_ns)
             self._push_at(tg, Event.edge(tg, ch, 1 - level))
-            self._push_at(tg + width, Event.edge(tg + width, ch, level))
+            # The pulse ends at the line's true level then: when the real edge came during the
+            # pulse (an arrival inside it), the line stays where the mover put it.
+            if self._planned_level(ch, tg + width) == level:
+                self._push_at(tg + width, Event.edge(tg + width, ch, level))
         if "disconnect" in faults:
             self._push_at(frng.randint(now + 1, max(end_t, now + 2)), _DISCONNECT)
         if self.realtime:

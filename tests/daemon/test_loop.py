@@ -100,7 +100,7 @@ def test_every_stroke_is_recorded_with_consistent_fields() -> None:
 
 
 def test_delay_follows_eq7_and_a_short_target_is_late_not_negative() -> None:
-    loop, daq, recs = make_loop(target_ns=8 * MS)  # shorter than any stroke
+    loop, daq, recs = make_loop(target_ns=6 * MS)  # shorter than any stroke
     loop.run_cycles(40 * MS, 50)
     for r in recs:
         assert r.delay_ns == 0

@@ -27,8 +27,9 @@ def test_open_loop_500_strokes_like_fig6(strokes, per_direction):
     ops = np.array(run[1], dtype=float)
     by_dir = per_direction(run)
     floor = max(daq.model.innovation_floor_ns(d) for d in Direction)
-    # Mean stroke 10-11 ms at 40 kHz / 500 Vpp / 25 C ambient.
-    assert 10e6 <= ops.mean() <= 11e6, ops.mean()
+    # Mean stroke 8-8.8 ms at 40 kHz / 500 Vpp / 25 C ambient: below the paper's fixed 10.5 ms
+    # (its reliability run left time to delay every start, Sec. 6), with room for the drift.
+    assert 8e6 <= ops.mean() <= 8.8e6, ops.mean()
     # Highly dispersed: the whole series' std is at least 3x what no predictor can remove.
     assert ops.std() >= 3 * floor, (ops.std(), floor)
     # Visible drift: the motor warms, and each direction wanders slowly rather than scattering:

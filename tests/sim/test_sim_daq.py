@@ -64,7 +64,7 @@ def test_a_stroke_is_start_depart_arrive_on_a_virtual_clock(daq):
     assert (arrive.kind, arrive.channel, arrive.level) == (EventKind.EDGE, B, 1)
     dead = daq.model.dead_time_ns(ON)
     assert cmd.t_start_ns + dead < depart.t_ns < cmd.t_start_ns + dead + 2_000_000
-    assert 9_000_000 < arrive.t_ns - cmd.t_start_ns < 12_000_000
+    assert 7_500_000 < arrive.t_ns - cmd.t_start_ns < 10_500_000
     # The clock jumped to each event, then waited out the base's settle debounce, no further.
     settled = arrive.t_ns + daq.debounce_ns
     assert daq.now_ns() == settled
@@ -279,7 +279,8 @@ def test_spurious_glitch():
         seen["short" if n == 2 else "long"] += 1
         assert n in (2, 4)
         direction = direction.opposite
-    assert daq.glitches == seen["short"] > 5 and seen["long"] > 5
+    # A pulse that meets a real edge merges with it (chatter, counted as a bounce), not a glitch.
+    assert daq.glitches + daq.bounces == seen["short"] > 5 and seen["long"] > 5
 
 
 def test_scheduled_disconnect_mid_stroke_and_reconnect():
