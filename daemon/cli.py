@@ -52,6 +52,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sim-clock", choices=("real", "virtual"), help="sim.clock")
     p.add_argument("--priority", type=int, help="realtime.sched_fifo_priority (0 = off)")
     p.add_argument(
+        "--postgres",
+        metavar="URL",
+        help="records.postgres_url: also ship the records to this database (postgresql://...)",
+    )
+    p.add_argument(
+        "--metrics",
+        metavar="HOST:PORT",
+        help="metrics.listen: serve the Prometheus page (a bare port: loopback)",
+    )
+    p.add_argument(
         "--check-config", action="store_true", help="validate, print the merged config as JSON, exit"
     )
     return p

@@ -39,6 +39,7 @@ from .config_values import (
     nonempty_text,
     order_value,
     parse_host_port,
+    parse_listen,
     parse_modbus_url,
     path_value,
     positive_duration,
@@ -49,6 +50,7 @@ from .config_values import (
     table_int,
     text_value,
 )
+from .pg_schema import check_url, redact_url
 from .sockdir import default_socket_path
 from .units import format_ns
 
@@ -208,6 +210,20 @@ class ModbusConfig:
 
 
 @dataclass(frozen=True)
+class RecordsConfig:
+    """[records]: copies of the records beyond this machine (the local SQLite file stays the source)."""
+
+    postgres_url: str = ""  # "" = no shipping; "postgresql://usmswitch@db.lab/usmswitch"
+
+
+@dataclass(frozen=True)
+class MetricsConfig:
+    """[metrics]: the Prometheus page."""
+
+    listen: str = ""  # "" = no page; "127.0.0.1:9817" (a bare port listens on loopback)
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole configuration, one frozen dataclass per TOML section."""
 
@@ -219,6 +235,8 @@ class Config:
     realtime: RealtimeConfig
     socket: SocketConfig
     modbus: ModbusConfig
+    records: RecordsConfig = field(default_factory=RecordsConfig)
+    metrics: MetricsConfig = field(default_factory=MetricsConfig)
 
     @property
     def autostart(self) -> bool:
@@ -231,11 +249,13 @@ class Config:
         """The configuration as a TOML-shaped dict of plain values (durations as exact text with a
         unit, "12ms"): loads back as is.
 
-        `redact=True` hides the TCP token, for logs and the status reply.
+        `redact=True` hides the TCP token and the database password, for logs and the status reply.
         """
         out = _section_to_dict(self)
         if redact and out["socket"]["tcp_token"]:
             out["socket"]["tcp_token"] = "<redacted>"
+        if redact:
+            out["records"]["postgres_url"] = redact_url(out["records"]["postgres_url"])
         return out
 
 
@@ -288,6 +308,8 @@ OVERRIDE_KEYS: dict[str, str] = {
     "seed": "sim.seed",
     "sim_clock": "sim.clock",
     "priority": "realtime.sched_fifo_priority",
+    "postgres": "records.postgres_url",
+    "metrics": "metrics.listen",
 }
 
 
@@ -411,8 +433,37 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
 
     socket = _socket(top.table("socket"), env)
     modbus = _modbus(top.table("modbus"))
+
+    t = top.table("records")
+    records = RecordsConfig(postgres_url=t.get("postgres_url", postgres_url, ""))
+    t.done()
+    t = top.table("metrics")
+    metrics = MetricsConfig(listen=t.get("listen", listen_address, ""))
+    t.done()
     top.done()
-    return Config(daemon, driver, sim, control, cycle, realtime, socket, modbus)
+    return Config(daemon, driver, sim, control, cycle, realtime, socket, modbus, records, metrics)
+
+
+def postgres_url(key: str, v: Any) -> str:
+    """records.postgres_url: "" (off) or a postgresql:// URL naming a database."""
+    url = text_value(key, v)
+    if url:
+        try:
+            check_url(url)
+        except ValueError as exc:
+            raise ConfigError(key, str(exc)) from None
+    return url
+
+
+def listen_address(key: str, v: Any) -> str:
+    """metrics.listen: "" (off), "host:port", or a bare port (on loopback)."""
+    text = text_value(key, v)
+    if text:
+        try:
+            parse_listen(text)
+        except ValueError as exc:
+            raise ConfigError(key, str(exc)) from None
+    return text
 
 
 def _control(t: Table) -> ControlConfig:
@@ -571,8 +622,10 @@ __all__ = [
     "CycleConfig",
     "DaemonConfig",
     "DriverConfig",
+    "MetricsConfig",
     "ModbusConfig",
     "RealtimeConfig",
+    "RecordsConfig",
     "SerialConfig",
     "SimConfig",
     "SocketConfig",

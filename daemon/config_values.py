@@ -78,6 +78,13 @@ def parse_host_port(text: str) -> tuple[str, int]:
     return host, int(port)
 
 
+def parse_listen(text: str) -> tuple[str, int]:
+    """A listening address: "host:port" as parse_host_port, or a bare port meaning loopback."""
+    if text.isdigit():
+        text = f"127.0.0.1:{text}"
+    return parse_host_port(text)
+
+
 def parse_modbus_url(url: str) -> tuple[str, str, int]:
     """Split "tcp:host:port" or "rtu:/dev/tty...:baudrate" into (kind, host or device, port or baudrate)."""
     kind, sep, rest = url.partition(":")

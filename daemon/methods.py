@@ -18,9 +18,10 @@ from typing import Any, Protocol
 from usmswitch.drivers import Daq, DaqError, Direction
 
 from .config import Config
-from .config_values import parse_host_port
+from .config_values import parse_host_port, parse_listen
 from .estop_socket import EstopSocket
 from .loop import ControlLoop, LoopError, Mode, State
+from .metrics import FEEDS
 from .record import CycleRecord, RunRecord
 from .records import RecordStore
 from .rpc import RpcServer
@@ -104,7 +105,15 @@ class Methods:
             "cycle": loop.cycle,
             "target_on_ns": loop.targets[Direction.ON],
             "target_off_ns": loop.targets[Direction.OFF],
+            "metrics_url": self._metrics_url(),
         }
+
+    def _metrics_url(self) -> str | None:
+        address = None if self.server is None else self.server.metrics_address
+        if address is None:
+            return None
+        host, port = address
+        return f"http://[{host}]:{port}/metrics" if ":" in host else f"http://{host}:{port}/metrics"
 
     def get_target(self, params: list[Any]) -> dict[str, int]:
         return self._targets()
@@ -380,6 +389,8 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         topics=("stroke", "state", "run"),
         snapshot_methods=("stats",),
         snapshot_finishers={"stats": "usmswitch.daemon.stats:finish_snapshot"},
+        feeds=FEEDS if daemon.config.metrics.listen else (),
+        metrics=parse_listen(daemon.config.metrics.listen) if daemon.config.metrics.listen else None,
         limits=Limits(max_connections=cfg.max_clients, max_tcp_connections=cfg.max_tcp_clients),
     )
     server.start()

@@ -69,6 +69,8 @@ class RpcServer:
     return its result directly. `urgent_path` binds a socket that takes only these and ping, with
     its own connection limit, so a flood on the main socket cannot lock an estop out.
     `records_path` lets the server process answer `history` from the records file itself.
+    `feeds` are snapshots the server process keeps for itself, never answered as methods (the
+    metrics page's figures); `metrics` (host, port) binds the TCP socket it serves that page on.
     """
 
     def __init__(
@@ -87,6 +89,8 @@ class RpcServer:
         topics: Iterable[str] = ("stroke", "state"),
         snapshot_methods: Iterable[str] = (),
         snapshot_finishers: Mapping[str, str] | None = None,
+        feeds: Iterable[str] = (),
+        metrics: tuple[str, int] | None = None,
         isolation: str = "process",
         nice: int = 5,
         max_restarts: int = 5,
@@ -123,6 +127,14 @@ class RpcServer:
         self.handlers = dict(handlers)
         self.urgent = urgent
         self.snapshot_methods = frozenset(snapshot_methods)
+        self.feeds = frozenset(feeds)
+        if self.feeds & (self.snapshot_methods | set(self.handlers) | set(urgent)):
+            raise ValueError(f"feeds {sorted(self.feeds)} must not be method names")
+        if metrics is not None and not self.feeds:
+            raise ValueError("metrics needs the feeds its page is made from")
+        self.metrics = metrics
+        #: Where the metrics page listens once started (the port resolved when 0 was asked).
+        self.metrics_address: tuple[str, int] | None = None
         #: method -> "module:function" the server process applies to that snapshot before serving it.
         self.snapshot_finishers = dict(snapshot_finishers or {})
         if set(self.snapshot_finishers) - self.snapshot_methods:
@@ -180,6 +192,10 @@ class RpcServer:
                 tsock = socket.create_server(self.tcp, backlog=128)
                 self.tcp_address = tsock.getsockname()[:2]
                 self._listeners.append((tsock, "tcp"))
+            if self.metrics is not None:
+                msock = _bind_tcp(self.metrics, "metrics page")
+                self.metrics_address = msock.getsockname()[:2]
+                self._listeners.append((msock, "metrics"))
             self._link = self._spawn()
         except BaseException:
             self._close_listeners()
@@ -209,9 +225,10 @@ class RpcServer:
         O(1), never blocks; snapshots set faster than they are sent coalesce to the latest. Those
         set before `start()` are served from the first request; later ones a moment after the call.
         """
-        if method not in self.snapshot_methods:
+        if method not in self.snapshot_methods and method not in self.feeds:
             raise ValueError(
-                f"{method!r} is not in snapshot_methods ({', '.join(sorted(self.snapshot_methods))})"
+                f"{method!r} is not in snapshot_methods or feeds"
+                f" ({', '.join(sorted(self.snapshot_methods | self.feeds))})"
             )
         self._snaps[method] = result
         if method not in self._snap_pending:
@@ -315,6 +332,7 @@ class RpcServer:
             "urgent": sorted(self.urgent),
             "records_path": None if self.records_path is None else str(self.records_path),
             "snapshot_methods": sorted(self.snapshot_methods),
+            "feeds": sorted(self.feeds),
             "finishers": self.snapshot_finishers,
             "topics": list(self.topics),
             "lost": self.lost,
@@ -551,6 +569,17 @@ class RpcServer:
         else:
             result = fut.result()
         self._out.put(("resp", gen, fid, error, result))
+
+
+def _bind_tcp(address: tuple[str, int], what: str) -> socket.socket:
+    """A listening TCP socket on (host, port), IPv6 for a host with a colon; errors name `what`."""
+    family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
+    try:
+        return socket.create_server(address, family=family, backlog=128)
+    except OSError as exc:
+        host, port = address
+        where = f"[{host}]:{port}" if family == socket.AF_INET6 else f"{host}:{port}"
+        raise OSError(exc.errno, f"cannot listen for the {what} on {where}: {exc.strerror}") from exc
 
 
 def _resolve_group(group: str | int | None) -> int | None:

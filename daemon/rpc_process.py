@@ -59,6 +59,8 @@ _TRUE = packb(True)
 
 #: Listener kinds of the server process: the Unix socket and TCP (the estop socket is the daemon's).
 _KINDS = ("unix", "tcp")
+#: The HTTP listener of the metrics page (daemon/metrics_page.py), also bound by the daemon.
+_METRICS = "metrics"
 # A refused or timed-out connection is half-closed and kept this long (at most this many at once)
 # so that the client reads the reason instead of a reset.
 _LINGER_S = 0.5
@@ -643,6 +645,11 @@ async def _serve(
     await loop.connect_accepted_socket(lambda: _Channel(hub, urgent=True), sock=urgent_chan)
     servers = []
     for sock, kind in listeners:
+        if kind == _METRICS:
+            from .metrics_page import serve_metrics  # prometheus_client: only with a metrics page
+
+            servers.append(await serve_metrics(sock, lambda: (hub.snaps, hub.counts)))
+            continue
         # create_server, not create_unix_server: the latter unlinks the path on close (3.13+),
         # and the socket file belongs to the daemon, which outlives this process.
         servers.append(await loop.create_server(lambda kind=kind: _Conn(hub, kind), sock=sock))
@@ -697,7 +704,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--channel", type=int, required=True, help="fd of the socketpair to the daemon")
     parser.add_argument("--urgent-channel", type=int, required=True, help="fd of the estop socketpair")
     parser.add_argument(
-        "--listen", action="append", default=[], help="FD:unix, FD:tcp or FD:urgent, a listening socket"
+        "--listen", action="append", default=[], help="FD:unix, FD:tcp or FD:metrics, a listening socket"
     )
     parser.add_argument("--nice", type=int, default=0)
     args = parser.parse_args(argv)
@@ -712,8 +719,8 @@ def main(argv: list[str] | None = None) -> int:
     listeners = []
     for spec in args.listen:
         fd, _, kind = spec.partition(":")
-        if kind not in _KINDS or not fd.isdigit():
-            parser.error(f"--listen must be FD:unix, FD:tcp or FD:urgent, got {spec!r}")
+        if kind not in (*_KINDS, _METRICS) or not fd.isdigit():
+            parser.error(f"--listen must be FD:unix, FD:tcp or FD:metrics, got {spec!r}")
         listeners.append((int(fd), kind))
     serve(args.channel, args.urgent_channel, listeners, args.nice)
     return 0

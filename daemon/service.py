@@ -28,6 +28,7 @@ from usmswitch.predictor import ARPredictor
 from .board import BoardPoller
 from .config import Config
 from .daqfactory import make_daq
+from .fleet import Fleet
 from .logsetup import configure_logging
 from .loop import ControlLoop, State, direction_from_levels
 from .methods import start_rpc
@@ -121,6 +122,7 @@ class Daemon:
         self.loop: ControlLoop | None = None
         self.rpc: Any = None
         self.board: BoardPoller | None = None
+        self.fleet: Fleet | None = None
         self._next_summary_ns = 0
         self._last_summary: tuple[Any, ...] | None = None  # what the last summary line said
         self._next_live_ns = 0
@@ -190,6 +192,9 @@ class Daemon:
         self.loop.slack_hooks.append(self._housekeeping)
         self.loop.listeners.append(self._on_record)
         self._start_socket()
+        # PostgreSQL shipping and the metrics feed, chained after the socket's commit hooks.
+        self.fleet = Fleet(cfg, self.store, self.loop, self.rpc, self.daq.name)
+        self.fleet.start()
         self.refresh_snapshot()
         self.store.record_event(
             "start",
@@ -308,6 +313,9 @@ class Daemon:
                 **lost,
             )
             self.store = None
+        if self.fleet is not None:
+            self.fleet.stop()  # after the store closed: what it committed ships (bounded)
+            self.fleet = None
         if self._lock_fd is not None:
             os.close(self._lock_fd)  # the lock goes with it
             self._lock_fd = None
@@ -329,6 +337,7 @@ class Daemon:
             "rejected": store.rejected,
             "written": store.written,
             "error_count": store.error_count,
+            "postgres": None if self.fleet is None else self.fleet.status(),
         }
 
     def _on_run(self, run: RunRecord) -> None:

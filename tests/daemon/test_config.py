@@ -17,7 +17,7 @@ from usmswitch.daemon.config import (
     default_state_dir,
     load_config,
 )
-from usmswitch.daemon.config_values import parse_modbus_url
+from usmswitch.daemon.config_values import parse_listen, parse_modbus_url
 from usmswitch.daemon.sockdir import client_socket_paths, default_socket_path
 
 ENV = {"HOME": "/home/lab", "XDG_RUNTIME_DIR": "/run/user/1000"}
@@ -224,6 +224,22 @@ def test_file_values_and_units(tmp_path: Path):
         ("[socket]\nmode = 0o760", "socket.mode: 0o760 is looser than 0o660"),
         ('[daemon]\nrig = ""', "daemon.rig: must not be empty"),
         ('[daemon]\nrig = "a\\nb"', "daemon.rig: 'a\\nb' is not a printable name"),
+        (
+            '[records]\npostgres_url = "mysql://db/x"',
+            "records.postgres_url: 'mysql://db/x' is not a PostgreSQL",
+        ),
+        (
+            '[records]\npostgres_url = "postgresql://u:pw@db:5432"',
+            "records.postgres_url: 'postgresql://u:***@db",
+        ),
+        (
+            '[records]\npostgres_url = "postgresql://db:port/x"',
+            "records.postgres_url: 'postgresql://db:port/x':",
+        ),
+        ("[records]\npostgres_url = 5", "records.postgres_url: expected text, got 5 (int)"),
+        ('[metrics]\nlisten = "localhost"', "metrics.listen: 'localhost' is not host:port"),
+        ('[metrics]\nlisten = "127.0.0.1:70000"', "metrics.listen: '127.0.0.1:70000': port 70000 is outside"),
+        ('[metrics]\nport = "9817"', "metrics.port: unknown key (known in [metrics]: listen)"),
         ("daemon = 3", "daemon: expected a table, got 3 (int)"),
         ('[deamon]\nlog_level = "info"', "deamon: unknown key (known sections: "),
     ],
@@ -319,6 +335,28 @@ def test_to_dict_round_trips_through_the_loader(tmp_path: Path):
     assert load_config(write(tmp_path, "\n".join(toml_lines(d))), env=ENV) == cfg
     assert isinstance(again, Config)
     assert "autostart" not in cfg.to_dict()["cycle"]  # None: decided by the driver, not frozen in
+
+
+def test_postgres_url_and_metrics_listen_from_file_and_flags(tmp_path: Path):
+    p = write(
+        tmp_path, '[records]\npostgres_url = "postgresql://rig:s3cret@db.lab:5433/usm?sslmode=require"\n'
+    )
+    cfg = load_config(p, env=ENV)
+    assert cfg.records.postgres_url == "postgresql://rig:s3cret@db.lab:5433/usm?sslmode=require"
+    assert cfg.metrics.listen == ""  # off unless asked
+    # The password never reaches a log or the status reply; the URL round-trips unredacted.
+    assert (
+        cfg.to_dict(redact=True)["records"]["postgres_url"]
+        == "postgresql://rig:***@db.lab:5433/usm?sslmode=require"
+    )
+    assert "s3cret" not in repr(cfg.to_dict(redact=True))
+    assert apply_overrides(cfg) == cfg
+    flags = load_config(None, {"postgres": "postgres://db/usm", "metrics": "9817"}, env=ENV)
+    assert flags.records.postgres_url == "postgres://db/usm" and flags.metrics.listen == "9817"
+    assert flags.to_dict(redact=True)["records"]["postgres_url"] == "postgres://db/usm"  # no password: as is
+    # A bare port listens on loopback only; anything wider is written out.
+    assert parse_listen("9817") == ("127.0.0.1", 9817)
+    assert parse_listen("[::1]:9817") == ("::1", 9817) and parse_listen("0.0.0.0:0") == ("0.0.0.0", 0)
 
 
 def test_explicit_autostart_wins_over_the_driver_rule():

@@ -1,0 +1,312 @@
+"""The Prometheus page, served by the socket's server process (daemon/rpc_process.py) over HTTP.
+
+The daemon sends two snapshots over its channel, as it sends `stats`: `metrics_strokes` (counts and
+histograms of committed strokes, daemon/metrics.py, from the record writer's thread) and
+`metrics_state` (state, fault, targets, record writer and shipper figures, from the loop's slack).
+This module turns them, with the server's own count of socket clients, into prometheus_client
+metric families and text (`choose_encoder`: the Prometheus text format, or OpenMetrics when the
+scraper asks), on the server process's event loop. A scrape never reaches the loop's process.
+Why there: docs/fleet.md, "Where the page is served".
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import socket
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any
+
+import msgpack
+from prometheus_client.core import (
+    CollectorRegistry,
+    CounterMetricFamily,
+    GaugeMetricFamily,
+    HistogramMetricFamily,
+    Metric,
+)
+from prometheus_client.exposition import choose_encoder
+
+from .metrics import DIRECTION_NAMES, FEEDS, HISTOGRAMS, OUTCOMES, STATE_FEED, STROKES_FEED
+
+log = logging.getLogger("usmswitch.rpc")
+STATES = ("idle", "cycling", "fault", "stopped")
+#: Histogram names on the page, with the unit in the name as Prometheus wants (base unit: seconds).
+HISTOGRAM_NAMES = {
+    "error": ("usmswitch_error_seconds", "Stroke error: total (command to arrival) minus the target T."),
+    "operating": ("usmswitch_operating_seconds", "Operating time t: motor start to the far sensor."),
+    "lateness": (
+        "usmswitch_start_lateness_seconds",
+        "Start lateness: motor start minus (command + delay), host-timed strokes.",
+    ),
+}
+# HTTP: a request head larger than this, or slower than this, is refused.
+MAX_HEAD_BYTES = 8192
+HEAD_TIMEOUT_S = 5.0
+MAX_SCRAPERS = 16
+
+Source = Callable[[], tuple[Mapping[str, bytes], Mapping[str, int]]]
+
+
+def _s(ns: float | None) -> float:
+    return float("nan") if ns is None else ns / 1e9
+
+
+class PageCollector:
+    """Metric families from the latest snapshots (prometheus_client's collector interface)."""
+
+    def __init__(self, source: Source) -> None:
+        self.source = source
+
+    def collect(self) -> Iterator[Metric]:
+        snaps, clients = self.source()
+        strokes = _unpack(snaps.get(STROKES_FEED))
+        state = _unpack(snaps.get(STATE_FEED))
+        rig = str(state.get("rig", ""))
+        info = GaugeMetricFamily(
+            "usmswitch_info",
+            "The daemon: rig, driver and version (always 1).",
+            labels=["rig", "driver", "version"],
+        )
+        info.add_metric([rig, str(state.get("driver", "")), str(state.get("version", ""))], 1)
+        yield info
+        if strokes:
+            yield from _stroke_families(rig, strokes)
+        if state:
+            yield from _state_families(rig, state)
+        sock = GaugeMetricFamily(
+            "usmswitch_socket_clients", "Connections open on the control socket.", labels=["rig", "transport"]
+        )
+        for transport, n in sorted(clients.items()):
+            sock.add_metric([rig, transport], n)
+        yield sock
+
+
+def _unpack(packed: bytes | None) -> dict[str, Any]:
+    return {} if packed is None else msgpack.unpackb(packed, raw=False)
+
+
+def _stroke_families(rig: str, snap: dict[str, Any]) -> Iterator[Metric]:
+    total = CounterMetricFamily(
+        "usmswitch_strokes",
+        "Strokes committed to the records since the daemon started, by direction and outcome.",
+        labels=["rig", "direction", "outcome"],
+    )
+    for direction in DIRECTION_NAMES:
+        for outcome in OUTCOMES:
+            total.add_metric([rig, direction, outcome], snap["strokes"][direction][outcome])
+    yield total
+    for key, (_, bounds) in HISTOGRAMS.items():
+        name, doc = HISTOGRAM_NAMES[key]
+        fam = HistogramMetricFamily(name, doc, labels=["rig", "direction"])
+        for direction in DIRECTION_NAMES:
+            h = snap["histograms"][key][direction]
+            cumulative, buckets = 0, []
+            for bound, n in zip((*bounds, None), h["buckets"], strict=True):
+                cumulative += n
+                buckets.append(("+Inf" if bound is None else repr(bound / 1e9), cumulative))
+            fam.add_metric([rig, direction], buckets, sum_value=h["sum_ns"] / 1e9)
+        yield fam
+    last = snap["last"]
+    for name, key, doc in (
+        ("usmswitch_predicted_seconds", "t_hat_ns", "The predicted operating time t_hat of the last stroke."),
+        ("usmswitch_run_error_mean_seconds", "run_error_mean_ns", "Mean error of the current or last run."),
+        ("usmswitch_run_error_std_seconds", "run_error_std_ns", "Error std of the current or last run."),
+    ):
+        fam = GaugeMetricFamily(name, doc, labels=["rig", "direction"])
+        for direction in DIRECTION_NAMES:
+            if last[direction][key] is not None:
+                fam.add_metric([rig, direction], _s(last[direction][key]))
+        yield fam
+    newest = max(
+        (last[d] for d in DIRECTION_NAMES if last[d]["cycle"] is not None),
+        key=lambda x: x["cycle"],
+        default=None,
+    )
+    temp = GaugeMetricFamily(
+        "usmswitch_temperature_celsius", "Motor temperature at the last stroke (when the rig reports it).",
+        labels=["rig"],
+    )  # fmt: skip
+    if newest is not None and newest["temperature_c"] is not None:
+        temp.add_metric([rig], newest["temperature_c"])
+    yield temp
+    if snap.get("run_id") is not None:
+        run = GaugeMetricFamily("usmswitch_run_id", "The current or last run's id.", labels=["rig"])
+        run.add_metric([rig], snap["run_id"])
+        yield run
+
+
+def _state_families(rig: str, state: dict[str, Any]) -> Iterator[Metric]:
+    st = GaugeMetricFamily(
+        "usmswitch_state", "The loop's state (1 for the current one).", labels=["rig", "state"]
+    )
+    for name in STATES:
+        st.add_metric([rig, name], 1 if state["state"] == name else 0)
+    yield st
+    fault = GaugeMetricFamily(
+        "usmswitch_fault", "1 while a FAULT is latched (until reset_fault).", labels=["rig"]
+    )
+    fault.add_metric([rig], 1 if state["fault"] else 0)
+    yield fault
+    target = GaugeMetricFamily(
+        "usmswitch_target_seconds", "The target T per direction.", labels=["rig", "direction"]
+    )
+    for d, direction in enumerate(DIRECTION_NAMES):
+        target.add_metric([rig, direction], _s(state["targets_ns"][d]))
+    yield target
+    rec = state["records"]
+    backlog = GaugeMetricFamily(
+        "usmswitch_records_backlog", "Records submitted and not yet committed to SQLite.", labels=["rig"]
+    )
+    backlog.add_metric([rig], rec["backlog"])
+    yield backlog
+    ok = GaugeMetricFamily(
+        "usmswitch_records_writer_ok", "1 while the records file is writable.", labels=["rig"]
+    )
+    ok.add_metric([rig], 0 if rec["writer_error"] else 1)
+    yield ok
+    pg = state.get("postgres")
+    if pg is None:
+        return
+    for name, key, doc, kind in (
+        ("usmswitch_postgres_up", "connected", "1 while the shipper is connected to PostgreSQL.", "g"),
+        ("usmswitch_postgres_lag_strokes", "lag", "Strokes committed locally, not yet in PostgreSQL.", "g"),
+        ("usmswitch_postgres_shipped_cycle", "shipped_cycle", "The highest cycle PostgreSQL holds.", "g"),
+        ("usmswitch_postgres_shipped_strokes", "shipped", "Strokes inserted into PostgreSQL.", "c"),
+        ("usmswitch_postgres_errors", "error_count", "Failed connects and batches (each retried).", "c"),
+    ):
+        fam = (CounterMetricFamily if kind == "c" else GaugeMetricFamily)(name, doc, labels=["rig"])
+        fam.add_metric([rig], int(pg[key]))
+        yield fam
+
+
+class MetricsPage:
+    """The page's bytes, rendered again only when a snapshot or the client count changed."""
+
+    def __init__(self, source: Source) -> None:
+        self.source = source
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.registry.register(PageCollector(source))  # type: ignore[arg-type]
+        self._cache: dict[str, tuple[tuple[Any, ...], bytes]] = {}
+
+    def render(self, accept: str) -> tuple[bytes, str]:
+        """(body, content type) for a scrape with this Accept header."""
+        encoder, content_type = choose_encoder(accept)
+        snaps, clients = self.source()
+        key = (*(snaps.get(f) for f in FEEDS), tuple(sorted(clients.items())))
+        hit = self._cache.get(content_type)
+        if hit is not None and hit[0] == key:
+            return hit[1], content_type
+        body = encoder(self.registry)
+        self._cache[content_type] = (key, body)
+        return body, content_type
+
+
+class _Scrape(asyncio.Protocol):
+    """One HTTP/1.x request: GET /metrics (or HEAD), answered and closed."""
+
+    def __init__(self, page: MetricsPage, open_count: list[int]) -> None:
+        self.page = page
+        self.open_count = open_count
+        self.buf = b""
+        self.transport: asyncio.Transport | None = None
+        self.timer: asyncio.TimerHandle | None = None
+        self.counted = False
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
+        self.transport = transport
+        if self.open_count[0] >= MAX_SCRAPERS:
+            self._reply(503, b"too many scrapes at once\n")
+            return
+        self.open_count[0] += 1
+        self.counted = True
+        self.timer = asyncio.get_running_loop().call_later(HEAD_TIMEOUT_S, self._timeout)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self.timer is not None:
+            self.timer.cancel()
+        if self.counted:
+            self.counted = False
+            self.open_count[0] -= 1
+
+    def _timeout(self) -> None:
+        self._reply(408, b"request head not received in time\n")
+
+    def data_received(self, data: bytes) -> None:
+        if self.transport is None or self.transport.is_closing():
+            return
+        self.buf += data
+        end = self.buf.find(b"\r\n\r\n")
+        if end < 0:
+            if len(self.buf) > MAX_HEAD_BYTES:
+                self._reply(431, b"request head too large\n")
+            return
+        lines = self.buf[:end].decode("latin-1").split("\r\n")
+        parts = lines[0].split()
+        if len(parts) != 3 or not parts[2].startswith("HTTP/1."):
+            self._reply(400, b"not an HTTP/1.x request\n")
+            return
+        method, target, _ = parts
+        headers = {}
+        for line in lines[1:]:
+            name, _, value = line.partition(":")
+            headers[name.strip().lower()] = value.strip()
+        path = target.split("?", 1)[0]
+        if method not in ("GET", "HEAD"):
+            self._reply(405, b"only GET and HEAD\n", extra=b"Allow: GET, HEAD\r\n")
+        elif path == "/metrics":
+            try:
+                body, content_type = self.page.render(headers.get("accept", ""))
+            except Exception as exc:  # a bug costs this scrape, not the server
+                log.exception("metrics page failed")
+                self._reply(500, f"metrics page failed: {type(exc).__name__}: {exc}\n".encode())
+                return
+            self._reply(200, body, content_type, head_only=method == "HEAD")
+        elif path == "/":
+            self._reply(
+                200, b'<html><body><a href="/metrics">usmswitchd metrics</a></body></html>\n', "text/html"
+            )
+        else:
+            self._reply(404, b"not found: the page is /metrics\n")
+
+    def _reply(
+        self,
+        status: int,
+        body: bytes,
+        content_type: str = "text/plain; charset=utf-8",
+        head_only: bool = False,
+        extra: bytes = b"",
+    ) -> None:
+        transport = self.transport
+        if transport is None or transport.is_closing():
+            return
+        if self.timer is not None:
+            self.timer.cancel()
+        reason = _REASONS.get(status, "")
+        head = (
+            f"HTTP/1.1 {status} {reason}\r\nContent-Type: {content_type}\r\n"
+            f"Content-Length: {len(body)}\r\nConnection: close\r\n"
+        ).encode()
+        transport.write(head + extra + b"\r\n" + (b"" if head_only else body))
+        transport.close()
+
+
+_REASONS = {
+    200: "OK",
+    400: "Bad Request",
+    404: "Not Found",
+    405: "Method Not Allowed",
+    500: "Internal Server Error",
+    408: "Request Timeout",
+    431: "Request Header Fields Too Large",
+    503: "Service Unavailable",
+}
+
+
+async def serve_metrics(sock: socket.socket, source: Source) -> asyncio.Server:
+    """Serve the page on a listening TCP socket the daemon bound (the server process's event loop)."""
+    page = MetricsPage(source)
+    open_count = [0]
+    loop = asyncio.get_running_loop()
+    return await loop.create_server(lambda: _Scrape(page, open_count), sock=sock)

@@ -1,0 +1,320 @@
+"""Copies committed records from the local SQLite file to PostgreSQL, on a thread of its own.
+
+The local file stays the source of truth: the shipper reads only what the record writer has
+committed (a read-only connection of its own), so the loop never waits for it and a database
+outage loses nothing. Batches go in cycle order, one transaction each, by COPY into a temporary
+table and `INSERT ... ON CONFLICT (rig, cycle) DO NOTHING`: a batch sent twice (a connection lost
+during COMMIT) is harmless. Where to resume is read from the database at every (re)connect: the
+highest cycle it holds for this rig, whose stamps must match the local row (a database holding
+another file's strokes under this rig's name is refused, never merged). Failures are kept in
+`error`, logged once each, and retried with backoff. Tables: daemon/pg_schema.py, docs/fleet.md.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from itertools import islice
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from .pg_schema import (
+    COPY_STAGE,
+    CREATE_STAGE,
+    INSERT_FROM_STAGE,
+    LAST_SHIPPED,
+    MIGRATIONS,
+    PG_SCHEMA_VERSION,
+    RUNS_FROM,
+    SCHEMA,
+    SCHEMA_LOCK_KEY,
+    SELECT_VERSION,
+    SET_VERSION,
+    UPSERT_RUN,
+    cycle_row,
+    redact_url,
+    run_row,
+)
+from .realtime import drop_realtime
+from .record import RUN_FIELDS
+from .records import RecordStore, RecordStoreError
+
+log = structlog.get_logger("usmswitch.shipper")
+
+#: Runs shipped per pass at most (a pass with a long backlog of runs goes on at the next).
+MAX_RUNS_PER_PASS = 500
+#: An idle shipper checks its connection this often, so `connected` tells the truth when idle.
+IDLE_CHECK_NS = 5_000_000_000
+
+
+class ShipperError(Exception):
+    """Shipping cannot go on as things are (a schema too new, a rig name taken); the message says why."""
+
+
+def _import_psycopg() -> Any:
+    try:
+        import psycopg
+    except ImportError:
+        raise RuntimeError(
+            "records.postgres_url needs psycopg 3: pip install 'usmswitch[postgres]'"
+        ) from None
+    return psycopg
+
+
+class PostgresShipper:
+    """Ships the records of one SQLite file to the PostgreSQL database at `url`, as rig `rig`."""
+
+    def __init__(
+        self,
+        records_path: str | Path,
+        url: str,
+        rig: str,
+        *,
+        gate: Callable[[], object] = lambda: None,
+        batch: int = 2000,
+        retry_ns: tuple[int, int] = (250_000_000, 10_000_000_000),
+        poll_ns: int = 1_000_000_000,
+        connect_timeout_s: int = 5,
+    ) -> None:
+        self._psycopg = _import_psycopg()
+        self.records_path = Path(records_path)
+        self.url = url
+        self.where = redact_url(url)
+        self.rig = rig
+        #: Called before each batch's Python work: the daemon passes the loop's `wait_turn`.
+        self.gate = gate
+        self._batch = batch
+        self._retry_ns = retry_ns
+        self._poll_ns = poll_ns
+        self._connect_timeout_s = connect_timeout_s
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._drain_until_ns: int | None = None
+        self._thread: threading.Thread | None = None
+        #: The highest cycle the database holds for this rig (as far as this shipper knows).
+        self.shipped_cycle = 0
+        #: The highest cycle committed locally that the shipper has been told of or has read.
+        self.committed_cycle = 0
+        #: Strokes this shipper inserted, and those the database already had (a resent batch).
+        self.shipped = 0
+        self.duplicates = 0
+        self.runs_shipped = 0
+        self.error_count = 0
+        self.error: str | None = None
+        self.connected = False
+        self._run_from = 1
+        self._runs_sent: dict[int, tuple[Any, ...]] = {}  # run_id -> the row shipped, while it may change
+
+    # -- the daemon's side -----------------------------------------------------------------------
+    def start(self) -> None:
+        """Start the shipping thread (it connects, creates the tables and catches up by itself)."""
+        self._thread = threading.Thread(target=self._run, name="usmswitch-shipper", daemon=True)
+        self._thread.start()
+
+    def wake(self, records: list[Any] | None = None) -> None:
+        """New records are committed (the record writer's on_commit): ship them soon. O(1)."""
+        if records:
+            self.committed_cycle = max(self.committed_cycle, records[-1].cycle)
+        self._wake.set()
+
+    def stop(self, drain_timeout_ns: int = 2_000_000_000) -> bool:
+        """Ship what is committed for up to `drain_timeout_ns`, then stop; True when caught up."""
+        thread = self._thread
+        if thread is None:
+            return self.lag == 0
+        self._drain_until_ns = time.monotonic_ns() + drain_timeout_ns
+        self._stop.set()
+        self._wake.set()
+        thread.join(drain_timeout_ns / 1e9 + self._connect_timeout_s + 1)
+        self._thread = None
+        return self.lag == 0 and self.error is None
+
+    @property
+    def lag(self) -> int:
+        """Strokes committed locally and not yet known to be in the database."""
+        return max(0, self.committed_cycle - self.shipped_cycle)
+
+    def status(self) -> dict[str, Any]:
+        """Plain figures for the status reply and the metrics."""
+        return {
+            "url": self.where,
+            "connected": self.connected,
+            "shipped_cycle": self.shipped_cycle,
+            "lag": self.lag,
+            "shipped": self.shipped,
+            "duplicates": self.duplicates,
+            "runs_shipped": self.runs_shipped,
+            "error": self.error,
+            "error_count": self.error_count,
+        }
+
+    # -- the thread -------------------------------------------------------------------------------
+    def _run(self) -> None:
+        drop_realtime()
+        try:
+            self._ship_until_stopped()
+        except BaseException as exc:  # a bug: said in status and the log, never silent
+            self.error = f"shipper thread died: {type(exc).__name__}: {exc}"
+            log.exception("postgres shipper thread died", url=self.where)
+            raise
+
+    def _stopping(self) -> bool:
+        if not self._stop.is_set():
+            return False
+        until = self._drain_until_ns
+        return until is None or time.monotonic_ns() >= until or (self.connected and self.lag == 0)
+
+    def _ship_until_stopped(self) -> None:
+        reader: RecordStore | None = None
+        conn = None
+        backoff = self._retry_ns[0]
+        idle_since = time.monotonic_ns()
+        while not self._stopping():
+            try:
+                if reader is None:
+                    reader = RecordStore(self.records_path, readonly=True)
+                    self.committed_cycle = max(self.committed_cycle, reader.last_cycle())
+                if conn is None:
+                    self.gate()
+                    conn = self._connect(reader)
+                    backoff = self._retry_ns[0]
+                self.gate()
+                moved = self._ship_batch(conn, reader)
+                if not moved:
+                    if self._stop.is_set():
+                        return  # caught up: nothing left to drain
+                    now = time.monotonic_ns()
+                    if now - idle_since >= IDLE_CHECK_NS:
+                        idle_since = now
+                        conn.execute("SELECT 1")
+                    self._wake.wait(self._poll_ns / 1e9)
+                    self._wake.clear()
+                else:
+                    idle_since = time.monotonic_ns()
+            except (self._psycopg.Error, OSError, ShipperError, RecordStoreError) as exc:
+                self._fail(exc)
+                if conn is not None:
+                    conn.close()
+                    conn = None
+                self.connected = False
+                if self._stop.is_set():
+                    return  # not reachable now: the rest ships at the next start
+                self._stop.wait(backoff / 1e9)
+                backoff = min(2 * backoff, self._retry_ns[1])
+        if conn is not None:
+            conn.close()
+        self.connected = False
+        if reader is not None:
+            reader.close()
+
+    def _fail(self, exc: BaseException) -> None:
+        text = " ".join(str(exc).split()) or type(exc).__name__
+        message = f"postgres {self.where}: {text}"
+        self.error_count += 1
+        if message != self.error:
+            log.warning(
+                "postgres shipping failing: records stay in SQLite and are shipped when it works",
+                error=message,
+                shipped_cycle=self.shipped_cycle,
+                lag=self.lag,
+            )
+        self.error = message
+
+    def _connect(self, reader: RecordStore) -> Any:
+        """Connect, create or check the tables, and find where to resume."""
+        conn = self._psycopg.connect(
+            self.url,
+            connect_timeout=self._connect_timeout_s,
+            autocommit=True,  # transactions only where asked: an idle shipper holds none open
+            application_name=f"usmswitchd {self.rig}"[:63],
+        )
+        try:
+            with conn.transaction():
+                conn.execute("SELECT pg_advisory_xact_lock(%s)", (SCHEMA_LOCK_KEY,))
+                self._ensure_schema(conn)
+            with conn.transaction():
+                conn.execute(CREATE_STAGE)
+                last = conn.execute(LAST_SHIPPED, (self.rig,)).fetchone()
+                self._run_from = conn.execute(RUNS_FROM, (self.rig,)).fetchone()[0]
+            self._runs_sent = {}
+            shipped = 0 if last is None else last[0]
+            if last is not None:
+                self._check_same_file(reader, last)
+        except BaseException:
+            conn.close()
+            raise
+        self.shipped_cycle = shipped
+        self.committed_cycle = max(self.committed_cycle, reader.last_cycle())
+        self.connected = True
+        if self.error is not None:
+            log.info("postgres shipping works again", url=self.where, after=self.error)
+            self.error = None
+        log.info("postgres shipping", url=self.where, rig=self.rig, resume_after_cycle=shipped, lag=self.lag)
+        return conn
+
+    def _ensure_schema(self, conn: Any) -> None:
+        exists = conn.execute("SELECT to_regclass(%s)", ("usmswitch_meta",)).fetchone()[0]
+        row = conn.execute(SELECT_VERSION).fetchone() if exists else None
+        version = None if row is None else int(row[0])
+        if version is not None and version > PG_SCHEMA_VERSION:
+            raise ShipperError(
+                f"the database has usmswitch schema {version}; this daemon writes {PG_SCHEMA_VERSION}"
+                " (upgrade usmswitch on this rig)"
+            )
+        if version == PG_SCHEMA_VERSION:
+            return
+        for statement in SCHEMA:
+            conn.execute(statement)
+        for v in range((version or PG_SCHEMA_VERSION) + 1, PG_SCHEMA_VERSION + 1):
+            for statement in MIGRATIONS[v]:
+                conn.execute(statement)
+        conn.execute(SET_VERSION, (str(PG_SCHEMA_VERSION),))
+        log.info("postgres schema ready", url=self.where, schema_from=version, schema_to=PG_SCHEMA_VERSION)
+
+    def _check_same_file(self, reader: RecordStore, last: tuple[int, int, int]) -> None:
+        cycle, t_cmd_ns, wall_ns = last
+        local = next(iter(reader.iter_records(cycle, cycle)), None)
+        if local is None or (local.t_cmd_ns, local.wall_ns) != (t_cmd_ns, wall_ns):
+            raise ShipperError(
+                f"the database holds strokes of rig {self.rig!r} up to cycle {cycle} that are not this"
+                f" records file's ({self.records_path}): another daemon, or an earlier state directory,"
+                " ships as this rig. Give this daemon its own [daemon] rig, or delete that rig's rows"
+            )
+
+    def _ship_batch(self, conn: Any, reader: RecordStore) -> bool:
+        """One transaction: the next strokes and the runs that changed. False when nothing was new."""
+        records = list(islice(reader.iter_records(self.shipped_cycle + 1, chunk=self._batch), self._batch))
+        last_run = reader.last_run_id()
+        run_ids = range(self._run_from, min(last_run, self._run_from + MAX_RUNS_PER_PASS - 1) + 1)
+        runs = [run_row(r, self.rig) for r in (reader.run(i) for i in run_ids) if r is not None]
+        runs = [row for row in runs if self._runs_sent.get(row[0]) != row]  # an open run: once a change
+        if not records and not runs:
+            return False
+        rows = [cycle_row(rec, self.rig) for rec in records]
+        inserted = 0
+        with conn.transaction(), conn.cursor() as cur:
+            if rows:
+                with cur.copy(COPY_STAGE) as copy:
+                    for row in rows:
+                        copy.write_row(row)
+                cur.execute(INSERT_FROM_STAGE)
+                inserted = cur.rowcount
+            if runs:
+                cur.executemany(UPSERT_RUN, runs)
+        if records:
+            self.shipped_cycle = records[-1].cycle
+            self.committed_cycle = max(self.committed_cycle, self.shipped_cycle)
+            self.shipped += inserted
+            self.duplicates += len(rows) - inserted
+        for row in runs:
+            self._runs_sent[row[0]] = row
+        self.runs_shipped += len(runs)
+        ended = RUN_FIELDS.index("end_reason")
+        if runs:
+            still_open = [row[0] for row in runs if row[ended] is None]
+            self._run_from = min(still_open) if still_open else runs[-1][0] + 1
+            self._runs_sent = {k: v for k, v in self._runs_sent.items() if k >= self._run_from}
+        return True
