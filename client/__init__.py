@@ -16,8 +16,10 @@ from .aio import AsyncClient, AsyncRun
 from .api import Duration, find_socket
 from .connection import Client, ConnectionClosed, Subscription, UntrustedSocketError
 from .notifier import Listener, Notifier
-from .records import RecordsFile, RecordsFileError
+from .pgrecords import PostgresRecords
+from .records import RecordsFile, RecordsFileError, RecordsSource
 from .run import Run, RunLost
+from .sources import open_records
 from .types import (
     CycleRecord,
     Cycling,
@@ -42,8 +44,10 @@ __all__ = [
     "Listener",
     "Notification",
     "Notifier",
+    "PostgresRecords",
     "RecordsFile",
     "RecordsFileError",
+    "RecordsSource",
     "RpcError",
     "Run",
     "RunInfo",
@@ -55,4 +59,5 @@ __all__ = [
     "UntrustedSocketError",
     "client_socket_paths",
     "find_socket",
+    "open_records",
 ]

@@ -12,6 +12,9 @@ The file is opened read-only (SQLite `mode=ro`): a running daemon keeps writing 
 (WAL), and each chunk is its own short read, so a long analysis never pins the daemon's log.
 Schema: docs/records.md (versions 1 to 3; columns an older file lacks read as None: `driver` and
 `rig` before 2, `run_id` before 3, and such a file has no runs).
+
+`RecordsSource` is what every reader offers; `PostgresRecords` (client/pgrecords.py) reads one
+rig's records from the PostgreSQL copy the daemons ship, and `open_records(source)` opens either.
 """
 
 from __future__ import annotations
@@ -30,15 +33,98 @@ KNOWN_SCHEMAS = ("1", "2", "3")
 
 
 class RecordsFileError(Exception):
-    """The file is missing, not a records file, or of a schema this client does not read."""
+    """The records cannot be read: a file missing or of an unknown schema, a database unreachable."""
 
 
-class RecordsFile:
+class RecordsSource:
+    """Records for analysis, wherever they are kept: the calls every reader has."""
+
+    #: What the records are (a path, a redacted URL and rig), for messages.
+    name = ""
+
+    def records(
+        self, first: int = 1, last: int | None = None, chunk: int = 1000, run: int | None = None
+    ) -> Iterator[dict[str, Any]]:
+        """Every record from cycle `first` to `last` (inclusive; of one run) in cycle order, as dicts.
+
+        Read `chunk` rows at a time, each its own short read (a daemon writing beside a long
+        analysis is never held up by it)."""
+        after = first - 1
+        stop = last if last is not None else (1 << 63) - 1
+        if run is not None:
+            self.run(run)  # a run the records lack is an error, not an empty result
+        while True:
+            rows = self._chunk(after, stop, run, chunk)
+            if not rows:
+                return
+            for r in rows:
+                yield CycleRecord.from_row(r).to_dict()
+            after = rows[-1]["cycle"]
+
+    def _chunk(self, after: int, last: int, run: int | None, n: int) -> list[Any]:
+        """Up to `n` rows (mappings of FIELDS) with after < cycle <= last (of one run), by cycle."""
+        raise NotImplementedError
+
+    def runs(self) -> list[dict[str, Any]]:
+        """Every run, oldest first."""
+        raise NotImplementedError
+
+    def _column_values(self, field: str, first: int, last: int) -> list[Any]:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """Release the file or the connection."""
+
+    def __enter__(self) -> RecordsSource:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __iter__(self) -> Iterator[dict[str, Any]]:
+        return self.records()
+
+    def run(self, run_id: int) -> dict[str, Any]:
+        """One run's record; RecordsFileError naming the runs there are when there is no such run."""
+        runs = self.runs()
+        for run in runs:
+            if run["run_id"] == run_id:
+                return run
+        ids = [r["run_id"] for r in runs]
+        have = f"runs {ids[0]}..{ids[-1]}" if ids else "no runs"
+        raise RecordsFileError(f"{self.name} has no run {run_id} ({have})")
+
+    def column(self, field: str, first: int = 1, last: int | None = None) -> Any:
+        """One field over cycles `first`..`last` as a numpy array (float64 with NaN where it is
+        missing, for the timing fields; int64 for the ones always present)."""
+        import numpy as np
+
+        if field not in FIELDS or field in ("coefficients", "mode", *LATER_FIELDS):
+            raise ValueError(f"column takes a numeric record field, got {field!r}")
+        values = self._column_values(field, first, last if last is not None else (1 << 63) - 1)
+        if any(v is None or isinstance(v, float) for v in values):
+            return np.array([np.nan if v is None else v for v in values], dtype=np.float64)
+        return np.array(values, dtype=np.int64)
+
+    def dataframe(self, first: int = 1, last: int | None = None) -> Any:
+        """The records as a pandas DataFrame indexed by cycle (needs pandas: the `analysis` extra)."""
+        try:
+            import pandas as pd
+        except ImportError:
+            raise ImportError(
+                "RecordsFile.dataframe needs pandas: pip install 'usmswitch[analysis]'"
+            ) from None
+        frame = pd.DataFrame.from_records(list(self.records(first, last)), columns=list(FIELDS))
+        return frame.set_index("cycle")
+
+
+class RecordsFile(RecordsSource):
     """A records file (or a state directory holding one), opened read-only."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         p = Path(path).expanduser()
         self.path = p / RECORDS_FILE if p.is_dir() else p
+        self.name = str(self.path)
         if not self.path.is_file():
             raise RecordsFileError(f"no records file at {self.path}")
         uri = f"file:{quote(str(self.path.resolve()))}?mode=ro"
@@ -60,12 +146,6 @@ class RecordsFile:
     def close(self) -> None:
         self._db.close()
 
-    def __enter__(self) -> RecordsFile:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
     def __len__(self) -> int:
         return int(self._db.execute("SELECT count(*) FROM cycles").fetchone()[0])
 
@@ -81,68 +161,15 @@ class RecordsFile:
         rows = self._db.execute("SELECT * FROM runs ORDER BY run_id").fetchall()
         return [RunRecord.from_row(r).to_dict() for r in rows]
 
-    def run(self, run_id: int) -> dict[str, Any]:
-        """One run's record; RecordsFileError naming the runs there are when it is not in the file."""
-        for run in self.runs():
-            if run["run_id"] == run_id:
-                return run
-        ids = [r["run_id"] for r in self.runs()]
-        have = f"runs {ids[0]}..{ids[-1]}" if ids else "no runs"
-        raise RecordsFileError(f"{self.path} has no run {run_id} ({have})")
+    def _chunk(self, after: int, last: int, run: int | None, n: int) -> list[Any]:
+        where, args = ("", ()) if run is None else (" AND run_id = ?", (run,))
+        sql = (
+            f"SELECT {self._columns} FROM cycles WHERE cycle > ? AND cycle <= ?{where} ORDER BY cycle LIMIT ?"
+        )
+        return self._db.execute(sql, (after, last, *args, n)).fetchall()
 
-    def records(
-        self, first: int = 1, last: int | None = None, chunk: int = 1000, run: int | None = None
-    ) -> Iterator[dict[str, Any]]:
-        """Every record from cycle `first` to `last` (inclusive; of one run) in cycle order, as dicts."""
-        after = first - 1
-        stop = last if last is not None else (1 << 63) - 1
-        where = "cycle > ? AND cycle <= ?"
-        args: tuple[Any, ...] = ()
-        if run is not None:
-            self.run(run)  # a run the file lacks is an error, not an empty result
-            where += " AND run_id = ?"
-            args = (run,)
-        while True:
-            rows = self._db.execute(
-                f"SELECT {self._columns} FROM cycles WHERE {where} ORDER BY cycle LIMIT ?",
-                (after, stop, *args, chunk),
-            ).fetchall()
-            if not rows:
-                return
-            for r in rows:
-                yield CycleRecord.from_row(r).to_dict()
-            after = rows[-1]["cycle"]
-
-    def __iter__(self) -> Iterator[dict[str, Any]]:
-        return self.records()
-
-    def column(self, field: str, first: int = 1, last: int | None = None) -> Any:
-        """One field over cycles `first`..`last` as a numpy array (float64 with NaN where it is
-        missing, for the timing fields; int64 for the ones always present)."""
-        import numpy as np
-
-        if field not in FIELDS or field in ("coefficients", "mode", *LATER_FIELDS):
-            raise ValueError(f"column takes a numeric record field, got {field!r}")
+    def _column_values(self, field: str, first: int, last: int) -> list[Any]:
         if f'"{field}"' not in self._columns:
             raise ValueError(f"{self.path} has no column {field!r} (schema {self.schema_version})")
-        stop = last if last is not None else (1 << 63) - 1
-        values = [
-            r[0]
-            for r in self._db.execute(
-                f'SELECT "{field}" FROM cycles WHERE cycle >= ? AND cycle <= ? ORDER BY cycle', (first, stop)
-            )
-        ]
-        if any(v is None or isinstance(v, float) for v in values):
-            return np.array([np.nan if v is None else v for v in values], dtype=np.float64)
-        return np.array(values, dtype=np.int64)
-
-    def dataframe(self, first: int = 1, last: int | None = None) -> Any:
-        """The records as a pandas DataFrame indexed by cycle (needs pandas: the `analysis` extra)."""
-        try:
-            import pandas as pd
-        except ImportError:
-            raise ImportError(
-                "RecordsFile.dataframe needs pandas: pip install 'usmswitch[analysis]'"
-            ) from None
-        frame = pd.DataFrame.from_records(list(self.records(first, last)), columns=list(FIELDS))
-        return frame.set_index("cycle")
+        sql = f'SELECT "{field}" FROM cycles WHERE cycle >= ? AND cycle <= ? ORDER BY cycle'
+        return [r[0] for r in self._db.execute(sql, (first, last))]

@@ -1,4 +1,5 @@
-"""usmswitchctl export and plot: records from the socket or straight from a records file."""
+"""usmswitchctl export and plot: records from the socket, or straight from a records file or the
+PostgreSQL copy (`--from`)."""
 
 from __future__ import annotations
 
@@ -13,24 +14,36 @@ from typing import IO
 from usmswitch.daemon.record import CycleRecord as Record
 
 from ..connection import Client
-from ..records import RecordsFile, RecordsFileError
+from ..records import RecordsFileError
+from ..sources import open_records
 from ..types import CycleRecord
 from .args import EXIT_OK, UsageError
 from .output import print_json, write_csv
 
 
-def _records_from_file(
-    state_dir: Path, first: int, last: int | None, run: int | None = None
+def _records_from(
+    source: str | Path, first: int, last: int | None, run: int | None = None, rig: str | None = None
 ) -> Iterator[CycleRecord]:
-    # Read-only straight from the daemon's SQLite file: every stroke, without the socket's limit.
+    """Every stroke, read-only, without the socket's limit: from the daemon's SQLite file (a state
+    directory or the file) or from the PostgreSQL copy (`rig` of it). Opened at once, so a bad
+    source is said before any output is written."""
     try:
-        records = RecordsFile(state_dir)
+        records = open_records(source, rig)
         if run is not None:
-            records.run(run)  # a run the file lacks: said before any output is written
+            records.run(run)  # a run the records lack: said before any output is written
     except RecordsFileError as exc:
         raise UsageError(f"export: {exc}") from None
-    with records:
-        yield from records.records(first, last, run=run)  # type: ignore[misc]
+
+    def rows() -> Iterator[CycleRecord]:
+        with records:
+            yield from records.records(first, last, run=run)  # type: ignore[misc]
+
+    return rows()
+
+
+def _source(args: argparse.Namespace) -> str | None:
+    """Where --from or --state-dir say the records are (None: over the socket)."""
+    return args.source if args.source is not None else args.state_dir
 
 
 def _write(records: Iterable[CycleRecord], out: IO[str], where: str) -> int:
@@ -45,13 +58,13 @@ def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
     """Write cycle records as CSV: all of them from the SQLite file, or the last n over the socket."""
     if args.csv is None:
         raise UsageError("export needs --csv FILE (or --csv - for standard output)")
-    if args.state_dir is not None:
-        records: Iterable[CycleRecord] = _records_from_file(
-            Path(args.state_dir), args.first, args.last, args.run
+    if _source(args) is not None:
+        records: Iterable[CycleRecord] = _records_from(
+            _source(args), args.first, args.last, args.run, args.rig if args.source else None
         )
     else:
         if args.first != 1 or args.last is not None:
-            raise UsageError("export: --first/--last read the SQLite file; give --state-dir too")
+            raise UsageError("export: --first/--last read the records themselves; give --state-dir or --from")
         with connect() as client:
             records = client.history(args.n, args.run)
     if args.csv == "-":
@@ -82,9 +95,9 @@ def cmd_plot(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
     """Draw a run (operating time and t_hat, error against T, its histogram) to an image file."""
     from ..plots import plot_run  # matplotlib: only for this command
 
-    if args.state_dir is not None:
-        rows: Iterable[CycleRecord] = _records_from_file(
-            Path(args.state_dir), args.first, args.last, args.run
+    if _source(args) is not None:
+        rows: Iterable[CycleRecord] = _records_from(
+            _source(args), args.first, args.last, args.run, args.rig if args.source else None
         )
     else:
         with connect() as client:

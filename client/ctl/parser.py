@@ -75,6 +75,16 @@ def _connection_flags(p: argparse.ArgumentParser, suppress: bool) -> None:
     p.add_argument("--json", action="store_true", default=d(False), help="print the raw result as JSON")
 
 
+def _from_flag(c: argparse.ArgumentParser) -> None:
+    c.add_argument(
+        "--from",
+        dest="source",
+        metavar="SOURCE",
+        help="read the records from SOURCE instead of the socket: a state directory, a .sqlite file, "
+        "or the PostgreSQL copy, postgresql://USER@HOST/DB (with --rig NAME when it holds several rigs)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Every command and flag; `usmswitchctl COMMAND --help` shows one command's."""
     p = _Parser(
@@ -136,20 +146,22 @@ def build_parser() -> argparse.ArgumentParser:
         help="read every record from this state directory's records.sqlite "
         "(or this .sqlite file), read-only, instead of the socket",
     )
+    _from_flag(c)
     c.add_argument(
         "-n", type=int, default=MAX_HISTORY, help=f"over the socket: the last n (max {MAX_HISTORY})"
     )
-    c.add_argument("--first", type=int, default=1, help="with --state-dir: first cycle (default 1)")
-    c.add_argument("--last", type=int, help="with --state-dir: last cycle (default: the newest)")
+    c.add_argument("--first", type=int, default=1, help="with --state-dir/--from: first cycle (default 1)")
+    c.add_argument("--last", type=int, help="with --state-dir/--from: last cycle (default: the newest)")
     c.add_argument("--run", type=int, help="this run's strokes only")
     c = command("plot", "draw a run to an image (PNG, SVG or PDF by the file's suffix)")
     c.add_argument("--out", required=True, metavar="FILE", help="e.g. run.png")
     c.add_argument("--state-dir", help="read the records from this state directory, read-only")
+    _from_flag(c)
     c.add_argument(
         "-n", type=int, default=MAX_HISTORY, help=f"over the socket: the last n (max {MAX_HISTORY})"
     )
-    c.add_argument("--first", type=int, default=1, help="with --state-dir: first cycle (default 1)")
-    c.add_argument("--last", type=int, help="with --state-dir: last cycle (default: the newest)")
+    c.add_argument("--first", type=int, default=1, help="with --state-dir/--from: first cycle (default 1)")
+    c.add_argument("--last", type=int, help="with --state-dir/--from: last cycle (default: the newest)")
     c.add_argument("--run", type=int, help="this run's strokes only")
     c.add_argument("--title", help="the plot's title")
     command("reset", "clear a latched FAULT")
@@ -198,6 +210,10 @@ def check_args(args: argparse.Namespace) -> None:
         raise UsageError(f"cycle: --count must be >= 0, got {args.count}")
     if args.command == "watch" and args.count is not None and args.count < 0:
         raise UsageError(f"watch: --count must be >= 0, got {args.count}")
+    if getattr(args, "source", None) is not None and getattr(args, "state_dir", None) is not None:
+        raise UsageError(f"{args.command}: give --from or --state-dir, not both")
+    if getattr(args, "source", None) is not None:
+        return  # --rig names the rig in the records, not a socket
     given = [f"--{name}" for name in ("socket", "rig", "tcp") if getattr(args, name) is not None]
     if len(given) > 1:
         raise UsageError(f"give one of --socket, --rig and --tcp, not {' and '.join(given)}")
