@@ -24,12 +24,12 @@ from usmswitch.daemon.metrics import FEEDS, StrokeMetrics
 from usmswitch.daemon.metrics_page import MetricsPage
 from usmswitch.daemon.record import Flag, RunRecord
 
-# The outcome of a stroke, written out again here in SQL, apart from metrics.outcome().
-OUTCOME_SQL = """
-    CASE WHEN flags & 4 THEN 'stall' WHEN flags & 32 THEN 'estop' WHEN flags & 128 THEN 'aborted'
-         WHEN flags & 16 THEN 'fault' WHEN flags & 256 THEN 'partial' WHEN flags & 1 THEN 'late'
-         ELSE 'ok' END
-"""
+# A stroke's outcome written out again here, apart from metrics.outcome(): the flag bits of
+# docs/records.md in the order of docs/fleet.md, as SQL both SQLite and PostgreSQL run.
+OUTCOME_BITS = ((4, "stall"), (32, "estop"), (128, "aborted"), (16, "fault"), (256, "partial"), (1, "late"))
+OUTCOME_SQL = "CASE {} ELSE 'ok' END".format(
+    " ".join(f"WHEN (flags & {b}) <> 0 THEN '{o}'" for b, o in OUTCOME_BITS)
+)
 DIRECTION = {0: "on", 1: "off"}
 
 
