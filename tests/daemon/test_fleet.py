@@ -82,7 +82,8 @@ def test_three_rigs_ship_into_one_database_and_their_pages_agree(pg: Any, tmp_pa
         )  # fmt: skip
         con.close()
         assert n == STROKES and n_err == len(errors)
-        assert std == pytest.approx(statistics.stdev(errors), rel=1e-12)  # the database's = the file's
+        # The database's (numeric, 4 decimals of ns) = the file's.
+        assert std == pytest.approx(statistics.stdev(errors), abs=1e-3)
         assert std == pytest.approx(with_run[rig]["all"]["error_std_ns"], abs=0.1)  # = the daemon's stats
         in_db = Counter({(DIRECTION[d], o): k for r, d, o, k in counts if r == rig})
         assert in_db == local == page_counts(pages[rig], rig), rig
