@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: run test bench lint clean
+.PHONY: run test bench lint clean paper
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -21,6 +21,10 @@ test: $(STAMP)
 # BENCH=predictor runs benchmarks/bench_predictor.py only.
 bench: $(STAMP)
 	$(PY) -m benchmarks $(BENCH)
+
+# The paper's experiments on the simulated rig and the report beside the paper (runs/paper-<time>/).
+paper: $(STAMP)
+	$(VENV)/bin/usmswitch-experiment all --out runs/paper-$$(date +%Y%m%d-%H%M%S)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .

@@ -386,11 +386,15 @@ class ControlLoop:
         self._next_dir = direction
         return self._stroke(None)
 
-    def run_cycles(self, period_ns: int, count: int) -> None:
-        """Cycle `count` strokes in the calling thread (tests, benchmarks); stops early on a fault."""
-        self.start_cycling(period_ns, count)
+    def run_cycles(
+        self, period_ns: int, count: int, *, kind: str = "cycling", settings: dict[str, Any] | None = None
+    ) -> RunRecord:
+        """Cycle `count` strokes as one run in the calling thread (tests, benchmarks, experiments);
+        stops early on a fault. Returns the run, ended."""
+        run = self.start_cycling(period_ns, count, kind=kind, settings=settings)
         while self._cycling_left is not None and self.state is State.CYCLING:
             self._cycle_once()
+        return run
 
     def run(self) -> None:
         """The service's main loop: serve requests, cycle when asked, until `shutdown()`."""

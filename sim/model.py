@@ -221,6 +221,12 @@ class UsmSwitchModel:
         self._tau_th = float(p.thermal_tau_ns)
         self.last_stroke: Stroke | None = None
 
+    @property
+    def gain_mm_per_kwn(self) -> float:
+        """The displacement gain calibrated at the reference point: steady speed (mm per Table 1
+        time unit) per unit of Eq. 1's steady output K w_n / w_n^2 (what identification needs)."""
+        return self._gain_per_kwn
+
     # -- drive settings ------------------------------------------------------------------------
     def set_drive(self, *, frequency_hz: float | None = None, voltage_vpp: float | None = None) -> None:
         """Set the excitation like the drive board would; applies from the next stroke."""

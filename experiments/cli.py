@@ -1,0 +1,192 @@
+"""usmswitch-experiment: the paper's experiments, one command each, and a report beside the paper.
+
+    usmswitch-experiment all                        # every experiment on the simulated rig, then the report
+    usmswitch-experiment closed-loop --seed 7
+    usmswitch-experiment reliability --socket /run/usmswitch/usmswitchd.sock   # a real rig
+    usmswitch-experiment closed-loop --from-records /var/lib/usmswitch/records.sqlite --run 12
+
+Each run writes to --out (default runs/<name>-<time>): records.sqlite, figures/*.png and .svg,
+summary.json and report.md. docs/experiments.md explains each experiment.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import secrets
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from usmswitch.client import RecordsFile, RecordsFileError
+from usmswitch.daemon.version import PACKAGE_VERSION
+
+from . import aic, closed_loop, identify, open_loop, reliability, report, speed, temperature
+from .context import Context, NeedsSimulatedRig, no_progress
+from .data import Strokes
+from .rig import LiveRig, Progress, SimulatedRig
+
+PROG = "usmswitch-experiment"
+#: Subcommand -> (summary key, module's run); in the order `all` runs them.
+EXPERIMENTS: dict[str, tuple[str, Callable[[Context], dict[str, Any]]]] = {
+    "open-loop": ("open_loop", open_loop.run),
+    "speed": ("speed", speed.run),
+    "identify": ("identify", identify.run),
+    "temperature": ("temperature", temperature.run),
+    "aic": ("aic", aic.run),
+    "closed-loop": ("closed_loop", closed_loop.run),
+    "reliability": ("reliability", reliability.run),
+}
+#: What a records file can answer (the others need a rig to act on).
+FROM_RECORDS = ("open-loop", "aic", "closed-loop", "reliability")
+EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p.add_argument(
+        "experiment", choices=[*EXPERIMENTS, "all"], help="which one; `all` runs every one, then the report"
+    )
+    p.add_argument("--seed", type=int, help="the simulated rig's seed (default: a new one, recorded)")
+    p.add_argument("--out", type=Path, help="the output folder (default runs/<experiment>-<time>)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--socket", help="run on a live daemon (a real rig) through this socket")
+    src.add_argument(
+        "--from-records", type=Path, metavar="DB", help="analyse a records file (or state directory)"
+    )
+    p.add_argument("--run", type=int, help="with --from-records: the run to analyse (default: the last)")
+    p.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="stroke counts as a fraction of the paper's (default 1; tests use less)",
+    )
+    p.add_argument("--version", action="version", version=f"{PROG} {PACKAGE_VERSION}")
+    return p
+
+
+@contextmanager
+def rich_progress(label: str, total: int) -> Iterator[Progress]:
+    """A progress bar on a terminal (rich draws and redraws it); nothing on a pipe."""
+    from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
+    from rich.progress import Progress as Bar
+
+    with Bar(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeRemainingColumn(),
+        transient=True,
+    ) as bar:
+        task = bar.add_task(label, total=total)
+        pending = [0]
+
+        def advance(n: int) -> None:
+            pending[0] += n
+            if pending[0] >= 200 or pending[0] + bar.tasks[0].completed >= total:  # redraws cost
+                bar.advance(task, pending[0])
+                pending[0] = 0
+
+        yield advance
+
+
+def recorded_run(path: Path, run_id: int | None) -> tuple[Strokes, str]:
+    with RecordsFile(path) as f:
+        runs = f.runs()
+        if run_id is None and runs:
+            run_id = runs[-1]["run_id"]
+        records = list(f.records(run=run_id)) if run_id is not None else list(f.records())
+    if not records:
+        raise RecordsFileError(f"{path}: no strokes" + (f" in run {run_id}" if run_id else ""))
+    where = f"{path}" + (f", run {run_id}" if run_id is not None else ", every stroke")
+    return Strokes.from_records(records, run_id=run_id), where
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
+    if args.run is not None and args.from_records is None:
+        print(f"{PROG}: --run goes with --from-records", file=sys.stderr)
+        return EXIT_USAGE
+    if args.from_records is not None and args.experiment not in (*FROM_RECORDS, "all"):
+        print(
+            f"{PROG}: {args.experiment} needs a rig; from records: {', '.join(FROM_RECORDS)}", file=sys.stderr
+        )
+        return EXIT_USAGE
+    if not 0 < args.scale <= 1:
+        print(f"{PROG}: --scale must be in (0, 1], got {args.scale}", file=sys.stderr)
+        return EXIT_USAGE
+    started = datetime.datetime.now()
+    out: Path = args.out or Path("runs") / f"{args.experiment}-{started:%Y%m%d-%H%M%S}"
+    out.mkdir(parents=True, exist_ok=True)
+    seed = args.seed if args.seed is not None else secrets.randbelow(2**31)
+    progress = rich_progress if sys.stderr.isatty() else no_progress
+    ctx = Context(out=out, seed=None, scale=args.scale, progress=progress)  # type: ignore[arg-type]
+    try:
+        if args.from_records is not None:
+            ctx.recorded, where = recorded_run(args.from_records, args.run)
+            names = [n for n in names if n in FROM_RECORDS]
+        elif args.socket is not None:
+            ctx.rig, where = LiveRig(args.socket), f"the live rig at {args.socket}"
+        else:
+            ctx.rig, ctx.seed = SimulatedRig(out / "records.sqlite", seed), seed
+            where = "the simulated rig (in-process, virtual time)"
+            print(
+                f"{PROG}: simulated rig, seed {seed} (replay with --seed {seed}); output in {out}",
+                file=sys.stderr,
+            )
+    except (RecordsFileError, OSError, RuntimeError) as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+    summary: dict[str, Any] = {
+        "meta": {
+            "command": " ".join(["usmswitch-experiment", *(argv if argv is not None else sys.argv[1:])]),
+            "where": where,
+            "seed": ctx.seed,
+            "version": PACKAGE_VERSION,
+            "started": started.isoformat(timespec="seconds"),
+            "scale": args.scale,
+            "notes": ctx.notes,
+        }
+    }
+    status = EXIT_OK
+    t0 = time.monotonic()
+    try:
+        for name in names:
+            key, fn = EXPERIMENTS[name]
+            try:
+                section = fn(ctx)
+            except NeedsSimulatedRig as exc:
+                ctx.notes.append(f"{name}: skipped: {exc}")
+                if args.experiment != "all":
+                    status = EXIT_FAILED
+                continue
+            if key == "closed_loop":
+                summary["closed_loop"] = section.pop("rows")
+                summary["closed_loop_runs"] = section
+            else:
+                summary[key] = section
+            print(f"{PROG}: {name} done ({time.monotonic() - t0:.1f} s)", file=sys.stderr)
+    finally:
+        if ctx.rig is not None:
+            ctx.rig.close()
+    summary["meta"]["seconds"] = round(time.monotonic() - t0, 1)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_plain) + "\n")
+    (out / "report.md").write_text(report.render(summary))
+    print(f"{PROG}: report in {out / 'report.md'}", file=sys.stderr)
+    return status
+
+
+def _plain(value: object) -> object:
+    """numpy scalars in summary.json as plain numbers."""
+    if hasattr(value, "item"):
+        return value.item()  # type: ignore[no-any-return]
+    raise TypeError(f"{type(value).__name__} is not JSON")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

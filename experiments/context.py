@@ -1,0 +1,71 @@
+"""What every experiment gets: where to write, the rig (or a records file's run), and how many strokes."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .data import Strokes
+from .rig import Progress, Rig, SimulatedRig
+
+MS = 1_000_000
+
+#: Makes a progress callback for a task of `total` strokes named `label` (a context manager).
+ProgressFactory = Callable[[str, int], "contextmanager[Progress]"]
+
+
+@contextmanager
+def no_progress(label: str, total: int) -> Iterator[Progress]:
+    yield lambda n: None
+
+
+class NeedsSimulatedRig(RuntimeError):
+    """The experiment needs what only the simulated rig has (a position sensor, the ambient)."""
+
+
+class NeedsStrokes(RuntimeError):
+    """The experiment has nothing to analyse: no rig and no records."""
+
+
+@dataclass
+class Context:
+    """An experiment's inputs: `rig` makes strokes, or `recorded` holds a records file's run."""
+
+    out: Path
+    rig: Rig | None = None
+    recorded: Strokes | None = None
+    seed: int | None = None
+    #: Stroke counts are the paper's times this (tests and quick looks use less than 1).
+    scale: float = 1.0
+    progress: ProgressFactory = no_progress
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def figures(self) -> Path:
+        return self.out / "figures"
+
+    def count(self, paper_count: int, least: int = 40) -> int:
+        """How many strokes to make for what the paper made `paper_count` of."""
+        return max(least, round(paper_count * self.scale))
+
+    def sim(self, what: str) -> SimulatedRig:
+        """The simulated rig, or NeedsSimulatedRig saying why `what` needs it."""
+        if isinstance(self.rig, SimulatedRig):
+            return self.rig
+        raise NeedsSimulatedRig(f"{what} needs the simulated rig ({self._where()})")
+
+    def strokes(self, name: str, count: int, period_ns: int, target_ns: int, **kw: object) -> Strokes:
+        """A run on the rig, with a progress bar; or the recorded run when analysing records."""
+        if self.recorded is not None:
+            return self.recorded
+        if self.rig is None:
+            raise NeedsStrokes(f"{name}: no rig and no records to analyse")
+        with self.progress(name, count) as advance:
+            return self.rig.run(name, count, period_ns, target_ns, progress=advance, **kw)  # type: ignore[arg-type]
+
+    def _where(self) -> str:
+        if self.recorded is not None:
+            return "this analyses a records file"
+        return "a live rig has no position sensor or ambient control"

@@ -1,0 +1,179 @@
+"""usmswitch-experiment on small inputs: every experiment runs, and its summary agrees with the records."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import daemonproc
+import numpy as np
+import pytest
+
+from usmswitch.client import Client
+from usmswitch.experiments.cli import main
+from usmswitch.experiments.closed_loop import SETTLE
+
+SCALE = "0.01"  # 1,000 reliability strokes, 40-240 for the others
+
+
+def run(*args: str) -> int:
+    return main(list(args))
+
+
+@pytest.fixture(scope="module")
+def everything(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("all")
+    assert run("all", "--scale", SCALE, "--seed", "3", "--out", str(out)) == 0
+    return out
+
+
+def _records(out: Path, run_id: int) -> list[sqlite3.Row]:
+    con = sqlite3.connect(out / "records.sqlite")
+    con.row_factory = sqlite3.Row
+    rows = con.execute("SELECT * FROM cycles WHERE run_id = ? ORDER BY cycle", (run_id,)).fetchall()
+    con.close()
+    return rows
+
+
+def test_all_writes_the_summary_figures_and_report(everything: Path) -> None:
+    summary = json.loads((everything / "summary.json").read_text())
+    assert summary["meta"]["seed"] == 3
+    for key in ("open_loop", "speed", "identify", "temperature", "aic", "closed_loop", "reliability"):
+        assert key in summary, key
+    r = summary["reliability"]
+    assert set(r) >= {"cycles", "arrived", "late", "stalls", "target_ns", "seconds"}
+    assert (
+        r["cycles"] == r["arrived"] == 1000 and r["late"] == r["stalls"] == 0 and r["target_ns"] == 10_500_000
+    )
+    assert set(summary["aic"]) >= {"orders", "values", "criterion"} and summary["aic"]["orders"] == [1, 2, 3]
+    rows = summary["closed_loop"]
+    assert {(row["target_ns"], row["frequency_hz"]) for row in rows} == {
+        (12_000_000, 40_000.0),
+        (24_000_000, 40_500.0),
+    }
+    for row in rows:
+        assert set(row) >= {
+            "target_ns",
+            "frequency_hz",
+            "model",
+            "strokes",
+            "std_ns",
+            "max_abs_error_ns",
+            "floor_ns",
+        }
+        assert 50_000 < row["std_ns"] < 200_000 and row["floor_ns"] > 0
+    figures = sorted(p.name for p in (everything / "figures").iterdir())
+    assert len(figures) == 16 and all((everything / "figures" / f).stat().st_size > 5000 for f in figures)
+    report = (everything / "report.md").read_text()
+    for paper_number in ("95.3 us", "102.7 us", "3574.2", "3660.5", "100,000", "0.41 %", "0.85 %"):
+        assert paper_number in report, paper_number
+    for f in figures:
+        if f.endswith(".png"):
+            assert f"(figures/{f})" in report
+
+
+def test_the_summary_agrees_with_the_records(everything: Path) -> None:
+    summary = json.loads((everything / "summary.json").read_text())
+    rel = summary["reliability"]
+    recs = _records(everything, rel["run_id"])
+    assert len(recs) == rel["cycles"] and all(r["t_arrive_ns"] is not None for r in recs)
+    assert max(r["operating_ns"] for r in recs) == rel["operating_max_ns"]
+    for cond in summary["closed_loop_runs"]["conditions"]:
+        recs = _records(everything, cond["run_id"])
+        seen = {0: 0, 1: 0}
+        errors = []
+        for r in recs:  # the controller's own figure: total - T, cold start left out
+            seen[r["direction"]] += 1
+            if seen[r["direction"]] > SETTLE:
+                errors.append(r["error_ns"])
+        ours = next(
+            row
+            for row in summary["closed_loop"]
+            if row["target_ns"] == cond["target_ns"] and "controlling" in row["model"]
+        )
+        assert ours["strokes"] == len(errors)
+        assert ours["std_ns"] == pytest.approx(np.std(errors, ddof=1), abs=0.1)
+        assert ours["max_abs_error_ns"] == max(abs(e) for e in errors)
+        # The offline paper AR(1) on the same strokes is the controller's own prediction.
+        paper = next(
+            row
+            for row in summary["closed_loop"]
+            if row["target_ns"] == cond["target_ns"] and row["model"] == "paper AR(1)"
+        )
+        assert paper["std_ns"] == pytest.approx(ours["std_ns"], abs=1.0)  # t_hat rounded to 1 ns in the loop
+
+
+def test_a_seed_replays(tmp_path: Path) -> None:
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert run("reliability", "--scale", "0.005", "--seed", "11", "--out", str(a)) == 0
+    assert run("reliability", "--scale", "0.005", "--seed", "11", "--out", str(b)) == 0
+    ra, rb = (json.loads((p / "summary.json").read_text())["reliability"] for p in (a, b))
+    ra.pop("seconds"), rb.pop("seconds")
+    assert ra == rb
+
+
+def test_from_a_daemons_records_the_same_figures_as_the_records(tmp_path: Path) -> None:
+    """A daemon (virtual-time sim) makes a closed-loop run; the experiment reads its records file."""
+    args = daemonproc.daemon_args(
+        tmp_path, "--sim-clock", "virtual", "--no-autostart", "--log-level", "warning"
+    )
+    proc = daemonproc.spawn(args)
+    try:
+        daemonproc.wait_serving(tmp_path / "d.sock", proc)
+        with Client(tmp_path / "d.sock", timeout=30) as c:
+            run_info = c.run(count=300, period="25ms", target="12ms").wait()
+            # A live rig without a position sensor: the speed profile says what it needs.
+            r = subprocess.run(
+                [sys.executable, "-m", "usmswitch.experiments", "speed", "--socket", str(tmp_path / "d.sock"),
+                 "--out", str(tmp_path / "live")],
+                capture_output=True, text=True, timeout=60,
+            )  # fmt: skip
+            assert r.returncode == 1
+            notes = json.loads((tmp_path / "live" / "summary.json").read_text())["meta"]["notes"]
+            assert "speed: skipped: the speed profile needs the simulated rig" in notes[0]
+    finally:
+        daemonproc.stop(proc)
+    out = tmp_path / "from"
+    db = tmp_path / "state" / "records.sqlite"
+    assert run("closed-loop", "--from-records", str(db), "--out", str(out)) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    con = sqlite3.connect(db)
+    rows = con.execute(
+        "SELECT direction, error_ns FROM cycles WHERE run_id = ? ORDER BY cycle", (run_info["run_id"],)
+    ).fetchall()
+    con.close()
+    seen = {0: 0, 1: 0}
+    errors = []
+    for d, e in rows:
+        seen[d] += 1
+        if seen[d] > SETTLE:
+            errors.append(e)
+    ours = summary["closed_loop"][0]
+    assert ours["model"] == "paper AR(1), controlling" and ours["target_ns"] == 12_000_000
+    assert ours["strokes"] == len(errors) == 100
+    assert ours["std_ns"] == pytest.approx(np.std(errors, ddof=1), abs=0.1)
+    assert ours["max_abs_error_ns"] == max(abs(e) for e in errors)
+    assert summary["meta"]["where"].endswith(f"run {run_info['run_id']}")
+
+
+def test_bad_usage(tmp_path: Path) -> None:
+    assert run("speed", "--from-records", str(tmp_path / "none.sqlite")) == 2
+    assert run("aic", "--run", "3") == 2
+    assert run("aic", "--scale", "2") == 2
+    assert run("aic", "--from-records", str(tmp_path / "none.sqlite"), "--out", str(tmp_path / "o")) == 1
+
+
+def test_the_console_script_runs(tmp_path: Path) -> None:
+    t0 = time.monotonic()
+    exe = Path(sys.executable).with_name("usmswitch-experiment")
+    r = subprocess.run(
+        [str(exe), "aic", "--scale", "0.1", "--seed", "5", "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert "seed 5" in r.stderr and (tmp_path / "report.md").exists()
+    assert time.monotonic() - t0 < 120
