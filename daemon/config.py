@@ -134,7 +134,7 @@ class SimConfig:
     """[sim]: the simulated rig (driver.kind = "sim")."""
 
     clock: str = "real"  # "virtual" runs as fast as the CPU goes (tests, experiments)
-    seed: int = 1
+    seed: int | None = None  # None: a new seed at each start (logged and recorded)
     # [sim.faults]: handed to the sim as it is (sim.FaultPlan.from_config checks it at load).
     faults: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
 
@@ -400,7 +400,7 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
         raise ConfigError("sim.faults", str(exc)) from None
     sim = SimConfig(
         clock=t.get("clock", choice(SIM_CLOCKS), "real"),
-        seed=table_int(t, "seed", 1, 0, 2**64 - 1),
+        seed=table_int(t, "seed", None, 0, 2**63 - 1),
         faults=MappingProxyType(copy.deepcopy(faults)),
     )
     t.done()

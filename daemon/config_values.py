@@ -138,7 +138,7 @@ def int_value(key: str, v: Any, lo: int, hi: int | None) -> int:
     return v
 
 
-def table_int(t: Table, k: str, default: int, lo: int, hi: int | None) -> int:
+def table_int(t: Table, k: str, default: int | None, lo: int, hi: int | None) -> int | None:
     return t.get(k, lambda key, v: int_value(key, v, lo, hi), default)
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import secrets
+
 from usmswitch.drivers import Daq
 
 from .config import Config, ConfigError
@@ -16,9 +18,12 @@ def make_daq(config: Config) -> Daq:
     if kind == "sim":
         from usmswitch.sim import SimDaq
 
+        seed = config.sim.seed
+        if seed is None:  # a new rig each start, unless asked to replay one
+            seed = secrets.randbelow(2**63)
         return SimDaq(
             realtime=config.sim.clock == "real",
-            seed=config.sim.seed,
+            seed=seed,
             faults=dict(config.sim.faults),
             debounce_ns=debounce,
         )

@@ -35,6 +35,7 @@ from .methods import start_rpc
 from .realtime import apply_realtime, lift_helpers
 from .record import CycleRecord, Flag, RunRecord
 from .records import RecordStore, RecordStoreError
+from .rig_memory import RigMemory
 from .sdnotify import Notifier
 from .sockdir import ensure_private_dir, prepare_socket_dir
 from .units import format_ns
@@ -119,6 +120,7 @@ class Daemon:
         self.started_ns = time.monotonic_ns()
         self.store: RecordStore | None = None
         self.daq: Daq | None = None
+        self.rig_memory: RigMemory | None = None
         self.loop: ControlLoop | None = None
         self.rpc: Any = None
         self.board: BoardPoller | None = None
@@ -161,6 +163,8 @@ class Daemon:
             )
         daq.open()
         self.daq = daq
+        self.rig_memory = RigMemory(state_dir, daq)  # the sim's friction and warmth, across restarts
+        self.rig_memory.restore()
         conditions = None
         if cfg.modbus.enabled:
             store = self.store
@@ -201,11 +205,13 @@ class Daemon:
             driver=self.daq.name,
             rig=cfg.daemon.rig,
             pid=os.getpid(),
+            seed=getattr(self.daq, "seed", None),  # the sim's: any run replays from its records
             config=cfg.to_dict(redact=True),
         )
         self.log.info(
             "started",
             driver=self.daq.name,
+            seed=getattr(self.daq, "seed", None),
             state_dir=str(state_dir),
             socket=str(cfg.socket.path),
             target_on_ns=cfg.control.target_on_ns,
@@ -278,6 +284,8 @@ class Daemon:
             self.rpc.stop()
             self.rpc = None
         if self.daq is not None:
+            if self.rig_memory is not None:
+                self.rig_memory.save()
             self.daq.close()
         if self.board is not None:
             self.board.stop()
@@ -411,6 +419,8 @@ class Daemon:
     def _housekeeping(self) -> None:
         now = time.monotonic_ns()
         self.notifier.maybe_watchdog(now)
+        if self.rig_memory is not None:
+            self.rig_memory.maybe_save(now)
         if now >= self._next_summary_ns:
             self._next_summary_ns = now + self.config.daemon.summary_interval_ns
             self._summary(only_if_changed=True)

@@ -366,6 +366,50 @@ class UsmSwitchModel:
             else:
                 self._on_from = t_ns
 
+    # -- what the rig remembers between runs of the daemon ----------------------------------------
+    STATE_FORMAT = 1
+
+    def state(self, t_ns: int) -> dict[str, object]:
+        """The rig's slow state at `t_ns`, plain data for a JSON file: friction per direction, how
+        much warmer than ambient the motor is, strokes made, the drive's setting. A new model
+        given it (`restore`) faces the rig this one left, not a fresh one."""
+        theta = self._theta_at(max(t_ns, self._t_theta))
+        return {
+            "format": self.STATE_FORMAT,
+            "friction": list(self._friction),
+            "theta_c": theta,
+            "strokes": list(self.strokes),
+            "frequency_hz": self.frequency_hz,
+            "voltage_vpp": self.voltage_vpp,
+        }
+
+    def restore(self, state: dict[str, object], t_ns: int, idle_ns: int = 0) -> None:
+        """Take up `state` at `t_ns`, the motor having cooled (drive off) for `idle_ns` since it was
+        saved. ValueError names what does not fit (the caller then starts from a fresh rig)."""
+        if state.get("format") != self.STATE_FORMAT:
+            raise ValueError(
+                f"rig state format {state.get('format')!r}, this model reads {self.STATE_FORMAT}"
+            )
+        friction = state["friction"]
+        strokes = state["strokes"]
+        theta = state["theta_c"]
+        if not (
+            isinstance(friction, list) and len(friction) == 2 and all(isinstance(f, float) for f in friction)
+        ):
+            raise ValueError(f"rig state friction {friction!r} is not two numbers")
+        if not (isinstance(strokes, list) and len(strokes) == 2 and all(isinstance(n, int) for n in strokes)):
+            raise ValueError(f"rig state strokes {strokes!r} is not two counts")
+        if not isinstance(theta, float) or not 0.0 <= theta <= 100.0:
+            raise ValueError(f"rig state theta_c {theta!r} is not a temperature rise")
+        if idle_ns < 0:
+            raise ValueError(f"idle_ns must be >= 0, got {idle_ns}")
+        self.set_drive(frequency_hz=state["frequency_hz"], voltage_vpp=state["voltage_vpp"])  # type: ignore[arg-type]
+        self._friction = [float(f) for f in friction]
+        self.strokes = [int(n) for n in strokes]
+        self._theta = theta * math.exp(-idle_ns / self._tau_th)
+        self._t_theta = t_ns
+        self._on_from = self._on_until = None
+
     def temperature_c(self, t_ns: int | None = None) -> float:
         """Motor temperature at `t_ns` (None: at the last instant the model was told about)."""
         if t_ns is None or t_ns < self._t_theta:
