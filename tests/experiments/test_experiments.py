@@ -16,6 +16,7 @@ import pytest
 from usmswitch.client import Client
 from usmswitch.experiments.cli import main
 from usmswitch.experiments.closed_loop import SETTLE
+from usmswitch.predictor import aic_table
 
 SCALE = "0.01"  # 1,000 reliability strokes, 40-240 for the others
 
@@ -105,6 +106,21 @@ def test_the_summary_agrees_with_the_records(everything: Path) -> None:
             if row["target_ns"] == cond["target_ns"] and row["model"] == "paper AR(1)"
         )
         assert paper["std_ns"] == pytest.approx(ours["std_ns"], abs=1.0)  # t_hat rounded to 1 ns in the loop
+
+
+def test_open_loop_and_aic_agree_with_the_records(everything: Path) -> None:
+    summary = json.loads((everything / "summary.json").read_text())
+    o = summary["open_loop"]
+    recs = _records(everything, o["run_id"])
+    assert len(recs) == o["strokes"] and all(r["delay_ns"] == 0 for r in recs)  # open loop: no delay
+    on = [r["operating_ns"] for r in recs if r["direction"] == 0]
+    assert o["on"]["n"] == len(on) and o["on"]["mean_ns"] == pytest.approx(np.mean(on), abs=0.1)
+    assert (o["on"]["min_ns"], o["on"]["max_ns"]) == (min(on), max(on))
+    assert {r["frequency_hz"] for r in recs} == {39_600.0}
+    a = summary["aic"]
+    on = [r["operating_ns"] for r in _records(everything, a["run_id"]) if r["direction"] == 0]
+    table = aic_table(on, 3, "paper", "fit")
+    assert a["values"] == [round(v - table.n_rows * np.log(1e6), 1) for v in table.values]
 
 
 def test_a_seed_replays(tmp_path: Path) -> None:
