@@ -7,11 +7,10 @@ every row carries its `rig`, and the primary key is `(rig, cycle)`. Schema: docs
 
 from __future__ import annotations
 
-import json
 from typing import Any
 from urllib.parse import SplitResult, urlsplit, urlunsplit
 
-from .record import FIELDS, RUN_FIELDS, CycleRecord, RunRecord
+from .record import FIELDS, RUN_FIELDS
 
 #: The version of these tables; the shipper creates them at start and refuses a newer database.
 PG_SCHEMA_VERSION = 1
@@ -120,25 +119,22 @@ RUNS_FROM = (
 )
 
 
-def cycle_row(rec: CycleRecord, rig: str) -> tuple[Any, ...]:
-    """One stroke as a row of `usmswitch_cycles`, under `rig`: the shipping daemon's name is the key
-    of all its file's strokes there (a row an earlier name, or none, stamped in the file included)."""
-    row = list(rec.to_row())
-    row[FIELDS.index("coefficients")] = [float(c) for c in rec.coefficients]
-    row[FIELDS.index("rig")] = rig
-    return tuple(row)
+_COEFFICIENTS = FIELDS.index("coefficients")
+_RIG = FIELDS.index("rig")
+_RUN_RIG = RUN_FIELDS.index("rig")
 
 
-def run_row(run: RunRecord, rig: str) -> tuple[Any, ...]:
-    """One run as the parameters of UPSERT_RUN (settings as JSON text), under `rig`."""
-    row = list(run.to_row())
-    row[RUN_FIELDS.index("rig")] = rig
-    return tuple(row)
+def pg_cycle(row: tuple[Any, ...], rig: str) -> tuple[Any, ...]:
+    """A records-file row (FIELDS order, as `CycleRecord.to_row()`) as a COPY row of
+    usmswitch_cycles: the JSON array of coefficients as an array literal, and the rig the shipping
+    daemon's (the key of all its file's strokes there, a row an earlier name stamped included)."""
+    coefficients = "{" + row[_COEFFICIENTS][1:-1] + "}"
+    return (*row[:_COEFFICIENTS], coefficients, *row[_COEFFICIENTS + 1 : _RIG], rig, *row[_RIG + 1 :])
 
 
-def settings_value(value: Any) -> dict[str, Any]:
-    """A run's settings as read back (psycopg gives jsonb as a dict; text is parsed)."""
-    return json.loads(value) if isinstance(value, str) else dict(value)
+def pg_run(row: tuple[Any, ...], rig: str) -> tuple[Any, ...]:
+    """A records-file runs row (RUN_FIELDS order, settings as JSON text) as UPSERT_RUN's parameters."""
+    return (*row[:_RUN_RIG], rig, *row[_RUN_RIG + 1 :])
 
 
 def is_postgres_url(text: str) -> bool:

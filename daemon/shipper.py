@@ -12,12 +12,13 @@ another file's strokes under this rig's name is refused, never merged). Failures
 
 from __future__ import annotations
 
+import sqlite3
 import threading
 import time
-from collections.abc import Callable
-from itertools import islice
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import structlog
 
@@ -34,13 +35,13 @@ from .pg_schema import (
     SELECT_VERSION,
     SET_VERSION,
     UPSERT_RUN,
-    cycle_row,
+    pg_cycle,
+    pg_run,
     redact_url,
-    run_row,
 )
 from .realtime import drop_realtime
 from .record import RUN_FIELDS
-from .records import RecordStore, RecordStoreError
+from .records_schema import COLUMNS, SCHEMA_VERSION
 
 log = structlog.get_logger("usmswitch.shipper")
 
@@ -48,10 +49,60 @@ log = structlog.get_logger("usmswitch.shipper")
 MAX_RUNS_PER_PASS = 500
 #: An idle shipper checks its connection this often, so `connected` tells the truth when idle.
 IDLE_CHECK_NS = 5_000_000_000
+#: Rows read from the file per wait_turn; every row copied waits its turn too: a backlog is caught
+#: up in slices of a few microseconds of Python, none begun while the loop is about to start a
+#: stroke (a thread that is not parked in wait_turn competes for the GIL the spinning loop holds).
+READ_CHUNK = 64
+_RUN_END = RUN_FIELDS.index("end_reason")
 
 
 class ShipperError(Exception):
     """Shipping cannot go on as things are (a schema too new, a rig name taken); the message says why."""
+
+
+class LocalRecords:
+    """The committed rows of the records file as plain tuples, read-only (no record objects are
+    built: a catch-up of a large backlog leaves little for the collector, which runs in the loop's
+    slack). The file is the daemon's, so of the current schema."""
+
+    def __init__(self, path: Path) -> None:
+        uri = f"file:{quote(str(path.resolve()))}?mode=ro"
+        self.db = sqlite3.connect(uri, uri=True, check_same_thread=False)
+        self.db.execute("PRAGMA busy_timeout = 200")
+        (version,) = self.db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+        if version != str(SCHEMA_VERSION):
+            self.db.close()
+            raise ShipperError(f"records file {path}: schema {version}, the shipper reads {SCHEMA_VERSION}")
+
+    def last_cycle(self) -> int:
+        return self.db.execute("SELECT coalesce(max(cycle), 0) FROM cycles").fetchone()[0]
+
+    def stamps(self, cycle: int) -> tuple[int, int] | None:
+        """(t_cmd_ns, wall_ns) of one stroke, or None."""
+        return self.db.execute("SELECT t_cmd_ns, wall_ns FROM cycles WHERE cycle = ?", (cycle,)).fetchone()
+
+    def cycles_after(self, cycle: int, n: int, gate: Callable[[], object]) -> Iterator[tuple[Any, ...]]:
+        """Up to `n` rows (FIELDS order) after `cycle`, in cycle order, read in chunks, each after
+        `gate()`."""
+        sql = f"SELECT {COLUMNS} FROM cycles WHERE cycle > ? ORDER BY cycle LIMIT ?"
+        cur = self.db.execute(sql, (cycle, n))
+        try:
+            while True:
+                gate()
+                chunk = cur.fetchmany(READ_CHUNK)
+                if not chunk:
+                    return
+                yield from chunk
+        finally:
+            cur.close()
+
+    def runs_from(self, run_id: int, n: int) -> list[tuple[Any, ...]]:
+        """Up to `n` runs (RUN_FIELDS order, settings as JSON text) from `run_id` on."""
+        sql = f"SELECT {', '.join(RUN_FIELDS)} FROM runs WHERE run_id >= ? ORDER BY run_id LIMIT ?"
+        return self.db.execute(sql, (run_id, n)).fetchall()
+
+    def close(self) -> None:
+        self.db.close()
 
 
 def _import_psycopg() -> Any:
@@ -168,14 +219,14 @@ class PostgresShipper:
         return until is None or time.monotonic_ns() >= until or (self.connected and self.lag == 0)
 
     def _ship_until_stopped(self) -> None:
-        reader: RecordStore | None = None
+        reader: LocalRecords | None = None
         conn = None
         backoff = self._retry_ns[0]
         idle_since = time.monotonic_ns()
         while not self._stopping():
             try:
                 if reader is None:
-                    reader = RecordStore(self.records_path, readonly=True)
+                    reader = LocalRecords(self.records_path)
                     self.committed_cycle = max(self.committed_cycle, reader.last_cycle())
                 if conn is None:
                     self.gate()
@@ -185,7 +236,7 @@ class PostgresShipper:
                 moved = self._ship_batch(conn, reader)
                 if not moved:
                     if self._stop.is_set():
-                        return  # caught up: nothing left to drain
+                        break  # caught up: nothing left to drain
                     now = time.monotonic_ns()
                     if now - idle_since >= IDLE_CHECK_NS:
                         idle_since = now
@@ -194,14 +245,14 @@ class PostgresShipper:
                     self._wake.clear()
                 else:
                     idle_since = time.monotonic_ns()
-            except (self._psycopg.Error, OSError, ShipperError, RecordStoreError) as exc:
+            except (self._psycopg.Error, OSError, ShipperError, sqlite3.Error) as exc:
                 self._fail(exc)
                 if conn is not None:
                     conn.close()
                     conn = None
                 self.connected = False
                 if self._stop.is_set():
-                    return  # not reachable now: the rest ships at the next start
+                    break  # not reachable now: the rest ships at the next start
                 self._stop.wait(backoff / 1e9)
                 backoff = min(2 * backoff, self._retry_ns[1])
         if conn is not None:
@@ -223,7 +274,7 @@ class PostgresShipper:
             )
         self.error = message
 
-    def _connect(self, reader: RecordStore) -> Any:
+    def _connect(self, reader: LocalRecords) -> Any:
         """Connect, create or check the tables, and find where to resume."""
         conn = self._psycopg.connect(
             self.url,
@@ -274,47 +325,47 @@ class PostgresShipper:
         conn.execute(SET_VERSION, (str(PG_SCHEMA_VERSION),))
         log.info("postgres schema ready", url=self.where, schema_from=version, schema_to=PG_SCHEMA_VERSION)
 
-    def _check_same_file(self, reader: RecordStore, last: tuple[int, int, int]) -> None:
+    def _check_same_file(self, reader: LocalRecords, last: tuple[int, int, int]) -> None:
         cycle, t_cmd_ns, wall_ns = last
-        local = next(iter(reader.iter_records(cycle, cycle)), None)
-        if local is None or (local.t_cmd_ns, local.wall_ns) != (t_cmd_ns, wall_ns):
+        if reader.stamps(cycle) != (t_cmd_ns, wall_ns):
             raise ShipperError(
                 f"the database holds strokes of rig {self.rig!r} up to cycle {cycle} that are not this"
                 f" records file's ({self.records_path}): another daemon, or an earlier state directory,"
                 " ships as this rig. Give this daemon its own [daemon] rig, or delete that rig's rows"
             )
 
-    def _ship_batch(self, conn: Any, reader: RecordStore) -> bool:
+    def _ship_batch(self, conn: Any, reader: LocalRecords) -> bool:
         """One transaction: the next strokes and the runs that changed. False when nothing was new."""
-        records = list(islice(reader.iter_records(self.shipped_cycle + 1, chunk=self._batch), self._batch))
-        last_run = reader.last_run_id()
-        run_ids = range(self._run_from, min(last_run, self._run_from + MAX_RUNS_PER_PASS - 1) + 1)
-        runs = [run_row(r, self.rig) for r in (reader.run(i) for i in run_ids) if r is not None]
+        runs = [pg_run(r, self.rig) for r in reader.runs_from(self._run_from, MAX_RUNS_PER_PASS)]
         runs = [row for row in runs if self._runs_sent.get(row[0]) != row]  # an open run: once a change
-        if not records and not runs:
+        if reader.last_cycle() <= self.shipped_cycle and not runs:
             return False
-        rows = [cycle_row(rec, self.rig) for rec in records]
-        inserted = 0
+        sent = inserted = last = 0
+        rig = self.rig
+        gate = self.gate
         with conn.transaction(), conn.cursor() as cur:
-            if rows:
-                with cur.copy(COPY_STAGE) as copy:
-                    for row in rows:
-                        copy.write_row(row)
+            with cur.copy(COPY_STAGE) as copy:
+                for row in reader.cycles_after(self.shipped_cycle, self._batch, gate):
+                    gate()
+                    copy.write_row(pg_cycle(row, rig))
+                    last = row[0]
+                    sent += 1
+            gate()
+            if sent:
                 cur.execute(INSERT_FROM_STAGE)
                 inserted = cur.rowcount
             if runs:
                 cur.executemany(UPSERT_RUN, runs)
-        if records:
-            self.shipped_cycle = records[-1].cycle
-            self.committed_cycle = max(self.committed_cycle, self.shipped_cycle)
+        if sent:
+            self.shipped_cycle = last
+            self.committed_cycle = max(self.committed_cycle, last)
             self.shipped += inserted
-            self.duplicates += len(rows) - inserted
+            self.duplicates += sent - inserted
         for row in runs:
             self._runs_sent[row[0]] = row
         self.runs_shipped += len(runs)
-        ended = RUN_FIELDS.index("end_reason")
         if runs:
-            still_open = [row[0] for row in runs if row[ended] is None]
+            still_open = [row[0] for row in runs if row[_RUN_END] is None]
             self._run_from = min(still_open) if still_open else runs[-1][0] + 1
             self._runs_sent = {k: v for k, v in self._runs_sent.items() if k >= self._run_from}
         return True
