@@ -6,7 +6,7 @@ nothing else of ours. See docs/predictor.md.
 """
 
 from .aic import SIGMA2_FLOOR_NS2, AicTable, min_samples
-from .ar import STATE_FORMAT, ARPredictor
+from .ar import SOUND_FIT, STATE_FORMAT, ARPredictor
 from .checks import MAX_ORDER, MAX_T_NS, MODELS, check_stroke_ns
 from .exact import ExactSolution
 from .selection import CRITERIA, aic_table, select_order
@@ -17,6 +17,7 @@ __all__ = [
     "MAX_T_NS",
     "MODELS",
     "SIGMA2_FLOOR_NS2",
+    "SOUND_FIT",
     "STATE_FORMAT",
     "ARPredictor",
     "AicTable",

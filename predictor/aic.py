@@ -12,7 +12,8 @@ common set of N strokes so that the orders are compared fairly:
   ours + N (1 + ln 2 pi) + 2, the same for every m, so both pick the same order.
 - `criterion="rolling"`: sigma^2 is the mean square of the one-step prediction errors
   gamma_{n+1} = t_{n+1} - t_hat_{n+1} (Eq. 9) of a limited-memory predictor with the given `window`,
-  over the strokes at which every order is past its cold start. This is Eq. 9 read literally, and it is
+  over the strokes predicted from a full window (cold-start predictions would inflate the higher orders).
+  This is Eq. 9 read literally, and it is
   the only reading under which AIC can grow with m as fast as the paper's Table 2 does (for the
   in-sample fit on common rows, RSS cannot grow with m, so AIC(m+1) - AIC(m) <= 2).
 

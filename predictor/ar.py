@@ -22,6 +22,8 @@ from .exact import ExactSolution, NormalPlan
 STATE_FORMAT = "usmswitch.predictor.ar/1"
 # One index plan per order, shared by every predictor.
 _PLANS = {m: NormalPlan(m) for m in range(1, MAX_ORDER + 1)}
+#: Strokes a model with more parameters than the paper's AR(1) waits for before its own fit predicts.
+SOUND_FIT = 30
 
 
 class ARPredictor:
@@ -36,10 +38,12 @@ class ARPredictor:
       for "centered"), then every `reselect_every` strokes. The window is kept; only the sums of the
       new order are rebuilt from it.
 
-    Cold start: until the window holds `min_ready = min(window, 2m + 1)` strokes (one more for
-    "centered": one residual degree of freedom), `ready` is False, `coefficients` is () and `predict()`
-    returns `nominal_ns` (or, without a nominal, the mean of the strokes so far; with neither, it
-    raises RuntimeError: configure a nominal).
+    Cold start: until the window holds `min_ready` strokes, `ready` is False, `coefficients` is () and
+    `predict()` falls back: `nominal_ns` before the first stroke (with no nominal it raises
+    RuntimeError: configure one), the last stroke while fewer than 3 strokes are in, then the paper's
+    AR(1) over the window. `min_ready` is `min(window, 3)` for the paper's AR(1) (one residual degree of
+    freedom) and `min(window, max(2m + 1 + c, SOUND_FIT))` for every model with more parameters, whose
+    fit on the bare minimum of rows errs far more than the AR(1) it replaces.
 
     Degenerate windows never give NaN or raise: a lag whose column is a linear combination of lower
     lags over the window (constant series, too few rows) gets coefficient 0 and `degenerate` is True.
@@ -125,7 +129,8 @@ class ARPredictor:
         self._plan = plan
         self._fast1 = m == 1 and not self._c
         self._fast1c = m == 1 and bool(self._c)
-        self._min_ready = min(self._window, 2 * m + 1 + self._c)
+        need = 2 * m + 1 + self._c
+        self._min_ready = min(self._window, need if self._fast1 else max(need, SOUND_FIT))
         samples = self.samples()
         n = len(samples)
         # Column j holds lag j over the rows i = m..n-1 (column 0 the target); dot products in C.
@@ -307,12 +312,7 @@ class ARPredictor:
         """Solve the normal equations exactly and form t_hat (one rounding, in the last division)."""
         count = self._count
         if count < self._min_ready:
-            if self._nominal is not None:
-                self._t_hat = float(self._nominal)
-            elif count:
-                self._t_hat = sum(self.samples()) / count
-            else:
-                raise RuntimeError("predict() needs nominal_ns or at least one stroke")
+            self._t_hat = self._cold_t_hat()
             self._dirty = False
             return
         m = self._m
@@ -333,6 +333,21 @@ class ARPredictor:
                 acc += num[j] * (rows * buf[pos - 1 - j] - s[j + 1])
             self._t_hat = acc / (rows * det)
         self._dirty = False
+
+    def _cold_t_hat(self) -> float:
+        """While not ready: the nominal, then the last stroke, then the paper's AR(1) over the window."""
+        count = self._count
+        if count == 0:
+            if self._nominal is None:
+                raise RuntimeError("predict() needs nominal_ns or at least one stroke")
+            return float(self._nominal)
+        x = self.samples()
+        if count < 3:
+            return float(x[-1])
+        # Eq. 5 for m = 1 on the window (fewer than SOUND_FIT strokes): a_1 = sum x y / sum x^2, exact.
+        xy = sum(map(int.__mul__, x[1:], x[:-1]))
+        xx = sum(map(int.__mul__, x[:-1], x[:-1]))
+        return xy * x[-1] / xx
 
     def _solve(self) -> tuple[list[int], int, bool]:
         """(numerators, det, dropped) of the slopes a_j = numerators[j-1] / det, cached per stroke."""

@@ -40,7 +40,8 @@ def _rolling_table(values: list[int], max_order: int, model: str, window: int | 
         raise ValueError("criterion='rolling' needs the predictor's window, got window=None")
     check_int("window", window, max_order + 2)
     predictors = [ARPredictor(order=m, window=window, model=model) for m in range(1, max_order + 1)]
-    start = max(p.min_ready for p in predictors)
+    # Only predictions from a full window are scored: cold-start ones would inflate the higher orders.
+    start = window
     n_rows = len(values) - start
     if n_rows < max_order + 2:
         raise ValueError(

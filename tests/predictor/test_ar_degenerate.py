@@ -10,7 +10,7 @@ from ar_series import exact_least_squares
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from usmswitch.predictor import ARPredictor
+from usmswitch.predictor import SOUND_FIT, ARPredictor
 from usmswitch.predictor.exact import NormalPlan
 
 
@@ -56,30 +56,40 @@ def test_an_underdetermined_minimal_window_is_finite_and_interpolates() -> None:
     assert p.residual_variance == 0.0
 
 
-def test_cold_start_predicts_the_nominal_until_the_window_holds_enough() -> None:
+def test_cold_start_nominal_then_last_stroke_then_the_papers_ar1_until_the_fit_is_sound() -> None:
     p = ARPredictor(order=2, window=50, model="centered", nominal_ns=12_000_000)
-    assert p.min_ready == 2 * 2 + 1 + 1
-    for i in range(p.min_ready - 1):
+    assert p.min_ready == SOUND_FIT  # more parameters than the paper's AR(1): wait for a sound fit
+    assert p.predict() == 12_000_000.0  # nothing seen: the nominal
+    t = [10_000_000 + 1000 * (i * i % 7) for i in range(SOUND_FIT)]
+    for i, v in enumerate(t[:-1]):
+        p.update(v)
         assert not p.ready
-        assert p.predict() == 12_000_000.0
-        assert p.coefficients == ()
-        assert p.solution is None
-        assert p.residual_variance == 0.0
-        p.update(10_000_000 + 1000 * (i * i % 7))
-    assert p.predict() == 12_000_000.0
-    p.update(10_004_000)
+        assert p.coefficients == () and p.solution is None and p.residual_variance == 0.0
+        x = [Fraction(u) for u in t[: i + 1]]
+        if len(x) < 3:
+            assert p.predict() == float(x[-1])  # the last stroke, never the nominal again
+        else:
+            a1 = sum(u * w for u, w in zip(x[1:], x[:-1], strict=True)) / sum(u * u for u in x[:-1])
+            assert p.predict() == float(a1 * x[-1])  # Eq. 5-6 for m = 1 on the window, exact
+    p.update(t[-1])
     assert p.ready
-    assert p.predict() != 12_000_000.0
     assert len(p.coefficients) == 3
 
 
-def test_cold_start_without_a_nominal_predicts_the_mean_or_refuses_when_empty() -> None:
+def test_the_papers_ar1_is_ready_at_three_strokes_and_small_windows_cap_the_wait() -> None:
+    assert ARPredictor(order=1, window=100).min_ready == 3
+    assert ARPredictor(order=1, window=100, model="centered").min_ready == SOUND_FIT
+    assert ARPredictor(order=3, window=100).min_ready == SOUND_FIT
+    assert ARPredictor(order=3, window=20).min_ready == 20  # never more than the window
+
+
+def test_cold_start_without_a_nominal_predicts_the_last_stroke_or_refuses_when_empty() -> None:
     p = ARPredictor(order=1, window=10)
     with pytest.raises(RuntimeError, match="nominal_ns"):
         p.predict()
     p.update(10_000_000)
     p.update(10_000_003)
-    assert p.predict() == 10_000_001.5
+    assert p.predict() == 10_000_003.0
 
 
 def test_predict_solves_once_per_stroke(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from ar_series import ar_around_mean, design, drifting, lstsq_forecast, steps
@@ -34,7 +36,7 @@ def test_prediction_equals_fresh_lstsq_at_every_stroke(series, order: int, model
     for i, v in enumerate(t):
         p.update(v)
         if not p.ready:
-            assert p.predict() == 10_000_000.0
+            assert math.isfinite(p.predict())  # the cold-start fallback (test_ar_degenerate checks it)
             continue
         win = arr[max(0, i + 1 - WINDOW) : i + 1]
         x, y = design(win, order, model)
