@@ -22,7 +22,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from usmswitch.client import RecordsFile, RecordsFileError
+from usmswitch.client import RecordsFileError, open_records
 from usmswitch.daemon.version import PACKAGE_VERSION
 
 from . import aic, closed_loop, identify, open_loop, reliability, report, speed, temperature
@@ -56,9 +56,13 @@ def build_parser() -> argparse.ArgumentParser:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--socket", help="run on a live daemon (a real rig) through this socket")
     src.add_argument(
-        "--from-records", type=Path, metavar="DB", help="analyse a records file (or state directory)"
+        "--from-records",
+        metavar="DB",
+        help="analyse a records file (or state directory), or a rig's records in PostgreSQL "
+        "(postgresql://USER@HOST/DB, with --rig)",
     )
     p.add_argument("--run", type=int, help="with --from-records: the run to analyse (default: the last)")
+    p.add_argument("--rig", help="with --from-records postgresql://...: the rig (when it holds several)")
     p.add_argument(
         "--scale",
         type=float,
@@ -94,24 +98,27 @@ def rich_progress(label: str, total: int) -> Iterator[Progress]:
         yield advance
 
 
-def recorded_run(path: Path, run_id: int | None) -> tuple[Strokes, str]:
-    with RecordsFile(path) as f:
+def recorded_run(source: str, run_id: int | None, rig: str | None = None) -> tuple[Strokes, str]:
+    """A run's strokes from a records file, a state directory or the PostgreSQL copy (`rig` of it)."""
+    with open_records(source, rig) as f:
         runs = f.runs()
         if run_id is None and runs:
             run_id = runs[-1]["run_id"]
         records = list(f.records(run=run_id)) if run_id is not None else list(f.records())
+        name = f.name
     if not records:
-        raise RecordsFileError(f"{path}: no strokes" + (f" in run {run_id}" if run_id else ""))
-    where = f"{path}" + (f", run {run_id}" if run_id is not None else ", every stroke")
+        raise RecordsFileError(f"{name}: no strokes" + (f" in run {run_id}" if run_id else ""))
+    where = f"{name}" + (f", run {run_id}" if run_id is not None else ", every stroke")
     return Strokes.from_records(records, run_id=run_id), where
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
-    if args.run is not None and args.from_records is None:
-        print(f"{PROG}: --run goes with --from-records", file=sys.stderr)
-        return EXIT_USAGE
+    for flag in ("run", "rig"):
+        if getattr(args, flag) is not None and args.from_records is None:
+            print(f"{PROG}: --{flag} goes with --from-records", file=sys.stderr)
+            return EXIT_USAGE
     if args.from_records is not None and args.experiment not in (*FROM_RECORDS, "all"):
         print(
             f"{PROG}: {args.experiment} needs a rig; from records: {', '.join(FROM_RECORDS)}", file=sys.stderr
@@ -128,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     ctx = Context(out=out, seed=None, scale=args.scale, progress=progress)  # type: ignore[arg-type]
     try:
         if args.from_records is not None:
-            ctx.recorded, where = recorded_run(args.from_records, args.run)
+            ctx.recorded, where = recorded_run(args.from_records, args.run, args.rig)
             names = [n for n in names if n in FROM_RECORDS]
         elif args.socket is not None:
             ctx.rig, where = LiveRig(args.socket), f"the live rig at {args.socket}"

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import time
@@ -38,10 +39,10 @@ def ship(path: Path, url: str, rig: str, last_cycle: int) -> None:
 
 @pytest.fixture
 def shipped(pg: Any, tmp_path: Path) -> tuple[Any, str, Path]:
-    """Two rigs in one database: rigA (two runs, 300 strokes) and rigB (120 strokes)."""
+    """Two rigs in one database: rigA (two runs, 600 strokes) and rigB (120 strokes)."""
     server, db, url = pg
     a, b = tmp_path / "a" / "records.sqlite", tmp_path / "b" / "records.sqlite"
-    for path, rig, n in ((a, "rigA", 300), (b, "rigB", 120)):
+    for path, rig, n in ((a, "rigA", 600), (b, "rigB", 120)):
         store = RecordStore(path, driver="sim", rig=rig)
         half = n // 2
         store.submit_run(
@@ -61,7 +62,7 @@ def test_the_database_reads_as_the_file_does(shipped: tuple[Any, str, Path]):
     server, url, file_a = shipped
     with open_records(url, rig="rigA") as pg, RecordsFile(file_a) as f:
         assert isinstance(pg, PostgresRecords)
-        assert list(pg) == list(f) and len(pg) == len(f) == pg.last_cycle == 300
+        assert list(pg) == list(f) and len(pg) == len(f) == pg.last_cycle == 600
         assert pg.runs() == f.runs() and pg.run(2)["end_reason"] == "stopped"
         assert list(pg.records(run=2)) == list(f.records(run=2))
         assert list(pg.records(first=10, last=12, chunk=2)) == list(f.records(first=10, last=12))
@@ -94,11 +95,11 @@ def test_usmswitchctl_exports_from_postgres_what_it_exports_from_the_file(
     from_pg, from_file = tmp_path / "pg.csv", tmp_path / "file.csv"
     r = ctl("export", "--from", url, "--rig", "rigA", "--csv", str(from_pg))
     assert r.returncode == 0, r.stderr
-    assert r.stdout.strip() == f"300 records written to {from_pg}"
+    assert r.stdout.strip() == f"600 records written to {from_pg}"
     assert ctl("export", "--from", str(file_a.parent), "--csv", str(from_file)).returncode == 0
     assert from_pg.read_bytes() == from_file.read_bytes()
-    run2 = ctl("export", "--from", url, "--rig", "rigA", "--run", "2", "--first", "200", "--csv", "-")
-    assert run2.returncode == 0 and len(run2.stdout.splitlines()) == 1 + 101  # header + cycles 200..300
+    run2 = ctl("export", "--from", url, "--rig", "rigA", "--run", "2", "--first", "500", "--csv", "-")
+    assert run2.returncode == 0 and len(run2.stdout.splitlines()) == 1 + 101  # header + cycles 500..600
     # Errors are usage errors that say what is wrong, without the password; no file is left.
     bad = ctl("export", "--from", url, "--csv", str(tmp_path / "x.csv"))
     assert bad.returncode == 2 and "several rigs: name one (rigA, rigB)" in bad.stderr
@@ -109,3 +110,23 @@ def test_usmswitchctl_exports_from_postgres_what_it_exports_from_the_file(
     assert not (tmp_path / "x.csv").exists() and not (tmp_path / "x.csv.partial").exists()
     both = ctl("export", "--from", url, "--state-dir", str(file_a.parent), "--csv", "-")
     assert both.returncode == 2 and "give --from or --state-dir, not both" in both.stderr
+
+
+def test_the_experiments_read_a_run_from_postgres_as_from_the_file(
+    shipped: tuple[Any, str, Path], tmp_path: Path
+):
+    _, url, file_a = shipped
+    summaries = {}
+    sources = {"pg": ["--from-records", url, "--rig", "rigA"], "file": ["--from-records", str(file_a)]}
+    for name, source in sources.items():
+        out = tmp_path / name
+        cmd = [sys.executable, "-m", "usmswitch.experiments", "closed-loop", *source, "--run", "2"]
+        r = subprocess.run(
+            [*cmd, "--out", str(out)], capture_output=True, text=True, timeout=120, check=False
+        )
+        assert r.returncode == 0, r.stderr[-2000:]
+        summaries[name] = json.loads((out / "summary.json").read_text())
+    assert summaries["pg"]["closed_loop"] == summaries["file"]["closed_loop"]
+    assert summaries["pg"]["closed_loop"][0]["strokes"] == 100  # 150 per direction, 100 settling
+    where = summaries["pg"]["meta"]["where"]
+    assert where.endswith("(rig rigA), run 2") and ":***@" in where  # no password in the report
