@@ -21,7 +21,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from usmswitch.predictor import MAX_ORDER, MODELS, check_stroke_ns, min_samples
+from usmswitch.predictor import DEFAULT_MODEL, MAX_ORDER, MODELS, check_stroke_ns, min_samples
 from usmswitch.sim import FaultPlan
 
 from .config_values import (
@@ -147,11 +147,13 @@ class ControlConfig:
     target_off_ns: int = 12_000_000  # T for "off" strokes
     mode: str = "closed"  # closed: T_d = T - t_hat (Eq. 7); open: T_d = open_delay
     open_delay_ns: int = 0
-    model: str = "paper"  # paper: Eq. 2, no intercept; centered: with an intercept
+    model: str = DEFAULT_MODEL  # any of usmswitch.predictor.MODELS; "paper" is Eq. 2-6 exactly
     order: int | str = 1  # 1..8 or "auto" (AIC, Eq. 8)
     max_order: int = 3  # the highest order "auto" considers (the paper's Table 2 goes to 3)
     window: int = 100  # strokes in the least-squares window, per direction
-    nominal_ns: int = 10_500_000  # t_hat until the window holds enough strokes
+    nominal_ns: int = 10_500_000  # t_hat before a direction's first stroke (both directions)
+    nominal_on_ns: int = 10_500_000  # that of "on" strokes (default: nominal)
+    nominal_off_ns: int = 10_500_000  # that of "off" strokes (default: nominal)
     warm_start: int = 100  # strokes per direction reloaded from the records at start (<= window)
     stroke_timeout_ns: int = 50_000_000  # no arrival by then: stall, drive off, FAULT
     late_margin_ns: int = 50_000  # a start later than this past command + delay is flagged LATE
@@ -159,6 +161,10 @@ class ControlConfig:
     def target_ns(self, direction: int) -> int:
         """T for a direction (0 on, 1 off)."""
         return self.target_off_ns if direction else self.target_on_ns
+
+    def nominal_for(self, direction: int) -> int:
+        """The cold-start t_hat of a direction (0 on, 1 off), before its first stroke."""
+        return self.nominal_off_ns if direction else self.nominal_on_ns
 
 
 @dataclass(frozen=True)
@@ -490,17 +496,22 @@ def _control(t: Table) -> ControlConfig:
         if t.has("max_order") and max_order < order:
             raise ConfigError(t.key("max_order"), f"{max_order} is less than order = {order}")
     nominal = t.get("nominal", positive_duration, d.nominal_ns)
-    try:
-        check_stroke_ns(nominal)
-    except ValueError as exc:
-        raise ConfigError(t.key("nominal"), str(exc)) from None
+    nominals = {"nominal": nominal}
+    for key in ("nominal_on", "nominal_off"):
+        nominals[key] = t.get(key, positive_duration, nominal)
+    for key, value in nominals.items():
+        try:
+            check_stroke_ns(value)
+        except ValueError as exc:
+            raise ConfigError(t.key(key), str(exc)) from None
     # More than the window would be read and thrown away: take what the predictor can hold.
     warm = min(table_int(t, "warm_start", d.warm_start, 0, None), window)
     timeout = t.get("stroke_timeout", positive_duration, d.stroke_timeout_ns)
-    if timeout <= nominal:
+    longest = max(nominals.values())
+    if timeout <= longest:
         raise ConfigError(
             t.key("stroke_timeout"),
-            f"{format_ns(timeout)} is not longer than the nominal stroke {format_ns(nominal)}:"
+            f"{format_ns(timeout)} is not longer than the nominal stroke {format_ns(longest)}:"
             " every stroke would stall",
         )
     cfg = ControlConfig(
@@ -513,6 +524,8 @@ def _control(t: Table) -> ControlConfig:
         max_order=max_order,
         window=window,
         nominal_ns=nominal,
+        nominal_on_ns=nominals["nominal_on"],
+        nominal_off_ns=nominals["nominal_off"],
         warm_start=warm,
         stroke_timeout_ns=timeout,
         late_margin_ns=t.get("late_margin", duration, d.late_margin_ns),

@@ -23,7 +23,7 @@ from typing import Any, TextIO
 import structlog
 
 from usmswitch.drivers import Daq, DaqError, Direction
-from usmswitch.predictor import ARPredictor
+from usmswitch.predictor import Predictor, make_predictor
 
 from .board import BoardPoller
 from .config import Config
@@ -55,11 +55,15 @@ SWITCH_INTERVAL_S = 0.0002
 LIVE_LINE_NS = 250_000_000
 
 
-def make_predictor(config: Config) -> ARPredictor:
-    """One direction's predictor as [control] configures it."""
+def direction_predictor(config: Config, direction: Direction) -> Predictor:
+    """One direction's predictor as [control] configures it (its own nominal)."""
     c = config.control
-    return ARPredictor(
-        order=c.order, window=c.window, model=c.model, nominal_ns=c.nominal_ns, max_order=c.max_order
+    return make_predictor(
+        c.model,
+        nominal_ns=c.nominal_for(direction),
+        order=c.order,
+        window=c.window,
+        max_order=c.max_order,
     )
 
 
@@ -146,7 +150,7 @@ class Daemon:
             rig=cfg.daemon.rig,
             file_mode=0o640 if group else 0o600,
         )
-        predictors = [make_predictor(cfg), make_predictor(cfg)]
+        predictors = [direction_predictor(cfg, d) for d in (Direction.ON, Direction.OFF)]
         for d in (Direction.ON, Direction.OFF):
             # Only this driver's strokes on this rig: never a real rig from simulated strokes.
             samples = self.store.last_strokes(

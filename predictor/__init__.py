@@ -7,12 +7,17 @@ nothing else of ours. See docs/predictor.md.
 
 from .aic import SIGMA2_FLOOR_NS2, AicTable, min_samples
 from .ar import SOUND_FIT, STATE_FORMAT, ARPredictor
-from .checks import MAX_ORDER, MAX_T_NS, MODELS, check_stroke_ns
+from .checks import AR_MODELS, MAX_ORDER, MAX_T_NS, MODELS, check_stroke_ns
+from .conditions import CONDITION_KEYS, Conditions
 from .exact import ExactSolution
+from .factory import DEFAULT_MODEL, Predictor, make_predictor
 from .selection import CRITERIA, aic_table, select_order
 
 __all__ = [
+    "AR_MODELS",
+    "CONDITION_KEYS",
     "CRITERIA",
+    "DEFAULT_MODEL",
     "MAX_ORDER",
     "MAX_T_NS",
     "MODELS",
@@ -21,9 +26,12 @@ __all__ = [
     "STATE_FORMAT",
     "ARPredictor",
     "AicTable",
+    "Conditions",
     "ExactSolution",
+    "Predictor",
     "aic_table",
     "check_stroke_ns",
+    "make_predictor",
     "min_samples",
     "select_order",
 ]

@@ -17,6 +17,7 @@ from typing import Any
 
 from .aic import AicTable, fit_table, min_samples
 from .checks import MAX_ORDER, MAX_T_NS, check_int, check_model, check_stroke_ns
+from .conditions import Conditions
 from .exact import ExactSolution, NormalPlan
 
 STATE_FORMAT = "usmswitch.predictor.ar/1"
@@ -205,8 +206,11 @@ class ARPredictor:
 
     # ---- the hot path --------------------------------------------------------------------------
 
-    def update(self, t_ns: int) -> None:
-        """Add the newest stroke's operating time (ns); the oldest leaves a full window. O(m^2)."""
+    def update(self, t_ns: int, conditions: Conditions | None = None) -> None:
+        """Add the newest stroke's operating time (ns); the oldest leaves a full window. O(m^2).
+
+        `conditions` are taken and not used: Eq. 2 knows only the strokes.
+        """
         if type(t_ns) is not int or t_ns <= 0 or t_ns > MAX_T_NS:
             t_ns = check_stroke_ns(t_ns)
         buf = self._buf
@@ -302,8 +306,11 @@ class ARPredictor:
         self._seen += 1
         self._dirty = True
 
-    def predict(self) -> float:
-        """t_hat of the next stroke in ns (Eq. 6), or the cold-start nominal while not `ready`."""
+    def predict(self, conditions: Conditions | None = None) -> float:
+        """t_hat of the next stroke in ns (Eq. 6), or the cold-start fallback while not `ready`.
+
+        `conditions` are taken and not used: Eq. 2 knows only the strokes.
+        """
         if self._dirty:
             self._refresh()
         return self._t_hat

@@ -7,7 +7,10 @@ from typing import Any
 
 #: Largest stroke time accepted: every sample then is an exact float64, like the data lstsq sees.
 MAX_T_NS = 2**53
-MODELS = ("paper", "centered")
+#: The models `ARPredictor` fits (Eq. 2 with or without an intercept).
+AR_MODELS = ("paper", "centered")
+#: Every model `make_predictor` builds.
+MODELS = AR_MODELS
 MAX_ORDER = 8
 
 
@@ -29,7 +32,7 @@ def check_int(name: str, value: Any, lo: int, hi: int | None = None) -> int:
 
 
 def check_model(value: Any) -> str:
-    """Validate a model name."""
-    if value not in MODELS:
-        raise ValueError(f"model must be one of {MODELS}, got {value!r}")
+    """Validate the name of a model `ARPredictor` fits."""
+    if value not in AR_MODELS:
+        raise ValueError(f"model must be one of {AR_MODELS}, got {value!r}")
     return value

@@ -18,7 +18,10 @@ from usmswitch.daemon.config import (
     load_config,
 )
 from usmswitch.daemon.config_values import parse_listen, parse_modbus_url
+from usmswitch.daemon.service import direction_predictor
 from usmswitch.daemon.sockdir import client_socket_paths, default_socket_path
+from usmswitch.drivers import Direction
+from usmswitch.predictor import DEFAULT_MODEL
 
 ENV = {"HOME": "/home/lab", "XDG_RUNTIME_DIR": "/run/user/1000"}
 
@@ -166,6 +169,11 @@ def test_file_values_and_units(tmp_path: Path):
             '[control]\nstroke_timeout = "5ms"',
             "control.stroke_timeout: 5.000 ms is not longer than the nominal",
         ),
+        (
+            '[control]\nnominal_off = "60ms"',
+            "control.stroke_timeout: 50.000 ms is not longer than the nominal stroke 60.000 ms",
+        ),
+        ('[control]\nnominal_on = "0ms"', "control.nominal_on: '0ms' must be longer than 0"),
         ("[control]\nfoo = 1", "control.foo: unknown key (known in [control]: "),
         (
             "[realtime]\nsched_fifo_priority = 100",
@@ -382,3 +390,11 @@ def test_modbus_register_map_is_checked_at_load() -> None:
         load_config(None, {"modbus.registers": {"temprature": {"address": 10}}})
     with pytest.raises(ConfigError, match=r"modbus\.registers"):
         load_config(None, {"modbus.registers": {"enable": {"table": "input"}}})
+
+
+def test_each_direction_gets_its_own_nominal(tmp_path: Path):
+    cfg = load_config(write(tmp_path, '[control]\nnominal = "9ms"\nnominal_off = "8.5ms"'), env=ENV)
+    assert (cfg.control.nominal_for(0), cfg.control.nominal_for(1)) == (9_000_000, 8_500_000)
+    on, off = (direction_predictor(cfg, d) for d in (Direction.ON, Direction.OFF))
+    assert (on.predict(), off.predict()) == (9_000_000.0, 8_500_000.0)
+    assert cfg.control.model == DEFAULT_MODEL
