@@ -2,7 +2,7 @@
 
 Both hang off the record writer's commits (`RecordStore.on_commit`/`on_run`, chained after the
 socket's publishing, never replacing it) and the loop's slack, and neither makes the loop wait:
-the shipper is a thread of its own gated by `wait_turn`, the metrics are counted on the writer's
+the shipper is a process of its own (daemon/shipper_process.py), the metrics are counted on the writer's
 thread and handed to the socket's server process as snapshots (O(1) appends), where the page is
 rendered and served (daemon/metrics_page.py). docs/fleet.md.
 """
@@ -21,6 +21,7 @@ from .metrics import STATE_FEED, STROKES_FEED, StrokeMetrics
 from .record import CycleRecord, RunRecord
 from .records import RecordStore
 from .rpc import RpcServer
+from .shipper_process import ShipperProcess
 from .version import PACKAGE_VERSION
 
 log = structlog.get_logger("usmswitch.fleet")
@@ -55,14 +56,14 @@ class Fleet:
         self.rig = config.daemon.rig
         self.driver = driver
         self.metrics = StrokeMetrics() if self.rpc is not None else None
-        self.shipper: Any = None
+        self.shipper: ShipperProcess | None = None
         if config.records.postgres_url:
-            from .shipper import PostgresShipper  # psycopg: only when shipping
-
-            self.shipper = PostgresShipper(
+            self.shipper = ShipperProcess(
                 store.path,
                 config.records.postgres_url,
                 self.rig,
+                log_format=config.daemon.log_format,
+                log_level=config.daemon.log_level,
                 gate=loop.wait_turn,
             )
         self._next_state_ns = 0

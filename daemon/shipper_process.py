@@ -1,0 +1,207 @@
+"""The PostgreSQL shipper in a process of its own (`python -m usmswitch.daemon.shipper_process`).
+
+Why a process: catching up a backlog is seconds of CPU-bound Python (reading rows, formatting
+COPY data) and network waits that end at random instants. In the loop's process every return from
+such a wait competes for the GIL, even with the shipper waiting its turn between rows, and moved
+the loop's start lateness p99 to 1.5-1.9x idle (bench_abuse, "shipper catching up a backlog").
+In a process of its own at nice 10 it shares nothing with the loop but the CPU, where the loop's
+SCHED_FIFO wins, as the socket's server process does (docs/protocol.md, "Architecture").
+
+The daemon (`ShipperProcess`) spawns it with the settings on its stdin's first line (the URL with
+its password never appears in the process list), then writes `w` (records committed) and at the
+end `stop NS` (drain for at most NS ns). The child writes its status as a JSON line on stdout when
+it changes (at most 5 times a second) and logs to the daemon's stderr in the daemon's format.
+A child that dies is started again after a pause; the records wait in SQLite meanwhile.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from .pg_schema import redact_url
+
+log = structlog.get_logger("usmswitch.shipper")
+
+STATUS_EVERY_S = 0.2
+RESTART_PAUSE_S = 5.0
+NICE = 10
+
+
+class ShipperProcess:
+    """The daemon's handle on the shipper process: the PostgresShipper interface the daemon uses."""
+
+    def __init__(
+        self,
+        records_path: str | Path,
+        url: str,
+        rig: str,
+        *,
+        log_format: str = "auto",
+        log_level: str = "info",
+        gate: Any = lambda: None,
+    ) -> None:
+        if importlib.util.find_spec("psycopg") is None:  # found, not imported: the daemon never loads it
+            raise RuntimeError("records.postgres_url needs psycopg 3: pip install 'usmswitch[postgres]'")
+        self.settings = {
+            "records": str(records_path),
+            "url": url,
+            "rig": rig,
+            "log_format": log_format,
+            "log_level": log_level,
+        }
+        self.where = redact_url(url)
+        #: Called before each status line is handled (the loop's wait_turn).
+        self.gate = gate
+        self._status: dict[str, Any] = {
+            "url": self.where,
+            "connected": False,
+            "shipped_cycle": 0,
+            "lag": 0,
+            "shipped": 0,
+            "duplicates": 0,
+            "runs_shipped": 0,
+            "error": None,
+            "error_count": 0,
+        }
+        self._proc: subprocess.Popen[bytes] | None = None
+        self._lock = threading.Lock()  # the pipe to the child: wake (writer thread) and stop
+        self._stopping = False
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        """Spawn the process and the thread that reads its status (and restarts it if it dies)."""
+        self._spawn()
+        self._thread = threading.Thread(target=self._watch, name="usmswitch-shipper", daemon=True)
+        self._thread.start()
+
+    def _spawn(self) -> None:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "usmswitch.daemon.shipper_process"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            close_fds=True,
+        )
+        assert proc.stdin is not None
+        proc.stdin.write(json.dumps(self.settings).encode() + b"\n")
+        proc.stdin.flush()
+        os.set_blocking(proc.stdin.fileno(), False)  # a wake never waits for the child
+        self._proc = proc
+
+    def _watch(self) -> None:
+        while True:
+            proc = self._proc
+            assert proc is not None and proc.stdout is not None
+            for line in proc.stdout:
+                self.gate()
+                with contextlib.suppress(ValueError):
+                    self._status = json.loads(line)
+            code = proc.wait()
+            if self._stopping:
+                return
+            message = f"postgres {self.where}: the shipper process exited (status {code}); restarting"
+            log.error("postgres shipper process died", exit_status=code, url=self.where)
+            self._status = {**self._status, "connected": False, "error": message}
+            time.sleep(RESTART_PAUSE_S)
+            if self._stopping:
+                return
+            with self._lock:
+                self._spawn()
+
+    def _send(self, text: str) -> None:
+        with self._lock:
+            proc = self._proc
+            if proc is None or proc.stdin is None:
+                return
+            # Full: a wake is pending anyway. Gone: the watcher restarts it.
+            with contextlib.suppress(OSError):
+                os.write(proc.stdin.fileno(), text.encode())
+
+    def wake(self, records: list[Any] | None = None) -> None:
+        """Records were committed (the record writer's thread): a few bytes down a pipe."""
+        self._send("w\n")
+
+    def stop(self, drain_timeout_ns: int = 2_000_000_000) -> bool:
+        """Ship what is committed for up to `drain_timeout_ns`, then end; True when caught up."""
+        self._stopping = True
+        proc = self._proc
+        if proc is None:
+            return False
+        self._send(f"stop {drain_timeout_ns}\n")
+        try:
+            proc.wait(drain_timeout_ns / 1e9 + 10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        if self._thread is not None:
+            self._thread.join(5)
+        status = self._status
+        return status["lag"] == 0 and status["error"] is None
+
+    def status(self) -> dict[str, Any]:
+        """The child's last status (the PostgresShipper.status() figures)."""
+        return dict(self._status)
+
+
+def main() -> int:
+    """The process's body: the settings from stdin, then ship until told to stop (or orphaned)."""
+    import signal
+
+    from .logsetup import configure_logging
+    from .shipper import PostgresShipper
+
+    # The daemon owns shutdown: a Ctrl-C to the terminal's group or systemd's SIGTERM to the
+    # cgroup must not cut the drain short; the child ends on `stop` or when its stdin closes.
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
+    settings = json.loads(sys.stdin.readline())
+    configure_logging(settings["log_format"], settings["log_level"], sys.stderr)
+    with contextlib.suppress(OSError):
+        os.nice(NICE)
+    shipper = PostgresShipper(settings["records"], settings["url"], settings["rig"])
+    shipper.start()
+    out = sys.stdout
+    said: dict[str, Any] = {}
+    done = threading.Event()
+    lock = threading.Lock()
+
+    def report() -> None:
+        nonlocal said
+        with lock:
+            status = shipper.status()
+            if status != said:
+                said = status
+                out.write(json.dumps(status) + "\n")
+                out.flush()
+
+    def reporter() -> None:
+        while not done.wait(STATUS_EVERY_S):
+            report()
+
+    threading.Thread(target=reporter, name="status", daemon=True).start()
+    drain_ns = 0
+    for line in sys.stdin:
+        word, _, arg = line.strip().partition(" ")
+        if word == "w":
+            shipper.wake()
+        elif word == "stop":
+            drain_ns = int(arg or 0)
+            break
+    shipper.stop(drain_timeout_ns=drain_ns)
+    done.set()
+    report()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
