@@ -28,6 +28,7 @@ from .config_values import (
     ConfigError,
     Table,
     bool_value,
+    checked_text,
     choice,
     cpu_list,
     default_rig,
@@ -441,35 +442,15 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     modbus = _modbus(top.table("modbus"))
 
     t = top.table("records")
-    records = RecordsConfig(postgres_url=t.get("postgres_url", postgres_url, ""))
+    # "" (off) or a postgresql:// URL naming a database.
+    records = RecordsConfig(postgres_url=t.get("postgres_url", checked_text(check_url), ""))
     t.done()
     t = top.table("metrics")
-    metrics = MetricsConfig(listen=t.get("listen", listen_address, ""))
+    # "" (off), "host:port", or a bare port (on loopback).
+    metrics = MetricsConfig(listen=t.get("listen", checked_text(parse_listen), ""))
     t.done()
     top.done()
     return Config(daemon, driver, sim, control, cycle, realtime, socket, modbus, records, metrics)
-
-
-def postgres_url(key: str, v: Any) -> str:
-    """records.postgres_url: "" (off) or a postgresql:// URL naming a database."""
-    url = text_value(key, v)
-    if url:
-        try:
-            check_url(url)
-        except ValueError as exc:
-            raise ConfigError(key, str(exc)) from None
-    return url
-
-
-def listen_address(key: str, v: Any) -> str:
-    """metrics.listen: "" (off), "host:port", or a bare port (on loopback)."""
-    text = text_value(key, v)
-    if text:
-        try:
-            parse_listen(text)
-        except ValueError as exc:
-            raise ConfigError(key, str(exc)) from None
-    return text
 
 
 def _control(t: Table) -> ControlConfig:

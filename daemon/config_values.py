@@ -217,6 +217,21 @@ def rig_name(key: str, v: Any) -> str:
     return name
 
 
+def checked_text(check: Callable[[str], object]) -> Callable[[str, Any], str]:
+    """Text that `check` accepts, or "" (a feature left off); check's ValueError names the key."""
+
+    def parse(key: str, v: Any) -> str:
+        text = text_value(key, v)
+        if text:
+            try:
+                check(text)
+            except ValueError as exc:
+                raise ConfigError(key, str(exc)) from None
+        return text
+
+    return parse
+
+
 def choice(choices: tuple[str, ...]) -> Callable[[str, Any], str]:
     def parse(key: str, v: Any) -> str:
         if v not in choices:
