@@ -23,7 +23,7 @@ from typing import Any, TextIO
 import structlog
 
 from usmswitch.drivers import Daq, DaqError, Direction
-from usmswitch.predictor import Predictor, make_predictor
+from usmswitch.predictor import AR_MODELS, Predictor, make_predictor
 
 from .board import BoardPoller
 from .config import Config
@@ -58,13 +58,8 @@ LIVE_LINE_NS = 250_000_000
 def direction_predictor(config: Config, direction: Direction) -> Predictor:
     """One direction's predictor as [control] configures it (its own nominal)."""
     c = config.control
-    return make_predictor(
-        c.model,
-        nominal_ns=c.nominal_for(direction),
-        order=c.order,
-        window=c.window,
-        max_order=c.max_order,
-    )
+    options = {"order": c.order, "window": c.window, "max_order": c.max_order} if c.model in AR_MODELS else {}
+    return make_predictor(c.model, nominal_ns=c.nominal_for(direction), **options)
 
 
 class StateDirBusyError(RuntimeError):

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from usmswitch.predictor import CRITERIA, MODELS, aic_table
+from usmswitch.predictor import AR_MODELS, CRITERIA, aic_table
 
 from .context import Context
 from .data import Strokes
@@ -26,7 +26,7 @@ def tables(s: Strokes) -> list[dict[str, Any]]:
         ops = s.of(d).operating_ns
         samples = [int(v) for v in ops[~np.isnan(ops)]]
         for criterion in CRITERIA:
-            for model in MODELS:
+            for model in AR_MODELS:
                 try:
                     t = aic_table(
                         samples, MAX_ORDER, model, criterion, WINDOW if criterion == "rolling" else None

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from usmswitch.drivers import Direction
-from usmswitch.predictor import MODELS, ARPredictor
+from usmswitch.predictor import AR_MODELS, DEFAULT_MODEL, MODELS, make_predictor
 
 from .context import MS, Context
 from .data import Strokes
@@ -27,19 +27,39 @@ def _period(target_ns: int) -> int:
     return target_ns + 13 * MS  # room for a late stroke, as the daemon's period check wants
 
 
-def one_step(s: Strokes, model: str, order: int | str, nominal_ns: int) -> np.ndarray:
+def one_step(s: Strokes, model: str, order: int | str | None, nominal_ns: int) -> np.ndarray:
     """Each stroke's one-step error t - t_hat of a fresh predictor run over the same strokes
-    (per direction, NaN for a stroke it cannot learn from), in cycle order."""
+    (per direction, NaN for a stroke it cannot learn from), in cycle order. The predictor is told
+    each stroke's recorded temperature and drive frequency (the models beyond the paper use them);
+    `order` is for the AR models only (None for the others)."""
     err = np.full(len(s), np.nan)
+    options = {} if order is None else {"order": order, "window": 100}
     for d in (0, 1):
-        p = ARPredictor(order=order, window=100, model=model, nominal_ns=nominal_ns)
+        p = make_predictor(model, nominal_ns=nominal_ns, **options)
         for i in np.flatnonzero(s.direction == d):
             t = s.operating_ns[i]
             if np.isnan(t):
                 continue
-            err[i] = t - p.predict()
-            p.update(int(t))
+            cond = {
+                k: float(v)
+                for k, v in (("temperature_c", s.temperature_c[i]), ("frequency_hz", s.frequency_hz[i]))
+                if not np.isnan(v)
+            }
+            err[i] = t - p.predict(cond)
+            p.update(int(t), cond)
     return err
+
+
+def _shipped() -> list[tuple[str, int | str | None, str]]:
+    """(model, order, row name) of every shipped model; the default is named so."""
+    out: list[tuple[str, int | str | None, str]] = []
+    for model in MODELS:
+        orders: tuple[int | str | None, ...] = ORDERS if model in AR_MODELS else (None,)
+        for order in orders:
+            name = model if order is None else f"{model} AR({order})"
+            default = model == DEFAULT_MODEL and order in (None, 1)
+            out.append((model, order, f"{name} (default)" if default else name))
+    return out
 
 
 def _row(
@@ -99,21 +119,12 @@ def run(ctx: Context) -> dict[str, Any]:
                 "closed loop: total - T",
             )
         )
-        for model_name in MODELS:
-            for order in ORDERS:
-                err = one_step(s, model_name, order, nominal)
-                keep = np.isin(s.cycle, settled.cycle)
-                rows.append(
-                    _row(
-                        target_ns,
-                        freq,
-                        f"{model_name} AR({order})",
-                        int(keep.sum()),
-                        err[keep],
-                        floor,
-                        "one-step, same strokes",
-                    )
-                )
+        for model_name, order, row_name in _shipped():
+            err = one_step(s, model_name, order, nominal)
+            keep = np.isin(s.cycle, settled.cycle)
+            rows.append(
+                _row(target_ns, freq, row_name, int(keep.sum()), err[keep], floor, "one-step, same strokes")
+            )
         total_pct = (
             100 * np.nanmax(np.abs(settled.total_ns - target_ns)) / target_ns if len(settled) else None
         )

@@ -9,8 +9,8 @@ from typing import Any
 MAX_T_NS = 2**53
 #: The models `ARPredictor` fits (Eq. 2 with or without an intercept).
 AR_MODELS = ("paper", "centered")
-#: Every model `make_predictor` builds.
-MODELS = AR_MODELS
+#: Every model `make_predictor` builds: the AR fits and the models beyond the paper.
+MODELS = (*AR_MODELS, "kalman")
 MAX_ORDER = 8
 
 

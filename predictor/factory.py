@@ -11,9 +11,14 @@ from typing import Any, Protocol, runtime_checkable
 from .ar import ARPredictor
 from .checks import AR_MODELS, MODELS
 from .conditions import Conditions
+from .kalman import KalmanPredictor
+
+#: The options each model takes.
+_AR_OPTIONS = frozenset({"order", "window", "max_order", "reselect_every"})
+OPTIONS: dict[str, frozenset[str]] = {"paper": _AR_OPTIONS, "centered": _AR_OPTIONS, "kalman": frozenset()}
 
 #: The model the daemon runs when its config does not name one.
-DEFAULT_MODEL = "paper"
+DEFAULT_MODEL = "kalman"
 
 
 @runtime_checkable
@@ -57,15 +62,14 @@ def make_predictor(model: str = DEFAULT_MODEL, nominal_ns: int | None = None, **
 
     "paper" is the paper's Eq. 2-6 exactly, "centered" the same with a least-squares intercept; both
     take `order` (1..8 or "auto"), `window`, `max_order` and `reselect_every` (see `ARPredictor`).
+    "kalman" (`KalmanPredictor`) takes no option.
     """
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    allowed = OPTIONS[model]
+    unknown = sorted(set(options) - allowed)
+    if unknown:
+        raise ValueError(f"model {model!r} takes no option {', '.join(unknown)} (it takes {sorted(allowed)})")
     if model in AR_MODELS:
-        allowed = {"order", "window", "max_order", "reselect_every"}
-        unknown = sorted(set(options) - allowed)
-        if unknown:
-            raise ValueError(
-                f"model {model!r} takes no option {', '.join(unknown)} (it takes {sorted(allowed)})"
-            )
         return ARPredictor(model=model, nominal_ns=nominal_ns, **options)
-    raise AssertionError(f"model {model!r} is in MODELS but has no builder")  # pragma: no cover
+    return KalmanPredictor(nominal_ns=nominal_ns)

@@ -1,0 +1,182 @@
+"""AR(1) + noise Kalman predictor on the condition-normalised log stroke time, parameters found online.
+
+The stroke time's log, its level moved by the known conditions' changes (`normalise.ConditionModel`), is
+z = mu + F + w: F an AR(1) process (friction, phi), w white noise. Its best one-step predictor is the
+steady-state Kalman filter, z_hat = mu + phi (level - mu) with level = z_hat + K (z - z_hat), fixed by
+two numbers: phi and the gain K (which the ratio of F's innovation to w's variance sets). Neither is
+known on a real rig and both differ between rigs, so a fixed grid of (phi, K) filters runs side by
+side and the one with the least exponentially forgotten one-step squared error (about the last 100
+strokes) predicts: prediction-error estimation of the two parameters, O(grid) per stroke, fixed memory.
+mu is the mean of z over about the last 200 strokes. phi = 1 with K = 1 repeats the last stroke, what
+the paper's AR(1) does on a rig like the paper's; smaller K averages out stroke noise; phi < 1 pulls a
+mean-reverting friction back toward its mean.
+
+Cold start: the nominal, then the last stroke, then the paper's AR(1) (`ARPredictor`) until
+`SOUND_FIT` strokes; the filters learn meanwhile.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from .ar import SOUND_FIT, ARPredictor
+from .checks import MAX_T_NS, check_int, check_stroke_ns
+from .conditions import Conditions
+from .normalise import NOISE_VAR, ConditionModel
+
+STATE_FORMAT = "usmswitch.predictor.kalman/1"
+#: The (phi, K) grid.
+PHIS = (1.0, 0.95, 0.8)
+GAINS = (1.0, 0.75, 0.5, 0.33, 0.22, 0.14)
+GRID = tuple((phi, k) for phi in PHIS for k in GAINS)
+_PHI = tuple(phi for phi, _ in GRID)
+_ONE_MINUS_PHI = tuple(1.0 - phi for phi, _ in GRID)
+_GAIN = tuple(k for _, k in GRID)
+#: Forgetting of the filters' squared errors (memory ~ 1 / (1 - FORGET) strokes).
+FORGET = 0.99
+#: Strokes over which mu is averaged.
+MU_STROKES = 200
+
+
+class KalmanPredictor:
+    """AR(1) + noise Kalman filter on the log stroke time, (phi, K) chosen online by recent error."""
+
+    __slots__ = ("_best", "_cm", "_cold", "_count", "_level", "_mu", "_nominal", "_score", "_seen")
+
+    model = "kalman"
+
+    def __init__(self, nominal_ns: int | None = None) -> None:
+        self._nominal = None if nominal_ns is None else check_stroke_ns(nominal_ns)
+        self._cm = ConditionModel()
+        self._cold: ARPredictor | None = ARPredictor(order=1, window=SOUND_FIT, nominal_ns=nominal_ns)
+        self._level = [0.0] * len(GRID)
+        self._score = [0.0] * len(GRID)
+        self._mu = 0.0
+        self._best = 0
+        self._count = 0
+        self._seen = 0
+
+    # ---- the Predictor calls -------------------------------------------------------------------
+
+    @property
+    def ready(self) -> bool:
+        """False while the cold-start fallback predicts (fewer than SOUND_FIT strokes)."""
+        return self._cold is None
+
+    @property
+    def order(self) -> int:
+        """1: an AR(1) process (with noise)."""
+        return 1
+
+    @property
+    def coefficients(self) -> tuple[float, ...]:
+        """(phi, K) of the filter predicting now; while cold, the paper's AR(1)'s (a_1,) or ()."""
+        cold = self._cold
+        return GRID[self._best] if cold is None else cold.coefficients
+
+    @property
+    def sensitivities(self) -> tuple[float, ...]:
+        """d ln t per kHz, per 100 V, per C, as learned (see `normalise`)."""
+        return self._cm.sensitivities
+
+    @property
+    def seen(self) -> int:
+        """Strokes ever given to this predictor."""
+        return self._seen
+
+    @property
+    def nominal_ns(self) -> int | None:
+        """The prediction before the first stroke."""
+        return self._nominal
+
+    def update(self, t_ns: int, conditions: Conditions | None = None) -> None:
+        """Learn the stroke just finished (ns) under its conditions. O(grid)."""
+        if type(t_ns) is not int or t_ns <= 0 or t_ns > MAX_T_NS:
+            t_ns = check_stroke_ns(t_ns)
+        z = math.log(t_ns)
+        # A log-time difference's noise: twice the best filter's recent one-step error variance.
+        noise = 2.0 * (1.0 - FORGET) * self._score[self._best] if self._count > SOUND_FIT else NOISE_VAR
+        moved = self._cm.learn(z, conditions, noise)
+        if self._count == 0:
+            self._mu = z
+            self._level = [z] * len(GRID)
+        else:
+            mu = self._mu
+            if moved:  # the known conditions moved ln t: every level and the mean with it
+                mu += moved
+                self._level = [v + moved for v in self._level]
+            preds = [a * v + b * mu for a, b, v in zip(_PHI, _ONE_MINUS_PHI, self._level, strict=True)]
+            errs = [z - p for p in preds]
+            score = [FORGET * s + e * e for s, e in zip(self._score, errs, strict=True)]
+            self._level = [p + k * e for p, k, e in zip(preds, _GAIN, errs, strict=True)]
+            self._score = score
+            self._best = score.index(min(score))
+            self._mu = mu + (z - mu) / min(self._count + 1, MU_STROKES)
+        self._count += 1
+        self._seen += 1
+        cold = self._cold
+        if cold is not None:
+            cold.update(t_ns)
+            if self._count >= SOUND_FIT:
+                self._cold = None
+
+    def predict(self, conditions: Conditions | None = None) -> float:
+        """t_hat of the next stroke (ns) under its conditions (the last ones told when None)."""
+        if self._cold is not None:
+            return self._cold.predict()
+        phi = GRID[self._best][0]
+        mu = self._mu
+        return math.exp(mu + phi * (self._level[self._best] - mu) + self._cm.shift(conditions))
+
+    def extend(self, samples: Any) -> None:
+        """Feed stored strokes in order (warm start); all are validated before any is taken."""
+        values = [check_stroke_ns(v) for v in samples]
+        for v in values:
+            self.update(v)
+
+    # ---- persistence ---------------------------------------------------------------------------
+
+    def state(self) -> dict[str, Any]:
+        """Plain-typed state (msgpack-safe); `from_state` rebuilds one that predicts identically."""
+        return {
+            "format": STATE_FORMAT,
+            "nominal_ns": self._nominal,
+            "conditions": self._cm.state(),
+            "cold": None if self._cold is None else self._cold.state(),
+            "level": list(self._level),
+            "score": list(self._score),
+            "mu": self._mu,
+            "best": self._best,
+            "count": self._count,
+            "seen": self._seen,
+        }
+
+    @classmethod
+    def from_state(cls, d: Any) -> KalmanPredictor:
+        """Rebuild from `state()`; ValueError naming the field if the state is bad."""
+        if not isinstance(d, dict) or d.get("format") != STATE_FORMAT:
+            raise ValueError(f"predictor state must be a dict of format {STATE_FORMAT!r}")
+        p = cls(nominal_ns=d.get("nominal_ns"))
+        p._cm = ConditionModel.from_state(d.get("conditions"))
+        p._cold = None if d.get("cold") is None else ARPredictor.from_state(d["cold"])
+        n = len(GRID)
+        for key in ("level", "score"):
+            v = d.get(key)
+            if not isinstance(v, list | tuple) or len(v) != n or not all(_finite(x) for x in v):
+                raise ValueError(f"predictor state {key} must be {n} finite numbers, got {v!r}")
+            setattr(p, "_" + key, [float(x) for x in v])
+        if not _finite(d.get("mu")):
+            raise ValueError(f"predictor state mu must be a finite number, got {d.get('mu')!r}")
+        p._mu = float(d["mu"])
+        p._best = check_int("best", d.get("best"), 0, n - 1)
+        p._count = check_int("count", d.get("count"), 0)
+        p._seen = check_int("seen", d.get("seen"), p._count)
+        return p
+
+    def __repr__(self) -> str:
+        return f"KalmanPredictor(seen={self._seen}, ready={self.ready}, phi_k={self.coefficients})"
+
+
+def _finite(v: Any) -> bool:
+    return not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)

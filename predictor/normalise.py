@@ -1,0 +1,160 @@
+"""Condition normalisation: the part of a stroke's log time the known conditions explain, learned online.
+
+A stroke's time scales with its drive frequency, drive voltage and motor temperature. `ConditionModel`
+says how much ln t moves when the conditions change from the last stroke's, s . (c - c_last), so that the
+model of the remaining process (friction and noise) shifts its level by that and sees no step when the
+drive setting changes. Only changes are used, never absolute levels: an error in s costs s_err . dc
+once, and the process model corrects it at the next stroke. The sensitivities s are learned by
+recursive least squares with forgetting on consecutive strokes of the direction:
+ln t_k - ln t_{k-1} = s . (c_k - c_{k-1}) + noise, only when a condition stepped (`MIN_STEP`), the
+covariance capped so it never blows up. A missing condition holds its last value; `idle_ns` is not
+used (its effect is the motor's cooling, which the temperature carries).
+
+Units keep s of order one: frequency in kHz, voltage in 100 V, temperature in C.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from .conditions import Conditions
+
+#: The conditions normalised, and the unit each is taken in.
+KEYS = ("frequency_hz", "voltage_v", "temperature_c")
+SCALES = (1e-3, 1e-2, 1.0)
+#: Prior variance of each sensitivity (ln per unit) and the cap on its posterior variance: wide for the
+#: drive (a 0.5 kHz or 50 V step moves a USM's speed by 5-20 %), narrow for temperature (a few % per C at
+#: most), whose per-stroke changes are tiny beside the stroke's scatter and would teach noise.
+P0 = (1.0, 1.0, 1e-3)
+#: A change smaller than this (1 Hz, 0.1 V, 0.1 C) between two strokes teaches nothing (the stroke's
+#: scatter hides it; the process model tracks a slow drift), so RLS runs only on real steps.
+MIN_STEP = (1e-3, 1e-3, 0.1)
+#: Forgetting of the sensitivities' information per informative stroke.
+FORGET = 0.995
+#: Variance of the noise on a log-time difference until the caller knows better (`learn`'s noise_var).
+NOISE_VAR = 2.25e-4
+
+
+class ConditionModel:
+    """Learns d ln t / d condition online; says how much a change of conditions moves ln t. O(9)."""
+
+    __slots__ = ("_c", "_p", "_prev_y", "_s")
+
+    def __init__(self) -> None:
+        n = len(KEYS)
+        self._s = [0.0] * n
+        self._p = [[P0[i] if i == j else 0.0 for j in range(n)] for i in range(n)]
+        self._c: list[float | None] = [None] * n  # the last stroke's conditions (held when missing)
+        self._prev_y: float | None = None
+
+    @property
+    def sensitivities(self) -> tuple[float, ...]:
+        """d ln t per kHz, per 100 V, per C, as learned."""
+        return tuple(self._s)
+
+    def _delta(self, conditions: Conditions | None) -> tuple[list[float], list[float | None]] | None:
+        """(c - c_last per key, c) for these conditions; None when nothing known changed."""
+        if not conditions:
+            return None
+        last = self._c
+        c = list(last)
+        dc = [0.0, 0.0, 0.0]
+        moved = False
+        for i, k in enumerate(KEYS):
+            v = conditions.get(k)
+            if v is None or not math.isfinite(v):
+                continue
+            v = float(v) * SCALES[i]
+            c[i] = v
+            old = last[i]
+            if old is not None and v != old:
+                dc[i] = v - old
+                moved = True
+        if not moved and c == last:
+            return None
+        return dc, c
+
+    def shift(self, conditions: Conditions | None) -> float:
+        """s . (c - c_last): how much these conditions move ln t from the last stroke's."""
+        d = self._delta(conditions)
+        if d is None:
+            return 0.0
+        s = self._s
+        dc = d[0]
+        return s[0] * dc[0] + s[1] * dc[1] + s[2] * dc[2]
+
+    def learn(self, y: float, conditions: Conditions | None, noise_var: float = NOISE_VAR) -> float:
+        """Take a stroke's log time and conditions: the shift they made (with s as it was), then s is
+        updated from ln t - ln t_prev when a condition changed since the last stroke. `noise_var` is the
+        variance of a log-time difference that the conditions do not explain."""
+        d = self._delta(conditions)
+        prev_y = self._prev_y
+        self._prev_y = y
+        if d is None:
+            return 0.0
+        dc, c = d
+        self._c = c
+        s = self._s
+        moved = s[0] * dc[0] + s[1] * dc[1] + s[2] * dc[2]
+        if prev_y is not None and (
+            abs(dc[0]) >= MIN_STEP[0] or abs(dc[1]) >= MIN_STEP[1] or abs(dc[2]) >= MIN_STEP[2]
+        ):
+            self._rls(y - prev_y, dc, noise_var)
+        return moved
+
+    def _rls(self, dy: float, x: list[float], noise_var: float) -> None:
+        n = len(x)
+        p = self._p
+        px = [sum(p[i][j] * x[j] for j in range(n)) for i in range(n)]
+        denom = FORGET * noise_var + sum(x[i] * px[i] for i in range(n))
+        err = dy - sum(self._s[i] * x[i] for i in range(n))
+        for i in range(n):
+            self._s[i] += px[i] * err / denom
+        for i in range(n):
+            for j in range(n):
+                p[i][j] = (p[i][j] - px[i] * px[j] / denom) / FORGET
+        for i in range(n):  # cap: never more uncertain than the prior
+            if p[i][i] > P0[i]:
+                f = math.sqrt(P0[i] / p[i][i])
+                for j in range(n):
+                    p[i][j] *= f
+                    p[j][i] *= f
+
+    def state(self) -> dict[str, Any]:
+        """Plain-typed state (msgpack-safe)."""
+        return {
+            "s": list(self._s),
+            "p": [list(r) for r in self._p],
+            "c": list(self._c),
+            "prev_y": self._prev_y,
+        }
+
+    @classmethod
+    def from_state(cls, d: Any) -> ConditionModel:
+        """Rebuild from `state()`; ValueError naming the field if it is bad."""
+        m = cls()
+        n = len(KEYS)
+        if not isinstance(d, dict):
+            raise ValueError(f"condition state must be a dict, got {type(d).__name__}")
+        for key in ("s", "c"):
+            v = d.get(key)
+            if not isinstance(v, list | tuple) or len(v) != n:
+                raise ValueError(f"condition state {key} must be a list of {n}, got {v!r}")
+            if key == "s":
+                m._s = [_num(key, x) for x in v]
+            else:
+                setattr(m, "_" + key, [None if x is None else _num(key, x) for x in v])
+        p = d.get("p")
+        if not isinstance(p, list | tuple) or len(p) != n or any(len(r) != n for r in p):
+            raise ValueError(f"condition state p must be {n}x{n}, got {p!r}")
+        m._p = [[_num("p", x) for x in r] for r in p]
+        y = d.get("prev_y")
+        m._prev_y = None if y is None else _num("prev_y", y)
+        return m
+
+
+def _num(name: str, v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise ValueError(f"condition state {name} holds {v!r}, not a finite number")
+    return float(v)

@@ -1,0 +1,112 @@
+"""The "kalman" model: condition steps, noise, mean reversion, cold start and its state."""
+
+from __future__ import annotations
+
+import math
+import random
+
+import msgpack
+import pytest
+
+from usmswitch.predictor import SOUND_FIT, ARPredictor
+from usmswitch.predictor.kalman import GRID, KalmanPredictor
+
+
+def series(
+    n: int, seed: int, phi: float = 0.975, friction: float = 0.04, white: float = 0.0055
+) -> list[float]:
+    """Relative stroke scales 1 + F + w: F AR(1) (phi, stationary std `friction`), w white."""
+    rng = random.Random(seed)
+    q = friction * math.sqrt(1 - phi * phi)
+    f = rng.gauss(0, friction)
+    out = []
+    for _ in range(n):
+        f = phi * f + rng.gauss(0, q)
+        out.append(1 + f + rng.gauss(0, white))
+    return out
+
+
+def rms_error(p, strokes: list[int], conds: list[dict] | None = None, skip: int = 200) -> float:
+    acc = []
+    for i, t in enumerate(strokes):
+        c = None if conds is None else conds[i]
+        if i >= skip:
+            acc.append((t - p.predict(c)) ** 2)
+        p.update(t, c)
+    return math.sqrt(sum(acc) / len(acc))
+
+
+def test_a_learned_drive_step_is_predicted_the_next_time() -> None:
+    # ln t moves by 10 % per kHz; the drive steps 40 <-> 40.5 kHz every 300 strokes.
+    scale = series(3000, seed=2)
+    conds = [{"frequency_hz": 40_000.0 + 500.0 * ((i // 300) % 2)} for i in range(3000)]
+    t = [
+        round(8e6 * s * math.exp(0.1 * (c["frequency_hz"] - 40_000.0) / 1000))
+        for s, c in zip(scale, conds, strict=True)
+    ]
+    p = KalmanPredictor(nominal_ns=8_000_000)
+    errors = []
+    for v, c in zip(t, conds, strict=True):
+        errors.append(abs(v - p.predict(c)))
+        p.update(v, c)
+    assert errors[300] > 300_000  # the first step is news: nothing said how the frequency acts
+    assert p.sensitivities[0] == pytest.approx(0.1, abs=0.02)
+    later = [errors[i] for i in range(900, 3000, 300)]
+    assert max(later) < 250_000  # the later steps are known: about a stroke's scatter (~90 us)
+    # Without conditions the steps stay news for ever.
+    blind = KalmanPredictor(nominal_ns=8_000_000)
+    blind_err = []
+    for v in t:
+        blind_err.append(abs(v - blind.predict()))
+        blind.update(v)
+    blind_later = [blind_err[i] for i in range(900, 3000, 300)]
+    assert sum(blind_later) / len(blind_later) > 2 * sum(later) / len(later)
+
+
+@pytest.mark.parametrize(
+    ("phi", "white", "gain_at_most", "phi_at_most"),
+    [(0.975, 0.044, 0.5, 1.0), (0.8, 0.0055, 1.0, 0.95)],  # noise x8; mean-reverting friction
+)
+def test_the_filter_chosen_follows_the_process_and_beats_the_papers_ar1(
+    phi, white, gain_at_most, phi_at_most
+):
+    t = [round(8e6 * s) for s in series(4000, seed=5, phi=phi, white=white)]
+    k = KalmanPredictor(nominal_ns=8_000_000)
+    ours = rms_error(k, t)
+    paper = rms_error(ARPredictor(order=1, window=100, nominal_ns=8_000_000), t)
+    assert ours < 0.97 * paper
+    chosen_phi, chosen_gain = k.coefficients
+    assert chosen_gain <= gain_at_most and chosen_phi <= phi_at_most
+
+
+def test_cold_start_is_the_papers_ar1_until_a_sound_fit() -> None:
+    t = [round(8e6 * s) for s in series(SOUND_FIT + 5, seed=1)]
+    k = KalmanPredictor(nominal_ns=8_100_000)
+    ref = ARPredictor(order=1, window=SOUND_FIT, nominal_ns=8_100_000)
+    for v in t[:SOUND_FIT]:
+        assert not k.ready and k.coefficients == ref.coefficients
+        assert k.predict() == ref.predict()
+        k.update(v)
+        ref.update(v)
+    assert k.ready and k.coefficients in GRID
+
+
+def test_state_round_trips_through_msgpack_cold_and_warm_and_a_bad_one_is_named() -> None:
+    t = [round(8e6 * s) for s in series(300, seed=3)]
+    conds = [{"temperature_c": 25.0 + i / 100, "frequency_hz": 40_000.0} for i in range(300)]
+    for n in (10, 300):
+        k = KalmanPredictor(nominal_ns=8_000_000)
+        for v, c in zip(t[:n], conds[:n], strict=True):
+            k.update(v, c)
+        q = KalmanPredictor.from_state(msgpack.unpackb(msgpack.packb(k.state())))
+        for v, c in zip(t[:50], conds[:50], strict=True):
+            assert q.predict(c) == k.predict(c)
+            q.update(v, c)
+            k.update(v, c)
+    state = k.state()
+    with pytest.raises(ValueError, match="level"):
+        KalmanPredictor.from_state({**state, "level": [0.0]})
+    with pytest.raises(ValueError, match="format"):
+        KalmanPredictor.from_state({**state, "format": "x"})
+    with pytest.raises(ValueError, match="got 0"):
+        KalmanPredictor(nominal_ns=8_000_000).update(0)
