@@ -1,0 +1,207 @@
+"""Prediction quality (issue 15): every shipped model on the scenario suite, against the rig's floor.
+
+Each predictor (one per direction, told each stroke's conditions) predicts every stroke of every
+scenario (`usmswitch.sim.scenarios`, 5 seeds x 4000 strokes). Printed per predictor x scenario: the RMS
+one-step error over the innovation floor (strokes from cycle 200), the worst error within three strokes
+of each direction after a drive step, and the error of each direction's first stroke after a 120 s
+pause. Beside the shipped models: a statsmodels AutoReg(1, trend="c") refitted on the last 100 strokes
+every 25 strokes. Then the cost per stroke. The targets are the issue's, for the default model.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from benchmarks.table import print_table
+from usmswitch.predictor import AR_MODELS, DEFAULT_MODEL, MODELS, ARPredictor, make_predictor
+from usmswitch.sim.scenarios import SCENARIOS, ScenarioRun, run_scenario
+
+SEEDS = (1, 2, 3, 4, 5)
+CYCLES = 4000
+SKIP = 200  # cold start, left out of the ratio
+NOMINAL_NS = 8_000_000
+REFIT_EVERY = 25
+TARGET_RATIO = 1.03
+TARGET_VS_PAPER = 1.01
+TARGET_STEP_NS = 150_000
+TARGET_IDLE_NS = 120_000
+TARGET_COST_US = 5.0
+TARGET_RESELECT_US = 50.0
+
+
+class StatsmodelsRefit:
+    """statsmodels AutoReg(1, trend="c") on the last 100 strokes, refitted every REFIT_EVERY strokes."""
+
+    def __init__(self) -> None:
+        self.window: list[int] = []
+        self.params: tuple[float, float] | None = None
+        self.n = 0
+
+    def predict(self, conditions: Any = None) -> float:
+        if not self.window:
+            return float(NOMINAL_NS)
+        if self.params is None:
+            return float(self.window[-1])
+        c, a = self.params
+        return c + a * self.window[-1]
+
+    def update(self, t_ns: int, conditions: Any = None) -> None:
+        from statsmodels.tsa.ar_model import AutoReg
+
+        self.window = [*self.window[-99:], t_ns]
+        self.n += 1
+        if self.n >= 30 and self.n % REFIT_EVERY == 0:
+            fit = AutoReg(np.asarray(self.window, dtype=float), lags=1, trend="c").fit()
+            self.params = (float(fit.params[0]), float(fit.params[1]))
+
+
+def _makers() -> dict[str, Callable[[], Any]]:
+    out: dict[str, Callable[[], Any]] = {}
+    for model in MODELS:
+        label = f"{model} AR(1)" if model in AR_MODELS else model
+        if model == DEFAULT_MODEL:
+            label += " (default)"
+        out[label] = lambda model=model: make_predictor(model, nominal_ns=NOMINAL_NS)
+    out["statsmodels AutoReg(1, c) refit"] = StatsmodelsRefit
+    return out
+
+
+def _score(make: Callable[[], Any], run: ScenarioRun) -> tuple[float, float, list[float], list[float]]:
+    """(sum e^2, sum floor^2) from cycle SKIP; |e| within 3 strokes per direction of the step; after idles."""
+    ps = [make(), make()]
+    se = sf = 0.0
+    step: list[float] = []
+    idle: list[float] = []
+    step_at = run.step_cycle
+    after = set(run.after_idle)
+    for s in run.strokes:
+        p = ps[s.direction]
+        e = s.operating_ns - p.predict(s.conditions)
+        p.update(s.operating_ns, s.conditions)
+        if s.cycle >= SKIP:
+            se += e * e
+            sf += s.floor_ns * s.floor_ns
+        if step_at is not None and step_at <= s.cycle < step_at + 6:
+            step.append(abs(e))
+        if s.cycle in after:
+            idle.append(abs(e))
+    return se, sf, step, idle
+
+
+def _cost(model: str, runs: list[ScenarioRun]) -> np.ndarray:
+    """update + predict per stroke (us, timer pair included) on the default scenario."""
+    out = []
+    clock = time.perf_counter_ns
+    for run in runs:
+        ps = [make_predictor(model, nominal_ns=NOMINAL_NS), make_predictor(model, nominal_ns=NOMINAL_NS)]
+        for s in run.strokes:
+            p = ps[s.direction]
+            t0 = clock()
+            p.predict(s.conditions)
+            p.update(s.operating_ns, s.conditions)
+            out.append(clock() - t0)
+    return np.asarray(out[2 * SKIP :], dtype=float) / 1e3
+
+
+def _reselect_cost(runs: list[ScenarioRun]) -> float:
+    """The costliest stroke (us) of the paper's AR with automatic order re-selection (AIC, up to 3)."""
+    worst = 0.0
+    clock = time.perf_counter_ns
+    for run in runs:
+        p = ARPredictor(order="auto", window=100, max_order=3, nominal_ns=NOMINAL_NS)
+        for s in run.strokes:
+            if s.direction:
+                continue
+            t0 = clock()
+            p.predict()
+            p.update(s.operating_ns)
+            worst = max(worst, (clock() - t0) / 1e3)
+    return worst
+
+
+def main() -> int:
+    runs = {name: [run_scenario(name, seed=seed, cycles=CYCLES) for seed in SEEDS] for name in SCENARIOS}
+    makers = _makers()
+    ratio: dict[str, dict[str, float]] = {}
+    steps: dict[str, list[float]] = {}
+    idles: dict[str, list[float]] = {}
+    for label, make in makers.items():
+        ratio[label] = {}
+        steps[label] = []
+        idles[label] = []
+        for name, rs in runs.items():
+            se = sf = 0.0
+            for run in rs:
+                a, b, st, idle = _score(make, run)
+                se += a
+                sf += b
+                if st:
+                    steps[label].append(max(st))
+                idles[label].extend(idle)
+            ratio[label][name] = math.sqrt(se / sf)
+    paper = next(k for k in makers if k.startswith("paper"))
+    default = next(k for k in makers if k.endswith("(default)"))
+    rows = []
+    for label in makers:
+        rows.append(
+            [label, *[f"{ratio[label][n]:.3f}" for n in SCENARIOS],
+             f"{np.mean(steps[label]) / 1e3:.0f}", f"{np.max(steps[label]) / 1e3:.0f}",
+             f"{np.mean(idles[label]) / 1e3:.0f}"]
+        )  # fmt: skip
+    print_table(
+        ["predictor", *SCENARIOS, "step us mean", "step us max", "idle us"],
+        rows,
+        title=(
+            f"RMS one-step error / innovation floor, {len(SEEDS)} seeds x {CYCLES} strokes per scenario; "
+            "step: worst |error| within 3 strokes per direction of the drive step (frequency, voltage, "
+            "shift); idle: |error| of the first stroke per direction after 120 s"
+        ),
+    )
+    missed = []
+    for n in SCENARIOS:
+        r, rp = ratio[default][n], ratio[paper][n]
+        if r > TARGET_RATIO:
+            missed.append(f"{n}: default {r:.3f}x the floor > {TARGET_RATIO}")
+        if r > TARGET_VS_PAPER * rp:
+            missed.append(f"{n}: default {r:.3f} worse than the paper's {rp:.3f} by more than 1 %")
+    step_mean = float(np.mean(steps[default]))
+    if step_mean > TARGET_STEP_NS:
+        missed.append(f"step error {step_mean / 1e3:.0f} us > {TARGET_STEP_NS / 1e3:.0f} us")
+    idle_mean = float(np.mean(idles[default]))
+    if idle_mean > TARGET_IDLE_NS:
+        missed.append(f"first stroke after idle {idle_mean / 1e3:.0f} us > {TARGET_IDLE_NS / 1e3:.0f} us")
+
+    cost_rows = []
+    base = None
+    for model in MODELS:
+        t = _cost(model, runs["default"][:2])
+        med = float(np.median(t))
+        base = med if model == "paper" else base
+        target = ""
+        if model == DEFAULT_MODEL:
+            target = f"median <= {TARGET_COST_US:g} us: " + ("ok" if med <= TARGET_COST_US else "MISSED")
+            if med > TARGET_COST_US:
+                missed.append(f"default costs {med:.2f} us per stroke > {TARGET_COST_US:g} us")
+        cost_rows.append([model, f"{med:.2f}", f"{np.percentile(t, 99):.2f}", target])
+    worst = _reselect_cost(runs["default"][:1])
+    ok = worst <= TARGET_RESELECT_US
+    if not ok:
+        missed.append(f"an AIC re-selecting stroke costs {worst:.0f} us > {TARGET_RESELECT_US:g} us")
+    cost_rows.append(
+        ["paper AR auto (AIC re-selection)", "", f"max {worst:.0f}", f"max <= {TARGET_RESELECT_US:g} us: "
+         + ("ok" if ok else "MISSED")]
+    )  # fmt: skip
+    print()
+    print_table(
+        ["predictor", "median us", "p99 us", "target"],
+        cost_rows,
+        title="update + predict per stroke, told the conditions (timer pair included)",
+    )
+    for m in missed:
+        print(f"TARGET MISSED: {m}")
+    return 1 if missed else 0
