@@ -40,10 +40,13 @@ HISTOGRAM_NAMES = {
         "Start lateness: motor start minus (command + delay), host-timed strokes.",
     ),
 }
-# HTTP: a request head larger than this, or slower than this, is refused.
+# HTTP: a request head larger than this, or slower than this, is refused; a connection idle this
+# long between scrapes is closed (Prometheus keeps one open per target and scrapes every 5-60 s).
 MAX_HEAD_BYTES = 8192
 HEAD_TIMEOUT_S = 5.0
+IDLE_TIMEOUT_S = 120.0
 MAX_SCRAPERS = 16
+MAX_UNREAD_BYTES = 1 << 20
 
 Source = Callable[[], tuple[Mapping[str, bytes], Mapping[str, int]]]
 
@@ -203,7 +206,8 @@ class MetricsPage:
 
 
 class _Scrape(asyncio.Protocol):
-    """One HTTP/1.x request: GET /metrics (or HEAD), answered and closed."""
+    """One scraper's connection: GET (or HEAD) /metrics, kept open between scrapes (HTTP/1.1
+    keep-alive, as Prometheus scrapes) until idle, or closed after an error or when asked."""
 
     def __init__(self, page: MetricsPage, open_count: list[int]) -> None:
         self.page = page
@@ -221,7 +225,7 @@ class _Scrape(asyncio.Protocol):
             return
         self.open_count[0] += 1
         self.counted = True
-        self.timer = asyncio.get_running_loop().call_later(HEAD_TIMEOUT_S, self._timeout)
+        self._arm(HEAD_TIMEOUT_S)
 
     def connection_lost(self, exc: Exception | None) -> None:
         if self.timer is not None:
@@ -230,31 +234,53 @@ class _Scrape(asyncio.Protocol):
             self.counted = False
             self.open_count[0] -= 1
 
+    def _arm(self, seconds: float) -> None:
+        if self.timer is not None:
+            self.timer.cancel()
+        self.timer = asyncio.get_running_loop().call_later(seconds, self._timeout)
+
     def _timeout(self) -> None:
-        self._reply(408, b"request head not received in time\n")
+        if self.buf:
+            self._reply(408, b"request head not received in time\n")
+        elif self.transport is not None:
+            self.transport.close()  # idle between scrapes
 
     def data_received(self, data: bytes) -> None:
-        if self.transport is None or self.transport.is_closing():
-            return
         self.buf += data
-        end = self.buf.find(b"\r\n\r\n")
-        if end < 0:
-            if len(self.buf) > MAX_HEAD_BYTES:
-                self._reply(431, b"request head too large\n")
-            return
-        lines = self.buf[:end].decode("latin-1").split("\r\n")
+        while self.transport is not None and not self.transport.is_closing():
+            end = self.buf.find(b"\r\n\r\n")
+            if end < 0:
+                if len(self.buf) > MAX_HEAD_BYTES:
+                    self._reply(431, b"request head too large\n")
+                elif self.buf:
+                    self._arm(HEAD_TIMEOUT_S)
+                return
+            head, self.buf = self.buf[:end].decode("latin-1"), self.buf[end + 4 :]
+            self._answer(head)
+            if self.transport.get_write_buffer_size() > MAX_UNREAD_BYTES:
+                self.transport.abort()  # pipelining and not reading the answers
+
+    def _answer(self, head: str) -> None:
+        lines = head.split("\r\n")
         parts = lines[0].split()
         if len(parts) != 3 or not parts[2].startswith("HTTP/1."):
             self._reply(400, b"not an HTTP/1.x request\n")
             return
-        method, target, _ = parts
+        method, target, version = parts
         headers = {}
         for line in lines[1:]:
             name, _, value = line.partition(":")
             headers[name.strip().lower()] = value.strip()
+        # HTTP/1.1 keeps the connection unless told not to; a body (none expected) ends it.
+        keep = (
+            version == "HTTP/1.1"
+            and headers.get("connection", "").lower() != "close"
+            and headers.get("content-length", "0") == "0"
+            and "transfer-encoding" not in headers
+        )
         path = target.split("?", 1)[0]
         if method not in ("GET", "HEAD"):
-            self._reply(405, b"only GET and HEAD\n", extra=b"Allow: GET, HEAD\r\n")
+            self._reply(405, b"only GET and HEAD\n", extra=b"Allow: GET, HEAD\r\n", keep=keep)
         elif path == "/metrics":
             try:
                 body, content_type = self.page.render(headers.get("accept", ""))
@@ -262,13 +288,12 @@ class _Scrape(asyncio.Protocol):
                 log.exception("metrics page failed")
                 self._reply(500, f"metrics page failed: {type(exc).__name__}: {exc}\n".encode())
                 return
-            self._reply(200, body, content_type, head_only=method == "HEAD")
+            self._reply(200, body, content_type, head_only=method == "HEAD", keep=keep)
         elif path == "/":
-            self._reply(
-                200, b'<html><body><a href="/metrics">usmswitchd metrics</a></body></html>\n', "text/html"
-            )
+            page = b'<html><body><a href="/metrics">usmswitchd metrics</a></body></html>\n'
+            self._reply(200, page, "text/html", keep=keep)
         else:
-            self._reply(404, b"not found: the page is /metrics\n")
+            self._reply(404, b"not found: the page is /metrics\n", keep=keep)
 
     def _reply(
         self,
@@ -277,19 +302,23 @@ class _Scrape(asyncio.Protocol):
         content_type: str = "text/plain; charset=utf-8",
         head_only: bool = False,
         extra: bytes = b"",
+        keep: bool = False,
     ) -> None:
         transport = self.transport
         if transport is None or transport.is_closing():
             return
-        if self.timer is not None:
-            self.timer.cancel()
         reason = _REASONS.get(status, "")
         head = (
             f"HTTP/1.1 {status} {reason}\r\nContent-Type: {content_type}\r\n"
-            f"Content-Length: {len(body)}\r\nConnection: close\r\n"
+            f"Content-Length: {len(body)}\r\nConnection: {'keep-alive' if keep else 'close'}\r\n"
         ).encode()
         transport.write(head + extra + b"\r\n" + (b"" if head_only else body))
-        transport.close()
+        if keep:
+            self._arm(IDLE_TIMEOUT_S)
+        else:
+            if self.timer is not None:
+                self.timer.cancel()
+            transport.close()
 
 
 _REASONS = {

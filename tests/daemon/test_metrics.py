@@ -171,6 +171,15 @@ def test_daemon_page_agrees_with_its_records_file(tmp_path: Path):
         assert scrape(url.replace("/metrics", "/nope"))[0] == 404
         assert scrape(url, method="POST")[0] == 405
         host, port = url.split("/")[2].split(":")
+        # Kept alive between scrapes (as Prometheus scrapes), pipelined too; "close" is honoured.
+        with socket.create_connection((host, int(port)), timeout=10) as raw:
+            get = f"GET /metrics HTTP/1.1\r\nHost: {host}\r\n".encode()
+            raw.sendall(get + b"\r\n" + get + b"\r\n" + get + b"Connection: close\r\n\r\n")
+            replies = b""
+            while chunk := raw.recv(65_536):  # until the server closes, after the third
+                replies += chunk
+            assert replies.count(b"HTTP/1.1 200 OK") == 3 and replies.count(b"# HELP usmswitch_info") == 3
+            assert replies.count(b"Connection: keep-alive") == 2 and replies.count(b"Connection: close") == 1
         with socket.create_connection((host, int(port)), timeout=10) as raw:
             raw.sendall(b"x" * 10_000)  # no head in sight: refused, not buffered forever
             assert raw.recv(100).startswith(b"HTTP/1.1 431")
@@ -188,3 +197,30 @@ def test_a_metrics_port_in_use_stops_the_daemon_naming_it(tmp_path: Path):
         proc = subprocess.run(args, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 3
     assert f"cannot listen for the metrics page on 127.0.0.1:{port}" in proc.stderr
+
+
+def test_the_grafana_dashboard_asks_only_for_metrics_the_page_has(repo_root: Path):
+    import json
+    import re
+
+    metrics = StrokeMetrics()
+    metrics.on_run(RunRecord(run_id=1, kind="cycling", first_cycle=1, started_wall_ns=0))
+    metrics.add(pgserver.synthetic_records(1, 20, run_id=1))
+    state = {
+        "rig": "r", "driver": "sim", "version": "0", "state": "cycling", "fault": None,
+        "targets_ns": [12_000_000, 12_000_000], "records": {"backlog": 0, "writer_error": None},
+        "postgres": {"connected": True, "lag": 0, "shipped_cycle": 20, "shipped": 20, "error_count": 0},
+    }  # fmt: skip
+    snaps = {FEEDS[0]: msgpack.packb(metrics.snapshot()), FEEDS[1]: msgpack.packb(state)}
+    names = {name for name, _ in samples(MetricsPage(lambda: (snaps, {"unix": 0})).render("")[0].decode())}
+    dashboard = json.loads((repo_root / "systemd" / "grafana-usmswitch.json").read_text())
+    exprs = [t["expr"] for p in dashboard["panels"] for t in p["targets"]]
+    exprs.append(dashboard["templating"]["list"][1]["query"]["query"])
+    used = {m for e in exprs for m in re.findall(r"usmswitch_\w+", e)}
+    assert len(used) >= 15 and used <= names, sorted(used - names)
+    fleet = (repo_root / "docs" / "fleet.md").read_text()  # and docs/fleet.md explains each
+    documented = set(re.findall(r"`(usmswitch_\w+)`", fleet))
+    families = {re.sub(r"_(bucket|sum|count)$", "", n) for n in names}
+    assert families <= documented | {n for n in documented if n.endswith("_total")}, sorted(
+        families - documented
+    )
