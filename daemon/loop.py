@@ -16,7 +16,6 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
-from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 
@@ -24,6 +23,7 @@ import structlog
 
 from usmswitch.drivers import Conditions, Daq, DaqError, DaqHalted, Direction, EventKind, FaultCode, check_ns
 
+from .plan import Mode, Plan, direction_from_levels, drive_of, flags_for_failure, predictor_conditions
 from .record import CycleRecord, Flag, RunRecord
 from .stats import DirectionStats
 from .units import format_ns
@@ -40,11 +40,6 @@ COMMAND_LEAD_NS = 2_000_000
 HELPER_WAIT_MAX_S = 0.01
 
 
-class Mode(StrEnum):
-    CLOSED = "closed"  # T_d = T - t_hat (Eq. 7)
-    OPEN = "open"  # a fixed delay, for characterisation
-
-
 class State(StrEnum):
     IDLE = "idle"
     CYCLING = "cycling"
@@ -54,37 +49,6 @@ class State(StrEnum):
 
 class LoopError(Exception):
     """A request the loop refuses in its present state; the message says why."""
-
-
-@dataclass(slots=True)
-class Plan:
-    """The armed next stroke: what the predictor said and the delay that follows from it."""
-
-    direction: Direction
-    target_ns: int
-    mode: Mode
-    t_hat_ns: int
-    delay_ns: int
-    late: bool
-    order: int
-    coefficients: tuple[float, ...]
-    flags: Flag  # LATE|CLAMPED when T < t_hat, WARMUP while the predictor gives its nominal
-
-
-def direction_from_levels(levels: tuple[int, int] | None, otherwise: Direction) -> Direction:
-    """The stroke that leaves the sensor the mover rests on; `otherwise` when that is not known."""
-    if levels is not None:
-        a, b = levels
-        if a and not b:
-            return Direction.ON
-        if b and not a:
-            return Direction.OFF
-    return otherwise
-
-
-def flags_for_failure(plan: Plan) -> Flag:
-    """Flags of a stroke whose command never reached the drive."""
-    return plan.flags | Flag.FAULT
 
 
 class ControlLoop:
@@ -143,7 +107,8 @@ class ControlLoop:
         self._conditions_every = max(1, conditions_every)
         # Where temperature and frequency come from: the driver (sim) or a drive board's poller.
         self._conditions_source = conditions or daq.conditions
-        self._conditions = self._conditions_source()
+        self._set_conditions(self._conditions_source())
+        self._plan_drive = drive_of(self._conditions)  # the drive setting the armed plan was made for
         self._next_dir = Direction(next_direction)
         self._plan: Plan | None = None
         self._requests: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]] = queue.SimpleQueue()
@@ -422,6 +387,20 @@ class ControlLoop:
         """Drive conditions now, from the same source the records use (any thread)."""
         return self._conditions_source()
 
+    def _set_conditions(self, cond: Conditions | None) -> None:
+        self._conditions = cond
+        self._pcond = predictor_conditions(cond)  # what the predictors are told
+
+    def refresh_conditions(self) -> None:
+        """Read the conditions now (loop thread, slack); a changed drive setting re-plans the armed
+        stroke, so its delay is for the drive it will run at, not the one of the previous arrival."""
+        try:
+            self._set_conditions(self._conditions_source())
+        except DaqError:
+            return
+        if self._plan is not None and drive_of(self._conditions) != self._plan_drive:
+            self._rearm()
+
     @property
     def next_direction(self) -> Direction:
         """The direction of the next stroke (away from where the mover rests)."""
@@ -504,7 +483,8 @@ class ControlLoop:
         """Eq. 6-7: t_hat from this direction's predictor, T_d = T - t_hat clamped at 0 (late)."""
         p = self.predictors[direction]
         target = self.targets[direction]
-        t_hat = round(p.predict())
+        t_hat = round(p.predict(self._pcond))
+        self._plan_drive = drive_of(self._conditions)
         if self.mode is Mode.CLOSED:
             delay = target - t_hat
             late = delay < 0
@@ -536,6 +516,8 @@ class ControlLoop:
 
     def _cycle_once(self) -> None:
         t_cmd = self._next_tick_ns
+        if self.cycle % self._conditions_every == 0:
+            self.refresh_conditions()  # before the wait for the command: off the timing path
         # A hardware-timed device is told ahead and waits for the instant itself.
         self._slack_until(t_cmd - self.daq.command_lead_ns)
         if self.state is not State.CYCLING or self._shutdown.is_set():
@@ -646,7 +628,7 @@ class ControlLoop:
                 flags |= Flag.PARTIAL  # a part of a stroke would teach the predictor nonsense
             else:
                 try:
-                    self.predictors[direction].update(operating)
+                    self.predictors[direction].update(operating, self._pcond)
                 except ValueError as exc:  # a stamp the model cannot take: keep it out, say so
                     flags |= Flag.FAULT
                     self._latch_fault(f"stroke not fed to the predictor: {exc}")
@@ -684,9 +666,9 @@ class ControlLoop:
         """Slack work after a stroke: the record, statistics, the sink and the listeners."""
         if self.cycle % self._conditions_every == 0:
             try:
-                self._conditions = self._conditions_source()
+                self._set_conditions(self._conditions_source())
             except DaqError:
-                self._conditions = None  # unknown while the device is away
+                self._set_conditions(None)  # unknown while the device is away
         cond = self._conditions
         total = None if t_arrive is None else t_arrive - t_cmd
         error = None if total is None else total - plan.target_ns

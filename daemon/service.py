@@ -376,6 +376,7 @@ class Daemon:
 
         def apply() -> dict[str, Any]:
             setter(**settings)
+            loop.refresh_conditions()  # the armed stroke is re-planned for the new drive
             cond = daq.conditions()
             return {"frequency_hz": cond.frequency_hz, "voltage_vpp": cond.voltage_vpp}
 

@@ -1,0 +1,67 @@
+"""The armed next stroke (`Plan`) and what planning it takes: the mode, the start direction, the
+predictor's view of the drive conditions. Apart from `loop.py`, which re-exports these names."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Any
+
+from usmswitch.drivers import Conditions, Direction
+
+from .record import Flag
+
+
+class Mode(StrEnum):
+    CLOSED = "closed"  # T_d = T - t_hat (Eq. 7)
+    OPEN = "open"  # a fixed delay, for characterisation
+
+
+@dataclass(slots=True)
+class Plan:
+    """The armed next stroke: what the predictor said and the delay that follows from it."""
+
+    direction: Direction
+    target_ns: int
+    mode: Mode
+    t_hat_ns: int
+    delay_ns: int
+    late: bool
+    order: int
+    coefficients: tuple[float, ...]
+    flags: Flag  # LATE|CLAMPED when T < t_hat, WARMUP while the predictor gives its nominal
+
+
+def direction_from_levels(levels: tuple[int, int] | None, otherwise: Direction) -> Direction:
+    """The stroke that leaves the sensor the mover rests on; `otherwise` when that is not known."""
+    if levels is not None:
+        a, b = levels
+        if a and not b:
+            return Direction.ON
+        if b and not a:
+            return Direction.OFF
+    return otherwise
+
+
+def flags_for_failure(plan: Plan) -> Flag:
+    """Flags of a stroke whose command never reached the drive."""
+    return plan.flags | Flag.FAULT
+
+
+def predictor_conditions(cond: Conditions | None) -> dict[str, Any] | None:
+    """The conditions as the predictors take them (`usmswitch.predictor.CONDITION_KEYS`), known ones only."""
+    if cond is None:
+        return None
+    out: dict[str, Any] = {}
+    if cond.temperature_c is not None:
+        out["temperature_c"] = cond.temperature_c
+    if cond.frequency_hz is not None:
+        out["frequency_hz"] = cond.frequency_hz
+    if cond.voltage_vpp is not None:
+        out["voltage_v"] = cond.voltage_vpp
+    return out
+
+
+def drive_of(cond: Conditions | None) -> tuple[float | None, float | None]:
+    """The drive setting (frequency, voltage) of the conditions: a change re-plans the armed stroke."""
+    return (None, None) if cond is None else (cond.frequency_hz, cond.voltage_vpp)
