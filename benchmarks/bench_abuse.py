@@ -10,6 +10,11 @@ runs through the whole benchmark. Each load runs in processes of its own while
   the load.
 RSS of the daemon and of its socket-server process is sampled at the end of each window (memory
 bounded under unread pipelined reads).
+
+The daemon serves its Prometheus page all along (`--metrics`): one load hammers it with scrapers.
+With PostgreSQL 15 installed (tests/pgserver.py), the daemon also ships to a database that is down
+until the last load, and its records file starts with a backlog of BENCH_ABUSE_BACKLOG synthetic
+strokes: the last load starts the server, and the window runs while the shipper catches up.
 """
 
 from __future__ import annotations
@@ -35,8 +40,10 @@ from benchmarks.table import print_table
 from usmswitch.client import Client, RpcError
 from usmswitch.daemon.wire import estop_socket_path
 
+ROOT = Path(__file__).resolve().parents[1]
 MS = 1_000_000
 PERIOD_MS = 15
+BACKLOG = int(os.environ.get("BENCH_ABUSE_BACKLOG", "200000"))
 WINDOW_S = float(os.environ.get("BENCH_ABUSE_WINDOW_S", "8"))
 ESTOPS = int(os.environ.get("BENCH_ABUSE_ESTOPS", "20"))
 # A comma-separated list of words: only the loads whose names contain one of them (and idle).
@@ -141,7 +148,35 @@ def load_one_byte(path: str, stop: Any) -> None:
         held = alive
 
 
-LOADS: list[tuple[str, Callable[..., None], int, dict[str, Any]]] = [
+def _http_response(s: socket.socket, buf: bytes) -> bytes:
+    """Read one HTTP response (head and Content-Length body) from `s`; returns what follows it."""
+    while b"\r\n\r\n" not in buf:
+        buf += s.recv(65_536)
+    head, _, rest = buf.partition(b"\r\n\r\n")
+    length = int(head.lower().split(b"content-length:")[1].split(b"\r\n")[0])
+    while len(rest) < length:
+        rest += s.recv(65_536)
+    return rest[length:]
+
+
+def load_scrapes(path: str, stop: Any, url: str = "", keep_alive: bool = True) -> None:
+    """GET /metrics as fast as the page answers, reading every byte: over one kept-alive
+    connection, as Prometheus scrapes, or a new connection per scrape."""
+    host, _, port = url.split("/")[2].rpartition(":")
+    request = f"GET /metrics HTTP/1.1\r\nHost: {host}\r\nAccept: text/plain\r\n\r\n".encode()
+    s = None
+    buf = b""
+    while not stop.is_set():
+        if s is None:
+            s = socket.create_connection((host, int(port)), timeout=10)
+        s.sendall(request)
+        buf = _http_response(s, buf)
+        if not keep_alive:
+            s.close()
+            s, buf = None, b""
+
+
+LOADS: list[tuple[str, Callable[..., None] | None, int, dict[str, Any]]] = [
     ("idle", load_stats, 0, {}),
     ("8 clients hammering stats", load_stats, 8, {}),
     ("history 10000 x32 pipelined, unread", load_unread_history, 1, {}),
@@ -151,6 +186,9 @@ LOADS: list[tuple[str, Callable[..., None], int, dict[str, Any]]] = [
     ("32 set_target pipelined, repeated", load_set_target, 1, {}),
     ("600 connections, renewed", load_connection_flood, 1, {}),
     ("32 one-byte connections per socket", load_one_byte, 1, {}),
+    # The url is filled in at start.
+    ("4 Prometheus scrapers hammering /metrics", load_scrapes, 4, {}),
+    ("4 scrapers hammering /metrics, a connection each", load_scrapes, 4, {"keep_alive": False}),
 ]
 
 
@@ -226,15 +264,56 @@ def sigterm_exit_ms(runs: int = 5) -> list[float]:
     return out
 
 
+def postgres_with_backlog(state: Path) -> tuple[Any, str] | None:
+    """A PostgreSQL server, down, and a records file holding BACKLOG strokes of rig "bench" to ship
+    once it is up; None (and why, printed) without PostgreSQL 15 here."""
+    sys.path.insert(0, str(ROOT / "tests"))
+    import pgserver
+
+    why = pgserver.missing()
+    if why is not None:
+        print(f"no shipper row: {why}")
+        return None
+    from usmswitch.daemon.records import RecordStore
+
+    server = pgserver.PgServer()
+    server.start()
+    url = server.database("bench")
+    server.stop()
+    store = RecordStore(state / "records.sqlite", driver="sim", rig="bench")
+    for first in range(1, BACKLOG + 1, 10_000):
+        for rec in pgserver.synthetic_records(first, min(10_000, BACKLOG + 1 - first)):
+            store.submit(rec)
+    store.close()
+    return server, url
+
+
+def shipper_catches_up(control: Client, pg: Any) -> tuple[str, Callable[[], int]]:
+    """Start the database and wait until the shipper is connected; returns the row's name-maker."""
+    pg.start()
+    end = time.monotonic() + 30
+    while not (status := control.status()["records"]["postgres"])["connected"]:
+        if time.monotonic() > end:
+            raise RuntimeError(f"the shipper did not connect: {status['error']}")
+        time.sleep(0.05)
+    return "shipper catching up a backlog", lambda: control.status()["records"]["postgres"]["shipped"]
+
+
 def main() -> int:
     fifo = fifo_allowed()
     tmp = Path(tempfile.mkdtemp(prefix="usm-abuse-"))
     sock = tmp / "d.sock"
+    (tmp / "state").mkdir(mode=0o700)
+    wants_pg = not ONLY or any(w in "shipper catching up a backlog" for w in ONLY)
+    pg = postgres_with_backlog(tmp / "state") if wants_pg else None
     cmd = [
         sys.executable, "-m", "usmswitch.daemon.cli", "--sim", "--state-dir", str(tmp / "state"),
         "--socket", str(sock), "--log-format", "json", "--log-level", "warning", "--target", "12ms",
         "--period", f"{PERIOD_MS}ms", "--priority", str(PRIORITY if fifo else 0),
+        "--metrics", "127.0.0.1:0", "--rig", "bench",
     ]  # fmt: skip
+    if pg is not None:
+        cmd += ["--postgres", pg[1]]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     ctx = multiprocessing.get_context("spawn")
     rng = random.Random(1)
@@ -257,16 +336,26 @@ def main() -> int:
         time.sleep(1.0)
         policy = "SCHED_FIFO" if fifo else "SCHED_OTHER"
         print(f"policy {policy}; window {WINDOW_S:g} s; {ESTOPS} estops per load")
-        loads = [x for x in LOADS if not ONLY or x[0] == "idle" or any(w in x[0] for w in ONLY)]
+        url = control.status()["metrics_url"]
+        loads = [(n, b, k, {**kw, "url": url} if b is load_scrapes else kw) for n, b, k, kw in LOADS]
+        if pg is not None:
+            loads.append(("shipper catching up a backlog", None, 0, {}))
+        loads = [x for x in loads if not ONLY or x[0] == "idle" or any(w in x[0] for w in ONLY)]
         for name, body, procs, kw in loads:
             stop = ctx.Event()
             workers = [ctx.Process(target=body, args=(str(sock), stop), kwargs=kw) for _ in range(procs)]
             for w in workers:
                 w.start()
+            shipped: Callable[[], int] | None = None
+            if body is None and pg is not None:
+                name, shipped = shipper_catches_up(control, pg[0])
             time.sleep(1.0)  # the load builds up
             first = control.status()["cycle"]
+            before = shipped() if shipped else 0
             time.sleep(WINDOW_S)
             last = control.status()["cycle"] - 1
+            if shipped is not None:
+                name = f"{name} ({shipped() - before} shipped)"
             rss = (rss_mb(proc.pid), rss_mb(server_pid(proc.pid) or proc.pid))
             lat = lateness_between(db, first, last)
             stops = []
@@ -288,6 +377,8 @@ def main() -> int:
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.communicate(timeout=30)
+        if pg is not None:
+            pg[0].close()
     idle_p99 = rows[0][3]
     print_table(
         ["load", "strokes", "late p50 us", "late p99 us", "late max us", "x idle p99",
