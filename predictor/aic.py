@@ -76,19 +76,23 @@ def fit_table(samples: Iterable[int], max_order: int = MAX_ORDER, model: str = "
     check_model(model)
     check_int("max_order", max_order, 1, MAX_ORDER)
     values = [check_stroke_ns(v) for v in samples]
-    c = 1 if model == "centered" else 0
     need = min_samples(max_order, model)
     if len(values) < need:
         raise ValueError(
             f"AIC up to order {max_order} ({model}) needs at least {need} strokes, got {len(values)}"
         )
     n = len(values)
-    n_rows = n - max_order
     # Common rows i = max_order..n-1: column 0 the target, column j its lag j.
     columns = [values[max_order - j : n - j] for j in range(max_order + 1)]
-    gram = gram_from_columns(columns)
+    return table_from_gram(gram_from_columns(columns), [sum(col) for col in columns], n - max_order, model)
+
+
+def table_from_gram(gram: list[list[int]], sums: list[int], n_rows: int, model: str = "paper") -> AicTable:
+    """Eq. 8 from the common rows' exact sums: `gram` [[y.y, y^T X], [X^T y, X^T X]] over lags 0..M
+    (overwritten) and `sums` the columns' sums (used by "centered"). O(M^3), no pass over the strokes."""
+    max_order = len(gram) - 1
+    c = 1 if model == "centered" else 0
     if c:
-        sums = [sum(col) for col in columns]
         gram = [[n_rows * gram[i][j] - sums[i] * sums[j] for j in range(len(gram))] for i in range(len(gram))]
     scale = n_rows * (n_rows if c else 1)
     sigma2 = [num / (den * scale) for num, den in nested_rss(gram)]

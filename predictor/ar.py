@@ -15,10 +15,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from .aic import AicTable, fit_table, min_samples
+from .aic import AicTable, fit_table, min_samples, table_from_gram
 from .checks import MAX_ORDER, MAX_T_NS, check_int, check_model, check_stroke_ns
 from .conditions import Conditions
-from .exact import ExactSolution, NormalPlan
+from .exact import ExactSolution, NormalPlan, gram_from_columns
 
 STATE_FORMAT = "usmswitch.predictor.ar/1"
 # One index plan per order, shared by every predictor.
@@ -52,6 +52,8 @@ class ARPredictor:
     """
 
     __slots__ = (
+        "_ag",
+        "_as",
         "_auto",
         "_buf",
         "_c",
@@ -120,18 +122,13 @@ class ARPredictor:
         self._table: AicTable | None = None
         self._table_seen = -1
         self._set_order(m)
+        self._build_aic_sums()
 
     # ---- configuration -------------------------------------------------------------------------
 
     def _set_order(self, m: int) -> None:
         """Switch to order m and rebuild its sums from the window (exact, O(n m^2))."""
         plan = _PLANS[m]
-        self._m = m
-        self._plan = plan
-        self._fast1 = m == 1 and not self._c
-        self._fast1c = m == 1 and bool(self._c)
-        need = 2 * m + 1 + self._c
-        self._min_ready = min(self._window, need if self._fast1 else max(need, SOUND_FIT))
         samples = self.samples()
         n = len(samples)
         # Column j holds lag j over the rows i = m..n-1 (column 0 the target); dot products in C.
@@ -139,8 +136,18 @@ class ARPredictor:
         g = [0] * plan.size
         for idx, j, k in plan.pairs:
             g[idx] = sum(map(int.__mul__, cols[j], cols[k]))
+        self._install(m, g, [sum(c) for c in cols])
+
+    def _install(self, m: int, g: list[int], s: list[int]) -> None:
+        """Take order m with its exact sums g (X^T X, X^T y by plan index) and s (column sums)."""
+        self._m = m
+        self._plan = _PLANS[m]
+        self._fast1 = m == 1 and not self._c
+        self._fast1c = m == 1 and bool(self._c)
+        need = 2 * m + 1 + self._c
+        self._min_ready = min(self._window, need if self._fast1 else max(need, SOUND_FIT))
         self._g = g
-        self._s = [sum(c) for c in cols]
+        self._s = s
         self._dirty = True
         self._coef: tuple[float, ...] = ()
         self._coef_seen = -1
@@ -148,6 +155,55 @@ class ARPredictor:
         self._num: list[int] = []
         self._det = 1
         self._dropped = False
+
+    def _build_aic_sums(self) -> None:
+        """For `auto`: the exact sums of AIC's common rows (rows M..n-1, lags 0..M), kept up to date by
+        `update` in O(M^2), so that a re-selection never passes over the window (O(M^3) only)."""
+        if not self._auto:
+            self._ag: list[list[int]] = []
+            self._as: list[int] = []
+            return
+        big_m = self._max_order
+        x = self.samples()
+        n = len(x)
+        cols = [x[big_m - j : n - j] if n > big_m else [] for j in range(big_m + 1)]
+        self._ag = gram_from_columns(cols)
+        self._as = [sum(c) for c in cols]
+
+    def _aic_slide(self, t: int, buf: list[int], pos: int, count: int, w: int) -> None:
+        """Before `t` is written at `pos`: drop the common row that leaves a full window, add t's row."""
+        big_m = self._max_order
+        ag = self._ag
+        sums = self._as
+        rng = range(big_m + 1)
+        if count == w:  # the leaving row: (o_M, ..., o_0) of the old window, o_k = buf[(pos + k) % w]
+            old = [buf[(pos + big_m - j) % w] for j in rng]
+            for i in rng:
+                oi = old[i]
+                row = ag[i]
+                for j in rng:
+                    row[j] -= oi * old[j]
+                sums[i] -= oi
+        if count >= big_m:
+            new = [t, *[buf[(pos - j) % w] for j in range(1, big_m + 1)]]
+            for i in rng:
+                ni = new[i]
+                row = ag[i]
+                for j in rng:
+                    row[j] += ni * new[j]
+                sums[i] += ni
+
+    def _set_order_from_aic(self, m: int) -> None:
+        """Switch to order m from AIC's sums: rows m..n-1 are AIC's rows M..n-1 plus rows m..M-1."""
+        plan = _PLANS[m]
+        big_m = self._max_order
+        x = self.samples()
+        ag = self._ag
+        g = [0] * plan.size
+        for idx, j, k in plan.pairs:
+            g[idx] = ag[j][k] + sum(x[i - j] * x[i - k] for i in range(m, big_m))
+        s = [self._as[j] + sum(x[i - j] for i in range(m, big_m)) for j in range(m + 1)]
+        self._install(m, g, s)
 
     @property
     def order(self) -> int:
@@ -217,6 +273,8 @@ class ARPredictor:
         pos = self._pos
         w = self._window
         nxt = pos + 1 if pos + 1 < w else 0
+        if self._auto:
+            self._aic_slide(t_ns, buf, pos, self._count, w)
         if self._fast1 and self._count == w:
             # The daemon's steady state with the paper's AR(1), unrolled, t_hat solved at once:
             # g[1] = sum x y, g[3] = sum x^2 over the rows (x = t_{i-1}, y = t_i).
@@ -452,7 +510,13 @@ class ARPredictor:
     def aic_table(self) -> AicTable:
         """Eq. 8 for orders 1..max_order over the window (common rows, see `predictor.aic`)."""
         if self._table is None or self._table_seen != self._seen:
-            self._table = fit_table(self.samples(), self._max_order, self._model)
+            need = min_samples(self._max_order, self._model)
+            if self._auto and self._count >= need:
+                gram = [row[:] for row in self._ag]
+                n_rows = self._count - self._max_order
+                self._table = table_from_gram(gram, self._as, n_rows, self._model)
+            else:
+                self._table = fit_table(self.samples(), self._max_order, self._model)
             self._table_seen = self._seen
         return self._table
 
@@ -473,7 +537,7 @@ class ARPredictor:
         self._since_select = 0
         best = self.aic_table().best
         if best != self._m:
-            self._set_order(best)
+            self._set_order_from_aic(best)
 
     # ---- persistence ---------------------------------------------------------------------------
 
@@ -545,6 +609,7 @@ class ARPredictor:
         p._seen = seen
         p._since_select = since
         p._set_order(current)
+        p._build_aic_sums()
         return p
 
     def __repr__(self) -> str:

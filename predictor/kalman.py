@@ -26,10 +26,12 @@ from .conditions import Conditions
 from .normalise import NOISE_VAR, ConditionModel
 
 STATE_FORMAT = "usmswitch.predictor.kalman/1"
-#: The (phi, K) grid.
-PHIS = (1.0, 0.95, 0.8)
-GAINS = (1.0, 0.75, 0.5, 0.33, 0.22, 0.14)
-GRID = tuple((phi, k) for phi in PHIS for k in GAINS)
+#: The (phi, K) grid: dense in K at phi = 1 (a drifting level under any stroke noise), a few gains for
+#: mean-reverting friction.
+GRID = (
+    *((1.0, k) for k in (1.0, 0.75, 0.5, 0.33, 0.22, 0.14)),
+    *((phi, k) for phi in (0.95, 0.9, 0.8) for k in (0.95, 0.6)),
+)
 _PHI = tuple(phi for phi, _ in GRID)
 _ONE_MINUS_PHI = tuple(1.0 - phi for phi, _ in GRID)
 _GAIN = tuple(k for _, k in GRID)
@@ -106,12 +108,25 @@ class KalmanPredictor:
             if moved:  # the known conditions moved ln t: every level and the mean with it
                 mu += moved
                 self._level = [v + moved for v in self._level]
-            preds = [a * v + b * mu for a, b, v in zip(_PHI, _ONE_MINUS_PHI, self._level, strict=True)]
-            errs = [z - p for p in preds]
-            score = [FORGET * s + e * e for s, e in zip(self._score, errs, strict=True)]
-            self._level = [p + k * e for p, k, e in zip(preds, _GAIN, errs, strict=True)]
-            self._score = score
-            self._best = score.index(min(score))
+            # One pass over the grid (a plain loop is the cheapest form in CPython).
+            levels: list[float] = []
+            scores: list[float] = []
+            best = 0
+            low = math.inf
+            for j, (a, b, k, v, sc) in enumerate(
+                zip(_PHI, _ONE_MINUS_PHI, _GAIN, self._level, self._score, strict=True)
+            ):
+                pr = a * v + b * mu
+                e = z - pr
+                sc = FORGET * sc + e * e
+                levels.append(pr + k * e)
+                scores.append(sc)
+                if sc < low:
+                    low = sc
+                    best = j
+            self._level = levels
+            self._score = scores
+            self._best = best
             self._mu = mu + (z - mu) / min(self._count + 1, MU_STROKES)
         self._count += 1
         self._seen += 1

@@ -140,13 +140,13 @@ def test_auto_reselects_every_k_strokes_exactly(monkeypatch: pytest.MonkeyPatch)
     import usmswitch.predictor.ar as ar_module
 
     selections: list[int] = []
-    real = ar_module.fit_table
+    real = ar_module.table_from_gram
 
-    def counting(samples, max_order, model):
+    def counting(gram, sums, n_rows, model):
         selections.append(len(seen))
-        return real(samples, max_order, model)
+        return real(gram, sums, n_rows, model)
 
-    monkeypatch.setattr(ar_module, "fit_table", counting)
+    monkeypatch.setattr(ar_module, "table_from_gram", counting)
     t = ar_around_mean([0.5], 300, seed=8)
     p = ARPredictor(order="auto", window=60, model="centered", max_order=2, reselect_every=25)
     seen: list[int] = []
@@ -155,3 +155,23 @@ def test_auto_reselects_every_k_strokes_exactly(monkeypatch: pytest.MonkeyPatch)
         p.update(v)
     need = min_samples(2, "centered")
     assert selections == list(range(need, len(t) + 1, 25))
+
+
+@pytest.mark.parametrize("model", ["paper", "centered"])
+def test_auto_keeps_aics_sums_exactly_as_a_fresh_table_of_the_window(model: str) -> None:
+    # The re-selection reads sums kept up to date stroke by stroke (no pass over the window): they must
+    # give exactly the table of the window, at every stroke, through order changes and a state round trip.
+    t = ar_around_mean([0.6, 0.2], 400, seed=11)
+    p = ARPredictor(order="auto", window=40, model=model, max_order=4, reselect_every=7)
+    orders = set()
+    for i, v in enumerate(t):
+        p.update(v)
+        orders.add(p.order)
+        if p.count >= min_samples(4, model):
+            assert p.aic_table() == aic_table(p.samples(), 4, model)
+        if i == 200:
+            p = ARPredictor.from_state(p.state())
+    fixed = ARPredictor(order=p.order, window=40, model=model)
+    fixed.extend(t[-40:])
+    assert p.predict() == fixed.predict()  # the order switched from AIC's sums is the fixed order's fit
+    assert len(orders) > 1
