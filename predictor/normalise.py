@@ -57,23 +57,20 @@ class ConditionModel:
         """(c - c_last per key, c) for these conditions; None when nothing known changed."""
         if not conditions:
             return None
+        get = conditions.get
         last = self._c
-        c = list(last)
-        dc = [0.0, 0.0, 0.0]
-        moved = False
-        for i, k in enumerate(KEYS):
-            v = conditions.get(k)
-            if v is None or not math.isfinite(v):
-                continue
-            v = float(v) * SCALES[i]
-            c[i] = v
-            old = last[i]
-            if old is not None and v != old:
-                dc[i] = v - old
-                moved = True
-        if not moved and c == last:
+        l0, l1, l2 = last
+        c0 = _scaled(get("frequency_hz"), SCALES[0], l0)
+        c1 = _scaled(get("voltage_v"), SCALES[1], l1)
+        c2 = _scaled(get("temperature_c"), SCALES[2], l2)
+        if c0 == l0 and c1 == l1 and c2 == l2:
             return None
-        return dc, c
+        dc = [
+            0.0 if c0 is None or l0 is None else c0 - l0,
+            0.0 if c1 is None or l1 is None else c1 - l1,
+            0.0 if c2 is None or l2 is None else c2 - l2,
+        ]
+        return dc, [c0, c1, c2]
 
     def shift(self, conditions: Conditions | None) -> float:
         """s . (c - c_last): how much these conditions move ln t from the last stroke's."""
@@ -152,6 +149,13 @@ class ConditionModel:
         y = d.get("prev_y")
         m._prev_y = None if y is None else _num("prev_y", y)
         return m
+
+
+def _scaled(v: Any, scale: float, last: float | None) -> float | None:
+    """A condition's value in its unit, or the last one when it is missing or not finite."""
+    if v is None or not math.isfinite(v):
+        return last
+    return v * scale
 
 
 def _num(name: str, v: Any) -> float:
