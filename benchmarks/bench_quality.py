@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.table import print_table
-from usmswitch.predictor import AR_MODELS, DEFAULT_MODEL, MODELS, ARPredictor, make_predictor
+from usmswitch.predictor import AR_MODELS, DEFAULT_MODEL, MODELS, ARPredictor, make_predictors
 from usmswitch.sim.scenarios import SCENARIOS, ScenarioRun, run_scenario
 
 SEEDS = (1, 2, 3, 4, 5)
@@ -61,20 +61,20 @@ class StatsmodelsRefit:
             self.params = (float(fit.params[0]), float(fit.params[1]))
 
 
-def _makers() -> dict[str, Callable[[], Any]]:
-    out: dict[str, Callable[[], Any]] = {}
+def _makers() -> dict[str, Callable[[], list[Any]]]:
+    out: dict[str, Callable[[], list[Any]]] = {}
     for model in MODELS:
         label = f"{model} AR(1)" if model in AR_MODELS else model
         if model == DEFAULT_MODEL:
             label += " (default)"
-        out[label] = lambda model=model: make_predictor(model, nominal_ns=NOMINAL_NS)
-    out["statsmodels AutoReg(1, c) refit"] = StatsmodelsRefit
+        out[label] = lambda model=model: make_predictors(model, [NOMINAL_NS, NOMINAL_NS])
+    out["statsmodels AutoReg(1, c) refit"] = lambda: [StatsmodelsRefit(), StatsmodelsRefit()]
     return out
 
 
-def _score(make: Callable[[], Any], run: ScenarioRun) -> tuple[float, float, list[float], list[float]]:
+def _score(make: Callable[[], list[Any]], run: ScenarioRun) -> tuple[float, float, list[float], list[float]]:
     """(sum e^2, sum floor^2) from cycle SKIP; |e| within 3 strokes per direction of the step; after idles."""
-    ps = [make(), make()]
+    ps = make()  # one per direction, as the daemon makes them
     se = sf = 0.0
     step: list[float] = []
     idle: list[float] = []
@@ -99,7 +99,7 @@ def _cost(model: str, runs: list[ScenarioRun]) -> np.ndarray:
     out = []
     clock = time.perf_counter_ns
     for run in runs:
-        ps = [make_predictor(model, nominal_ns=NOMINAL_NS), make_predictor(model, nominal_ns=NOMINAL_NS)]
+        ps = make_predictors(model, [NOMINAL_NS, NOMINAL_NS])
         for s in run.strokes:
             p = ps[s.direction]
             t0 = clock()

@@ -23,7 +23,7 @@ from typing import Any, TextIO
 import structlog
 
 from usmswitch.drivers import Daq, DaqError, Direction
-from usmswitch.predictor import AR_MODELS, Predictor, make_predictor
+from usmswitch.predictor import AR_MODELS, Predictor, make_predictors
 
 from .board import BoardPoller
 from .config import Config
@@ -55,11 +55,13 @@ SWITCH_INTERVAL_S = 0.0002
 LIVE_LINE_NS = 250_000_000
 
 
-def direction_predictor(config: Config, direction: Direction) -> Predictor:
-    """One direction's predictor as [control] configures it (its own nominal)."""
+def direction_predictors(config: Config) -> list[Predictor]:
+    """The two directions' predictors as [control] configures them (each its own nominal; a model that
+    learns the motor as a whole learns it from both)."""
     c = config.control
     options = {"order": c.order, "window": c.window, "max_order": c.max_order} if c.model in AR_MODELS else {}
-    return make_predictor(c.model, nominal_ns=c.nominal_for(direction), **options)
+    nominals = [c.nominal_for(d) for d in (Direction.ON, Direction.OFF)]
+    return make_predictors(c.model, nominals, **options)
 
 
 class StateDirBusyError(RuntimeError):
@@ -145,7 +147,7 @@ class Daemon:
             rig=cfg.daemon.rig,
             file_mode=0o640 if group else 0o600,
         )
-        predictors = [direction_predictor(cfg, d) for d in (Direction.ON, Direction.OFF)]
+        predictors = direction_predictors(cfg)
         for d in (Direction.ON, Direction.OFF):
             # Only this driver's strokes on this rig: never a real rig from simulated strokes.
             samples = self.store.last_strokes(

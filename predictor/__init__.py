@@ -10,7 +10,7 @@ from .ar import SOUND_FIT, STATE_FORMAT, ARPredictor
 from .checks import AR_MODELS, MAX_ORDER, MAX_T_NS, MODELS, check_stroke_ns
 from .conditions import CONDITION_KEYS, Conditions
 from .exact import ExactSolution
-from .factory import DEFAULT_MODEL, Predictor, make_predictor
+from .factory import DEFAULT_MODEL, Predictor, make_predictor, make_predictors
 from .selection import CRITERIA, aic_table, select_order
 
 __all__ = [
@@ -32,6 +32,7 @@ __all__ = [
     "aic_table",
     "check_stroke_ns",
     "make_predictor",
+    "make_predictors",
     "min_samples",
     "select_order",
 ]

@@ -6,6 +6,7 @@ these and nothing else), so the paper's exact method stays one config word away 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any, Protocol, runtime_checkable
 
 from .ar import ARPredictor
@@ -73,3 +74,14 @@ def make_predictor(model: str = DEFAULT_MODEL, nominal_ns: int | None = None, **
     if model in AR_MODELS:
         return ARPredictor(model=model, nominal_ns=nominal_ns, **options)
     return KalmanPredictor(nominal_ns=nominal_ns)
+
+
+def make_predictors(model: str, nominals_ns: Sequence[int | None], **options: Any) -> list[Predictor]:
+    """One predictor per direction (each with its own nominal), sharing what the model learns of the
+    motor as a whole: "kalman" learns how the drive and temperature act from both directions' strokes."""
+    out = [make_predictor(model, nominal_ns=n, **options) for n in nominals_ns]
+    first = out[0] if out else None
+    for p in out[1:]:
+        if isinstance(p, KalmanPredictor) and isinstance(first, KalmanPredictor):
+            p.share_conditions_with(first)
+    return out

@@ -26,12 +26,11 @@ from .conditions import Conditions
 from .normalise import NOISE_VAR, ConditionModel
 
 STATE_FORMAT = "usmswitch.predictor.kalman/1"
-#: The (phi, K) grid: dense in K at phi = 1 (a drifting level under any stroke noise), a few gains for
-#: mean-reverting friction.
-GRID = (
-    *((1.0, k) for k in (1.0, 0.75, 0.5, 0.33, 0.22, 0.14)),
-    *((phi, k) for phi in (0.95, 0.9, 0.8) for k in (0.95, 0.6)),
-)
+#: The (phi, K) grid (18 filters; a 12-filter grid costs 1.5 us less a stroke and 0.4 % more error on
+#: the default rig).
+PHIS = (1.0, 0.95, 0.8)
+GAINS = (1.0, 0.75, 0.5, 0.33, 0.22, 0.14)
+GRID = tuple((phi, k) for phi in PHIS for k in GAINS)
 _PHI = tuple(phi for phi, _ in GRID)
 _ONE_MINUS_PHI = tuple(1.0 - phi for phi, _ in GRID)
 _GAIN = tuple(k for _, k in GRID)
@@ -91,6 +90,10 @@ class KalmanPredictor:
     def nominal_ns(self) -> int | None:
         """The prediction before the first stroke."""
         return self._nominal
+
+    def share_conditions_with(self, other: KalmanPredictor) -> None:
+        """Learn how the conditions act together with `other`, the other direction's predictor."""
+        self._cm.share_from(other._cm)
 
     def update(self, t_ns: int, conditions: Conditions | None = None) -> None:
         """Learn the stroke just finished (ns) under its conditions. O(grid)."""

@@ -53,6 +53,13 @@ class ConditionModel:
         """d ln t per kHz, per 100 V, per C, as learned."""
         return tuple(self._s)
 
+    def share_from(self, other: ConditionModel) -> None:
+        """Learn the sensitivities together with `other` (the other direction of the same motor: the
+        drive acts on both alike), so a step one direction has seen is known to the other at once.
+        Each keeps its own last conditions and stroke; the sharing is not part of `state()`."""
+        self._s = other._s
+        self._p = other._p
+
     def _delta(self, conditions: Conditions | None) -> tuple[list[float], list[float | None]] | None:
         """(c - c_last per key, c) for these conditions; None when nothing known changed."""
         if not conditions:
@@ -82,9 +89,10 @@ class ConditionModel:
         return s[0] * dc[0] + s[1] * dc[1] + s[2] * dc[2]
 
     def learn(self, y: float, conditions: Conditions | None, noise_var: float = NOISE_VAR) -> float:
-        """Take a stroke's log time and conditions: the shift they made (with s as it was), then s is
-        updated from ln t - ln t_prev when a condition changed since the last stroke. `noise_var` is the
-        variance of a log-time difference that the conditions do not explain."""
+        """Take a stroke's log time and conditions: s is updated from ln t - ln t_prev when a condition
+        stepped since the last stroke, and the shift the change made by s so updated is returned (the
+        stroke itself is the best evidence of how its step acted). `noise_var` is the variance of a
+        log-time difference that the conditions do not explain."""
         d = self._delta(conditions)
         prev_y = self._prev_y
         self._prev_y = y
@@ -92,13 +100,12 @@ class ConditionModel:
             return 0.0
         dc, c = d
         self._c = c
-        s = self._s
-        moved = s[0] * dc[0] + s[1] * dc[1] + s[2] * dc[2]
         if prev_y is not None and (
             abs(dc[0]) >= MIN_STEP[0] or abs(dc[1]) >= MIN_STEP[1] or abs(dc[2]) >= MIN_STEP[2]
         ):
             self._rls(y - prev_y, dc, noise_var)
-        return moved
+        s = self._s
+        return s[0] * dc[0] + s[1] * dc[1] + s[2] * dc[2]
 
     def _rls(self, dy: float, x: list[float], noise_var: float) -> None:
         n = len(x)

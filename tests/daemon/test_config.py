@@ -18,9 +18,8 @@ from usmswitch.daemon.config import (
     load_config,
 )
 from usmswitch.daemon.config_values import parse_listen, parse_modbus_url
-from usmswitch.daemon.service import direction_predictor
+from usmswitch.daemon.service import direction_predictors
 from usmswitch.daemon.sockdir import client_socket_paths, default_socket_path
-from usmswitch.drivers import Direction
 from usmswitch.predictor import DEFAULT_MODEL
 
 ENV = {"HOME": "/home/lab", "XDG_RUNTIME_DIR": "/run/user/1000"}
@@ -395,6 +394,6 @@ def test_modbus_register_map_is_checked_at_load() -> None:
 def test_each_direction_gets_its_own_nominal(tmp_path: Path):
     cfg = load_config(write(tmp_path, '[control]\nnominal = "9ms"\nnominal_off = "8.5ms"'), env=ENV)
     assert (cfg.control.nominal_for(0), cfg.control.nominal_for(1)) == (9_000_000, 8_500_000)
-    on, off = (direction_predictor(cfg, d) for d in (Direction.ON, Direction.OFF))
+    on, off = direction_predictors(cfg)
     assert (on.predict(), off.predict()) == (9_000_000.0, 8_500_000.0)
     assert cfg.control.model == DEFAULT_MODEL

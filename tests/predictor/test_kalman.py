@@ -8,7 +8,7 @@ import random
 import msgpack
 import pytest
 
-from usmswitch.predictor import SOUND_FIT, ARPredictor
+from usmswitch.predictor import SOUND_FIT, ARPredictor, make_predictor, make_predictors
 from usmswitch.predictor.kalman import GRID, KalmanPredictor
 
 
@@ -110,3 +110,31 @@ def test_state_round_trips_through_msgpack_cold_and_warm_and_a_bad_one_is_named(
         KalmanPredictor.from_state({**state, "format": "x"})
     with pytest.raises(ValueError, match="got 0"):
         KalmanPredictor(nominal_ns=8_000_000).update(0)
+
+
+def test_the_two_directions_learn_the_drive_together() -> None:
+    # The drive steps 40 -> 40.5 kHz once; "on" meets it first. Told by make_predictors, "off" then
+    # predicts its own first stroke after the step; on its own it cannot (the step is ~5 %, ~420 us).
+    rate = 0.1  # ln t per kHz
+
+    def first_off_error_after_step(shared: bool, seed: int) -> float:
+        scale_on, scale_off = series(600, seed=seed), series(600, seed=seed + 100)
+        on, off = make_predictors("kalman", [8_000_000, 8_300_000])
+        if not shared:
+            off = make_predictor("kalman", nominal_ns=8_300_000)
+        err = 0.0
+        for i in range(600):
+            f = 40_000.0 if i < 400 else 40_500.0
+            c = {"frequency_hz": f}
+            step = math.exp(rate * (f - 40_000.0) / 1000)
+            on.update(round(8e6 * scale_on[i] * step), c)
+            t_off = round(8.3e6 * scale_off[i] * step)
+            if i == 400:
+                err = abs(t_off - off.predict(c))
+            off.update(t_off, c)
+        return err
+
+    shared = [first_off_error_after_step(True, seed) for seed in range(6)]
+    alone = [first_off_error_after_step(False, seed) for seed in range(6)]
+    assert sum(shared) / 6 < 150_000  # about a stroke's scatter (~90 us)
+    assert sum(alone) / 6 > 300_000  # about the whole step
