@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
+import time
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
@@ -47,6 +48,10 @@ HEAD_TIMEOUT_S = 5.0
 IDLE_TIMEOUT_S = 120.0
 MAX_SCRAPERS = 16
 MAX_UNREAD_BYTES = 1 << 20
+#: Answers go out at most this often, all connections together (50 a second: Prometheus scrapes
+#: a target every few seconds). Scrapers hammering the page then wait for their turn instead of
+#: keeping the server process, and the machine's second core, busy.
+ANSWER_INTERVAL_NS = 20_000_000
 
 Source = Callable[[], tuple[Mapping[str, bytes], Mapping[str, int]]]
 
@@ -191,6 +196,14 @@ class MetricsPage:
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(PageCollector(source))  # type: ignore[arg-type]
         self._cache: dict[str, tuple[tuple[Any, ...], bytes]] = {}
+        self._next_answer_ns = 0
+
+    def wait_for_turn_s(self) -> float:
+        """Seconds until the next answer may go out, that slot taken (ANSWER_INTERVAL_NS apart)."""
+        now = time.monotonic_ns()
+        at = max(now, self._next_answer_ns)
+        self._next_answer_ns = at + ANSWER_INTERVAL_NS
+        return (at - now) / 1e9
 
     def render(self, accept: str) -> tuple[bytes, str]:
         """(body, content type) for a scrape with this Accept header."""
@@ -216,6 +229,7 @@ class _Scrape(asyncio.Protocol):
         self.transport: asyncio.Transport | None = None
         self.timer: asyncio.TimerHandle | None = None
         self.counted = False
+        self.waiting = False  # a request waits for its turn to be answered
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
@@ -247,7 +261,11 @@ class _Scrape(asyncio.Protocol):
 
     def data_received(self, data: bytes) -> None:
         self.buf += data
-        while self.transport is not None and not self.transport.is_closing():
+        self._pump()
+
+    def _pump(self) -> None:
+        """Answer the requests buffered, one at a time, each in its turn (ANSWER_INTERVAL_NS)."""
+        while self.transport is not None and not self.transport.is_closing() and not self.waiting:
             end = self.buf.find(b"\r\n\r\n")
             if end < 0:
                 if len(self.buf) > MAX_HEAD_BYTES:
@@ -256,9 +274,25 @@ class _Scrape(asyncio.Protocol):
                     self._arm(HEAD_TIMEOUT_S)
                 return
             head, self.buf = self.buf[:end].decode("latin-1"), self.buf[end + 4 :]
+            if self.timer is not None:
+                self.timer.cancel()  # a whole head: no 408 while it waits its turn
+            delay = self.page.wait_for_turn_s()
+            if delay > 0:
+                self.waiting = True
+                self.transport.pause_reading()  # pipelined requests wait in the kernel, not here
+                asyncio.get_running_loop().call_later(delay, self._in_turn, head)
+                return
             self._answer(head)
             if self.transport.get_write_buffer_size() > MAX_UNREAD_BYTES:
                 self.transport.abort()  # pipelining and not reading the answers
+
+    def _in_turn(self, head: str) -> None:
+        self.waiting = False
+        if self.transport is None or self.transport.is_closing():
+            return
+        self.transport.resume_reading()
+        self._answer(head)
+        self._pump()
 
     def _answer(self, head: str) -> None:
         lines = head.split("\r\n")
