@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from usmswitch.drivers import Direction
-from usmswitch.predictor import AR_MODELS, DEFAULT_MODEL, MODELS, make_predictor
+from usmswitch.predictor import AR_MODELS, DEFAULT_MODEL, MODELS, make_predictors
 
 from .context import MS, Context
 from .data import Strokes
@@ -34,19 +34,19 @@ def one_step(s: Strokes, model: str, order: int | str | None, nominal_ns: int) -
     `order` is for the AR models only (None for the others)."""
     err = np.full(len(s), np.nan)
     options = {} if order is None else {"order": order, "window": 100}
-    for d in (0, 1):
-        p = make_predictor(model, nominal_ns=nominal_ns, **options)
-        for i in np.flatnonzero(s.direction == d):
-            t = s.operating_ns[i]
-            if np.isnan(t):
-                continue
-            cond = {
-                k: float(v)
-                for k, v in (("temperature_c", s.temperature_c[i]), ("frequency_hz", s.frequency_hz[i]))
-                if not np.isnan(v)
-            }
-            err[i] = t - p.predict(cond)
-            p.update(int(t), cond)
+    ps = make_predictors(model, [nominal_ns, nominal_ns], **options)  # as the daemon makes them
+    for i in range(len(s)):
+        t = s.operating_ns[i]
+        if np.isnan(t):
+            continue
+        cond = {
+            k: float(v)
+            for k, v in (("temperature_c", s.temperature_c[i]), ("frequency_hz", s.frequency_hz[i]))
+            if not np.isnan(v)
+        }
+        p = ps[int(s.direction[i])]
+        err[i] = t - p.predict(cond)
+        p.update(int(t), cond)
     return err
 
 
