@@ -110,8 +110,8 @@ def _cost(model: str, runs: list[ScenarioRun]) -> np.ndarray:
 
 
 def _reselect_cost(runs: list[ScenarioRun]) -> tuple[float, float]:
-    """(median, max) us of the strokes that re-select the order (AIC up to 3, every 100 strokes) of the
-    paper's AR with `order="auto"`: each such stroke timed on 5 copies of the predictor, the least kept,
+    """(median, max) us of the strokes that re-select the order (AIC up to 3, every 100 strokes) or take
+    the order selected of the paper's AR with `order="auto"`: each timed on 5 copies, the least kept,
     gc off (a collection or a preemption on this shared machine is not the predictor's cost)."""
     took = []
     clock = time.perf_counter_ns
@@ -121,8 +121,9 @@ def _reselect_cost(runs: list[ScenarioRun]) -> tuple[float, float]:
             if s.direction:
                 continue
             copies = [ARPredictor.from_state(p.state()) for _ in range(5)]
+            switching = p._pending is not None  # this stroke takes the order chosen at the last one
             p.update(s.operating_ns)
-            if p._since_select != 0:  # this stroke did not re-select
+            if p._since_select != 0 and not switching:  # neither selects nor switches
                 continue
             best = math.inf
             gc.disable()

@@ -72,6 +72,7 @@ class ARPredictor:
         "_model",
         "_nominal",
         "_num",
+        "_pending",
         "_plan",
         "_pos",
         "_reselect_every",
@@ -119,6 +120,7 @@ class ARPredictor:
         self._count = 0
         self._seen = 0
         self._since_select: int | None = None
+        self._pending: int | None = None  # an order AIC chose, taken at the next stroke
         self._table: AicTable | None = None
         self._table_seen = -1
         self._set_order(m)
@@ -171,34 +173,43 @@ class ARPredictor:
         self._as = [sum(c) for c in cols]
 
     def _aic_slide(self, t: int, buf: list[int], pos: int, count: int, w: int) -> None:
-        """Before `t` is written at `pos`: drop the common row that leaves a full window, add t's row."""
+        """Before `t` is written at `pos`: drop the common row that leaves a full window, add t's row.
+        Only the upper triangle of the symmetric sums is kept here (`_aic_gram` mirrors it)."""
         big_m = self._max_order
+        if count < big_m:
+            return
         ag = self._ag
         sums = self._as
-        rng = range(big_m + 1)
+        new = [t, *[buf[(pos - j) % w] for j in range(1, big_m + 1)]]
         if count == w:  # the leaving row: (o_M, ..., o_0) of the old window, o_k = buf[(pos + k) % w]
-            old = [buf[(pos + big_m - j) % w] for j in rng]
-            for i in rng:
+            old = [buf[(pos + big_m - j) % w] for j in range(big_m + 1)]
+            for i in range(big_m + 1):
+                ni = new[i]
                 oi = old[i]
                 row = ag[i]
-                for j in rng:
-                    row[j] -= oi * old[j]
-                sums[i] -= oi
-        if count >= big_m:
-            new = [t, *[buf[(pos - j) % w] for j in range(1, big_m + 1)]]
-            for i in rng:
+                for j in range(i, big_m + 1):
+                    row[j] += ni * new[j] - oi * old[j]
+                sums[i] += ni - oi
+        else:
+            for i in range(big_m + 1):
                 ni = new[i]
                 row = ag[i]
-                for j in rng:
+                for j in range(i, big_m + 1):
                     row[j] += ni * new[j]
                 sums[i] += ni
+
+    def _aic_gram(self) -> list[list[int]]:
+        """A full copy of AIC's sums (the upper triangle mirrored)."""
+        ag = self._ag
+        n = len(ag)
+        return [[ag[i][j] if i <= j else ag[j][i] for j in range(n)] for i in range(n)]
 
     def _set_order_from_aic(self, m: int) -> None:
         """Switch to order m from AIC's sums: rows m..n-1 are AIC's rows M..n-1 plus rows m..M-1."""
         plan = _PLANS[m]
         big_m = self._max_order
         x = self.samples()
-        ag = self._ag
+        ag = self._aic_gram()
         g = [0] * plan.size
         for idx, j, k in plan.pairs:
             g[idx] = ag[j][k] + sum(x[i - j] * x[i - k] for i in range(m, big_m))
@@ -512,7 +523,7 @@ class ARPredictor:
         if self._table is None or self._table_seen != self._seen:
             need = min_samples(self._max_order, self._model)
             if self._auto and self._count >= need:
-                gram = [row[:] for row in self._ag]
+                gram = self._aic_gram()
                 n_rows = self._count - self._max_order
                 self._table = table_from_gram(gram, self._as, n_rows, self._model)
             else:
@@ -526,7 +537,11 @@ class ARPredictor:
         return self.aic_table().values[order - 1]
 
     def _tick(self) -> None:
-        """Online order selection: first when the window allows it, then every `reselect_every`."""
+        """Online order selection: first when the window allows it, then every `reselect_every`. The
+        order chosen is taken at the next stroke, so no stroke pays for both the table and the switch."""
+        if self._pending is not None:
+            self._set_order_from_aic(self._pending)
+            self._pending = None
         if self._since_select is not None:
             self._since_select += 1
         if self._since_select is None:
@@ -537,7 +552,7 @@ class ARPredictor:
         self._since_select = 0
         best = self.aic_table().best
         if best != self._m:
-            self._set_order_from_aic(best)
+            self._pending = best
 
     # ---- persistence ---------------------------------------------------------------------------
 
@@ -567,6 +582,7 @@ class ARPredictor:
             "samples": self.samples(),
             "seen": self._seen,
             "since_select": self._since_select,
+            "pending_order": self._pending,
         }
 
     @classmethod
@@ -608,6 +624,12 @@ class ARPredictor:
         p._pos = p._count % p._window
         p._seen = seen
         p._since_select = since
+        pending = d.get("pending_order")  # absent from states written before it existed
+        if pending is not None:
+            pending = check_int("pending_order", pending, 1, p._max_order)
+            if not p._auto:
+                raise ValueError(f"pending_order {pending!r} needs order='auto'")
+        p._pending = pending
         p._set_order(current)
         p._build_aic_sums()
         return p

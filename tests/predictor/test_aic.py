@@ -123,9 +123,10 @@ def test_auto_order_reselects_online_without_losing_the_window() -> None:
     need = min_samples(4, "paper")
     p.extend(t[: need - 1])
     assert p.order == 1  # not enough strokes for AIC yet
-    p.update(t[need - 1])
-    assert p.order == aic_table(t[:need], 4, "paper").best  # the first selection, as soon as possible
-    for v in t[need:]:
+    p.update(t[need - 1])  # the first selection, as soon as possible ...
+    p.update(t[need])
+    assert p.order == aic_table(t[:need], 4, "paper").best  # ... taken at the next stroke
+    for v in t[need + 1 :]:
         p.update(v)
     assert p.count == 200
     assert p.order == 2
