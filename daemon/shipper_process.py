@@ -34,7 +34,7 @@ from .pg_schema import redact_url
 log = structlog.get_logger("usmswitch.shipper")
 
 STATUS_EVERY_S = 0.2
-RESTART_PAUSE_S = 5.0
+RESTART_PAUSE_S = 2.0
 NICE = 10
 
 
@@ -158,7 +158,12 @@ def main() -> int:
     import signal
 
     from .logsetup import configure_logging
+    from .realtime import drop_realtime
     from .shipper import PostgresShipper
+
+    # Started again by the daemon's watcher thread, which runs SCHED_FIFO when the loop does: the
+    # child (and every thread it starts) belongs at SCHED_OTHER, below everything of the rig's.
+    drop_realtime()
 
     # The daemon owns shutdown: a Ctrl-C to the terminal's group or systemd's SIGTERM to the
     # cgroup must not cut the drain short; the child ends on `stop` or when its stdin closes.

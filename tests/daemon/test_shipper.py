@@ -4,6 +4,8 @@ nothing lost or doubled across a server outage, clear errors for a wrong URL or 
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 import sys
 import time
@@ -241,3 +243,38 @@ def test_shipping_without_psycopg_refuses_to_start_saying_what_to_install(tmp_pa
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 3, proc.stderr[-2000:]
     assert "records.postgres_url needs psycopg 3: pip install 'usmswitch[postgres]'" in proc.stderr
+
+
+def test_a_shipper_process_that_dies_is_started_again_and_catches_up(pg, tmp_path: Path):
+    server, db, url = pg
+    sock = tmp_path / "d.sock"
+    args = daemonproc.daemon_args(tmp_path, "--rig", "rigA", "--period", "20ms", "--postgres", url)
+    proc = daemonproc.spawn(args)
+    try:
+        daemonproc.wait_serving(sock, proc)
+        wait_for(lambda: _status(sock)["records"]["postgres"]["shipped_cycle"] >= 10, what="shipping")
+        children = subprocess.run(
+            ["pgrep", "-P", str(proc.pid), "-f", "usmswitch.daemon.shipper_process"],
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.split()
+        assert len(children) == 1, children
+        os.kill(int(children[0]), signal.SIGKILL)
+        wait_for(
+            lambda: "exited" in (_status(sock)["records"]["postgres"]["error"] or ""), what="the death seen"
+        )
+        killed_at = _status(sock)["cycle"]
+        wait_for(
+            lambda: (
+                (p := _status(sock)["records"]["postgres"])["error"] is None
+                and p["shipped_cycle"] > killed_at
+            ),
+            timeout_s=30,
+            what="a new shipper shipping",
+        )
+        assert _status(sock)["state"] == "cycling"
+    finally:
+        err = daemonproc.stop(proc)
+    assert proc.returncode == 0, err.decode()[-2000:]
+    assert pg_records(server, db, "rigA") == sqlite_records(tmp_path / "state" / "records.sqlite")
