@@ -16,7 +16,7 @@ from __future__ import annotations
 from typing import Any
 
 from .aic import AicTable, fit_table, min_samples, table_from_gram
-from .checks import MAX_ORDER, MAX_T_NS, check_int, check_model, check_stroke_ns
+from .checks import MAX_ORDER, MAX_T_NS, check_int, check_model, check_stroke_ns, check_strokes
 from .conditions import Conditions
 from .exact import ExactSolution, NormalPlan, gram_from_columns
 
@@ -564,8 +564,7 @@ class ARPredictor:
 
     def extend(self, samples: Any) -> None:
         """Feed stored strokes in order (warm start); all are validated before any is taken."""
-        values = [check_stroke_ns(v) for v in samples]
-        for v in values:
+        for v in check_strokes(samples):
             self.update(v)
 
     def state(self) -> dict[str, Any]:

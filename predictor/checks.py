@@ -23,6 +23,11 @@ def check_stroke_ns(value: Any) -> int:
     raise ValueError(f"stroke time must be a positive integer of nanoseconds <= 2**53, got {value!r}")
 
 
+def check_strokes(samples: Any) -> list[int]:
+    """Validate a sequence of stroke times, all of them before any is used (warm start)."""
+    return [check_stroke_ns(v) for v in samples]
+
+
 def check_int(name: str, value: Any, lo: int, hi: int | None = None) -> int:
     """Validate an integer setting in lo..hi (bool is not an integer here)."""
     if not isinstance(value, int) or isinstance(value, bool) or value < lo or (hi is not None and value > hi):

@@ -21,7 +21,7 @@ import math
 from typing import Any
 
 from .ar import SOUND_FIT, ARPredictor
-from .checks import MAX_T_NS, check_int, check_stroke_ns
+from .checks import MAX_T_NS, check_int, check_stroke_ns, check_strokes
 from .conditions import Conditions
 from .normalise import NOISE_VAR, ConditionModel
 
@@ -149,8 +149,7 @@ class KalmanPredictor:
 
     def extend(self, samples: Any) -> None:
         """Feed stored strokes in order (warm start); all are validated before any is taken."""
-        values = [check_stroke_ns(v) for v in samples]
-        for v in values:
+        for v in check_strokes(samples):
             self.update(v)
 
     # ---- persistence ---------------------------------------------------------------------------
