@@ -3,12 +3,14 @@ nothing lost or doubled across a server outage, clear errors for a wrong URL or 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -183,14 +185,31 @@ def _status(sock: Path) -> dict[str, Any]:
         return c.status()
 
 
-def test_server_stopped_mid_run_and_restarted_loses_and_doubles_nothing(pg, tmp_path: Path):
-    server, db, url = pg
+@contextlib.contextmanager
+def shipping_daemon(
+    tmp_path: Path, url: str, shipped: int = 0
+) -> Iterator[tuple[Path, subprocess.Popen[bytes], list[str]]]:
+    """usmswitchd cycling every 20 ms as rigA, shipping to `url` (up to cycle `shipped` before
+    the body runs); stopped after it, exit 0, its log in the list."""
     sock = tmp_path / "d.sock"
     args = daemonproc.daemon_args(tmp_path, "--rig", "rigA", "--period", "20ms", "--postgres", url)
     proc = daemonproc.spawn(args)
+    log: list[str] = []
     try:
         daemonproc.wait_serving(sock, proc)
-        wait_for(lambda: _status(sock)["records"]["postgres"]["shipped_cycle"] >= 20, what="shipping")
+        if shipped:
+            wait_for(
+                lambda: _status(sock)["records"]["postgres"]["shipped_cycle"] >= shipped, what="shipping"
+            )
+        yield sock, proc, log
+    finally:
+        log.append(daemonproc.stop(proc).decode())
+    assert proc.returncode == 0, log[0][-2000:]
+
+
+def test_server_stopped_mid_run_and_restarted_loses_and_doubles_nothing(pg, tmp_path: Path):
+    server, db, url = pg
+    with shipping_daemon(tmp_path, url, shipped=20) as (sock, _, log):
         server.stop()  # the database goes away mid-run
         down_at = _status(sock)["cycle"]
         wait_for(lambda: _status(sock)["records"]["postgres"]["error"] is not None, what="the outage seen")
@@ -201,36 +220,25 @@ def test_server_stopped_mid_run_and_restarted_loses_and_doubles_nothing(pg, tmp_
         server.start()
         wait_for(lambda: _status(sock)["records"]["postgres"]["lag"] == 0, what="the catch-up")
         assert _status(sock)["records"]["postgres"]["error"] is None
-    finally:
-        err = daemonproc.stop(proc)
-    assert proc.returncode == 0, err.decode()[-2000:]
     local = sqlite_records(tmp_path / "state" / "records.sqlite")
     assert len(local) > 60
     assert pg_records(server, db, "rigA") == local  # all of them, once each, equal field for field
-    lines = [json.loads(x) for x in err.decode().splitlines() if x.startswith("{")]
+    lines = [json.loads(x) for x in log[0].splitlines() if x.startswith("{")]
     failing = [x for x in lines if x.get("event", "").startswith("postgres shipping failing")]
     assert 1 <= len(failing) <= 3, failing  # said once per distinct error, not once per retry
 
 
 def test_a_refused_password_leaves_the_daemon_controlling(pg, tmp_path: Path):
     server, db, _ = pg
-    sock = tmp_path / "d.sock"
-    url = server.url(db, password="not-it")
-    args = daemonproc.daemon_args(tmp_path, "--rig", "rigA", "--period", "20ms", "--postgres", url)
-    proc = daemonproc.spawn(args)
-    try:
-        daemonproc.wait_serving(sock, proc)
+    with shipping_daemon(tmp_path, server.url(db, password="not-it")) as (sock, _, log):
         wait_for(lambda: _status(sock)["records"]["postgres"]["error"] is not None, what="the error")
         first = _status(sock)
         time.sleep(0.5)
         later = _status(sock)
-    finally:
-        err = daemonproc.stop(proc).decode()
-    assert proc.returncode == 0, err[-2000:]
     pgst = later["records"]["postgres"]
     assert "password authentication failed" in pgst["error"] and "not-it" not in pgst["error"]
     assert later["state"] == "cycling" and later["cycle"] > first["cycle"] + 10
-    assert "not-it" not in err  # nor in the log (the start event's config is redacted too)
+    assert "not-it" not in log[0]  # nor in the log (the start event's config is redacted too)
     assert server.query(db, "SELECT to_regclass('usmswitch_cycles')") == [(None,)]
 
 
@@ -247,12 +255,7 @@ def test_shipping_without_psycopg_refuses_to_start_saying_what_to_install(tmp_pa
 
 def test_a_shipper_process_that_dies_is_started_again_and_catches_up(pg, tmp_path: Path):
     server, db, url = pg
-    sock = tmp_path / "d.sock"
-    args = daemonproc.daemon_args(tmp_path, "--rig", "rigA", "--period", "20ms", "--postgres", url)
-    proc = daemonproc.spawn(args)
-    try:
-        daemonproc.wait_serving(sock, proc)
-        wait_for(lambda: _status(sock)["records"]["postgres"]["shipped_cycle"] >= 10, what="shipping")
+    with shipping_daemon(tmp_path, url, shipped=10) as (sock, proc, _):
         children = subprocess.run(
             ["pgrep", "-P", str(proc.pid), "-f", "usmswitch.daemon.shipper_process"],
             capture_output=True,
@@ -274,7 +277,4 @@ def test_a_shipper_process_that_dies_is_started_again_and_catches_up(pg, tmp_pat
             what="a new shipper shipping",
         )
         assert _status(sock)["state"] == "cycling"
-    finally:
-        err = daemonproc.stop(proc)
-    assert proc.returncode == 0, err.decode()[-2000:]
     assert pg_records(server, db, "rigA") == sqlite_records(tmp_path / "state" / "records.sqlite")
