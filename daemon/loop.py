@@ -109,6 +109,7 @@ class ControlLoop:
         self._conditions_source = conditions or daq.conditions
         self._set_conditions(self._conditions_source())
         self._plan_drive = drive_of(self._conditions)  # the drive setting the armed plan was made for
+        self._last_command: list[int | None] = [None, None]  # per direction: the predictors' idle_ns
         self._next_dir = Direction(next_direction)
         self._plan: Plan | None = None
         self._requests: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]] = queue.SimpleQueue()
@@ -479,11 +480,26 @@ class ControlLoop:
         self._plan = None
         self._end_run(f"fault: {reason}")
 
+    def _expected_command_ns(self) -> int:
+        """When the stroke being planned will be commanded: the next tick when cycling, else now."""
+        if self.state is State.CYCLING and self._in_stroke:
+            return self._next_tick_ns + self._period_ns  # armed ahead, during the stroke before it
+        if self.state is State.CYCLING:
+            return self._next_tick_ns
+        return self.clock.now_ns()
+
+    def _told(self, direction: Direction, t_ns: int) -> dict[str, Any] | None:
+        """The conditions for a stroke of `direction` commanded at `t_ns`: idle_ns since its last command."""
+        last = self._last_command[direction]
+        if last is None or t_ns < last:
+            return self._pcond
+        return {**(self._pcond or {}), "idle_ns": t_ns - last}
+
     def _plan_for(self, direction: Direction) -> Plan:
         """Eq. 6-7: t_hat from this direction's predictor, T_d = T - t_hat clamped at 0 (late)."""
         p = self.predictors[direction]
         target = self.targets[direction]
-        t_hat = round(p.predict(self._pcond))
+        t_hat = round(p.predict(self._told(direction, self._expected_command_ns())))
         self._plan_drive = drive_of(self._conditions)
         if self.mode is Mode.CLOSED:
             delay = target - t_hat
@@ -620,6 +636,8 @@ class ControlLoop:
                 break  # the halt's own stop: nothing will arrive
         if t_arrive is not None and t_start is not None:
             operating = t_arrive - t_start
+            told = self._told(direction, cmd.t_cmd_ns)  # idle since this direction's previous command
+            self._last_command[direction] = cmd.t_cmd_ns
             # Arm ahead: the next stroke goes the other way, so its predictor is already up to date
             # and this stroke's update (an AIC re-selection may take a millisecond) comes after it.
             self._next_dir = direction.opposite
@@ -628,7 +646,7 @@ class ControlLoop:
                 flags |= Flag.PARTIAL  # a part of a stroke would teach the predictor nonsense
             else:
                 try:
-                    self.predictors[direction].update(operating, self._pcond)
+                    self.predictors[direction].update(operating, told)
                 except ValueError as exc:  # a stamp the model cannot take: keep it out, say so
                     flags |= Flag.FAULT
                     self._latch_fault(f"stroke not fed to the predictor: {exc}")

@@ -39,7 +39,12 @@ def test_predictors_are_told_temperature_frequency_and_voltage() -> None:
     loop.run_cycles(40 * MS, 20)
     told = preds[0].updated
     assert len(told) == 10
-    assert all(set(c) == {"temperature_c", "frequency_hz", "voltage_v"} for c in told)
+    assert set(told[0]) == {"temperature_c", "frequency_hz", "voltage_v"}  # the first: no idle yet
+    assert all(set(c) == {"temperature_c", "frequency_hz", "voltage_v", "idle_ns"} for c in told[1:])
+    assert all(c["idle_ns"] == 80 * MS for c in told[1:])  # command to command, two periods
+    # Planned ahead for the next command: its idle_ns is known before the stroke, as the update's.
+    assert all(c is None or c.get("idle_ns") in (None, 80 * MS) for c in preds[0].predicted)
+    assert sum(1 for c in preds[0].predicted if c and c.get("idle_ns") == 80 * MS) >= 9
     assert told[-1]["frequency_hz"] == 40_000.0 and told[-1]["voltage_v"] == 500.0
     assert told[-1]["temperature_c"] > told[0]["temperature_c"]  # the motor warms as it works
 
