@@ -92,6 +92,7 @@ class PostgresRecords(RecordsSource):
         return rigs[0]
 
     def close(self) -> None:
+        """Close the connection."""
         self._db.close()
 
     def __len__(self) -> int:
@@ -105,6 +106,7 @@ class PostgresRecords(RecordsSource):
         return int(self._query(sql, (self.rig,))[0]["c"])
 
     def runs(self) -> list[dict[str, Any]]:
+        """The rig's runs, oldest first."""
         sql = f"SELECT {RUN_COLUMNS} FROM {RUNS_TABLE} WHERE rig = %s ORDER BY run_id"
         rows = self._query(sql, (self.rig,))
         return [RunRecord.from_row(r).to_dict() for r in rows]

@@ -144,6 +144,7 @@ class RecordsFile(RecordsSource):
         self._has_runs = "run_id" in have
 
     def close(self) -> None:
+        """Close the file."""
         self._db.close()
 
     def __len__(self) -> int:

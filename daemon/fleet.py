@@ -95,6 +95,7 @@ class Fleet:
 
     # -- the record writer's thread -----------------------------------------------------------------
     def on_commit(self, records: list[CycleRecord]) -> None:
+        """Strokes committed: counted for the page, and the shipper woken."""
         if self.metrics is not None:
             self.metrics.add(records)
             self.push_strokes()
@@ -102,6 +103,7 @@ class Fleet:
             self.shipper.wake(records)
 
     def on_run(self, run: RunRecord) -> None:
+        """A run's row committed: the run's figures start afresh at its open; the shipper woken."""
         if self.metrics is not None:
             self.metrics.on_run(run)
             self.push_strokes()
@@ -128,6 +130,7 @@ class Fleet:
         self.push_state()
 
     def push_state(self) -> None:
+        """State, fault, targets, record writer and shipper figures to the server process."""
         if self.rpc is None:
             return
         loop, store = self.loop, self.store

@@ -77,12 +77,14 @@ class Histogram:
         self.sum_ns = 0
 
     def observe(self, value_ns: int) -> None:
+        """Count one value in its bucket, the count and the sum."""
         # Prometheus buckets are "less than or equal": a value on a bound counts in that bound's.
         self.buckets[bisect_left(self.bounds, value_ns)] += 1
         self.count += 1
         self.sum_ns += value_ns
 
     def snapshot(self) -> dict[str, Any]:
+        """Plain values: the per-bucket counts (not cumulative), the count, the sum in ns."""
         return {"buckets": list(self.buckets), "count": self.count, "sum_ns": self.sum_ns}
 
 

@@ -67,6 +67,7 @@ class PageCollector:
         self.source = source
 
     def collect(self) -> Iterator[Metric]:
+        """Every family on the page, from the snapshots as they are now."""
         snaps, clients = self.source()
         strokes = _unpack(snaps.get(STROKES_FEED))
         state = _unpack(snaps.get(STATE_FEED))

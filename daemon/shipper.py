@@ -79,6 +79,7 @@ class LocalRecords:
             raise ShipperError(f"records file {path}: schema {version}, the shipper reads {SCHEMA_VERSION}")
 
     def last_cycle(self) -> int:
+        """The highest cycle committed (0 when none)."""
         return self.db.execute("SELECT coalesce(max(cycle), 0) FROM cycles").fetchone()[0]
 
     def stamps(self, cycle: int) -> tuple[int, int] | None:
@@ -106,6 +107,7 @@ class LocalRecords:
         return self.db.execute(sql, (run_id, n)).fetchall()
 
     def close(self) -> None:
+        """Close the read-only connection."""
         self.db.close()
 
 
