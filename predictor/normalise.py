@@ -20,7 +20,7 @@ from typing import Any
 
 from .conditions import Conditions
 
-#: The conditions normalised, and the unit each is taken in.
+#: The conditions normalised, and the unit each is taken in (kHz, 100 V, C; `_delta` inlines these).
 KEYS = ("frequency_hz", "voltage_v", "temperature_c")
 SCALES = (1e-3, 1e-2, 1.0)
 #: Prior variance of each sensitivity (ln per unit) and the cap on its posterior variance: wide for the
@@ -67,9 +67,13 @@ class ConditionModel:
         get = conditions.get
         last = self._c
         l0, l1, l2 = last
-        c0 = _scaled(get("frequency_hz"), SCALES[0], l0)
-        c1 = _scaled(get("voltage_v"), SCALES[1], l1)
-        c2 = _scaled(get("temperature_c"), SCALES[2], l2)
+        # Each in its unit; a missing or non-finite one holds its last value (inlined: the hot path).
+        v = get("frequency_hz")
+        c0 = l0 if v is None or not math.isfinite(v) else v * 1e-3
+        v = get("voltage_v")
+        c1 = l1 if v is None or not math.isfinite(v) else v * 1e-2
+        v = get("temperature_c")
+        c2 = l2 if v is None or not math.isfinite(v) else float(v)
         if c0 == l0 and c1 == l1 and c2 == l2:
             return None
         dc = [
@@ -156,13 +160,6 @@ class ConditionModel:
         y = d.get("prev_y")
         m._prev_y = None if y is None else _num("prev_y", y)
         return m
-
-
-def _scaled(v: Any, scale: float, last: float | None) -> float | None:
-    """A condition's value in its unit, or the last one when it is missing or not finite."""
-    if v is None or not math.isfinite(v):
-        return last
-    return v * scale
 
 
 def _num(name: str, v: Any) -> float:
