@@ -30,9 +30,7 @@ STATE_FORMAT = "usmswitch.predictor.kalman/1"
 #: and two mean-reverting filters. Measured on the scenario suite, six filters predict as well as an
 #: 18-filter (3 x 6) grid (fewer candidates, less chance of picking one by luck) for a third of the work.
 GRID = ((1.0, 0.85), (1.0, 0.55), (1.0, 0.33), (1.0, 0.18), (0.95, 0.8), (0.8, 1.0))
-_PHI = tuple(phi for phi, _ in GRID)
-_ONE_MINUS_PHI = tuple(1.0 - phi for phi, _ in GRID)
-_GAIN = tuple(k for _, k in GRID)
+_FILTERS = tuple((phi, 1.0 - phi, k) for phi, k in GRID)  # (phi, 1 - phi, K), as the loop reads them
 #: Forgetting of the filters' squared errors (memory ~ 1 / (1 - FORGET) strokes).
 FORGET = 0.99
 #: Strokes over which mu is averaged.
@@ -113,22 +111,16 @@ class KalmanPredictor:
             # One pass over the grid (a plain loop is the cheapest form in CPython).
             levels: list[float] = []
             scores: list[float] = []
-            best = 0
-            low = math.inf
-            for j, (a, b, k, v, sc) in enumerate(
-                zip(_PHI, _ONE_MINUS_PHI, _GAIN, self._level, self._score, strict=True)
-            ):
+            add_level = levels.append
+            add_score = scores.append
+            for (a, b, k), v, sc in zip(_FILTERS, self._level, self._score, strict=True):
                 pr = a * v + b * mu
                 e = z - pr
-                sc = FORGET * sc + e * e
-                levels.append(pr + k * e)
-                scores.append(sc)
-                if sc < low:
-                    low = sc
-                    best = j
+                add_level(pr + k * e)
+                add_score(FORGET * sc + e * e)
             self._level = levels
             self._score = scores
-            self._best = best
+            self._best = scores.index(min(scores))
             self._mu = mu + (z - mu) / min(self._count + 1, MU_STROKES)
         self._count += 1
         self._seen += 1
