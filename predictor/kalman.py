@@ -7,9 +7,9 @@ two numbers: phi and the gain K (which the ratio of F's innovation to w's varian
 known on a real rig and both differ between rigs, so a fixed grid of (phi, K) filters runs side by
 side and the one with the least exponentially forgotten one-step squared error (about the last 100
 strokes) predicts: prediction-error estimation of the two parameters, O(grid) per stroke, fixed memory.
-mu is the mean of z over about the last 200 strokes. phi = 1 with K = 1 repeats the last stroke, what
-the paper's AR(1) does on a rig like the paper's; smaller K averages out stroke noise; phi < 1 pulls a
-mean-reverting friction back toward its mean.
+mu is the mean of z over about the last 200 strokes. phi = 1 with a high K nearly repeats the last
+stroke, what the paper's AR(1) does on a rig like the paper's; a smaller K averages out stroke noise;
+phi < 1 pulls a mean-reverting friction back toward its mean.
 
 Cold start: the nominal, then the last stroke, then the paper's AR(1) (`ARPredictor`) until
 `SOUND_FIT` strokes; the filters learn meanwhile.
