@@ -105,23 +105,24 @@ class KalmanPredictor:
             self._level = [z] * len(GRID)
         else:
             mu = self._mu
-            if moved:  # the known conditions moved ln t: every level and the mean with it
-                mu += moved
-                self._level = [v + moved for v in self._level]
-            # One pass over the grid (a plain loop is the cheapest form in CPython).
+            # One pass over the grid (a plain loop is the cheapest form in CPython). The known
+            # conditions moved ln t by `moved`: every level and the mean with it, and since
+            # phi + (1 - phi) = 1 the prediction moves by exactly that.
             levels: list[float] = []
             scores: list[float] = []
             add_level = levels.append
             add_score = scores.append
             for (a, b, k), v, sc in zip(_FILTERS, self._level, self._score, strict=True):
-                pr = a * v + b * mu
+                pr = a * v + b * mu + moved
                 e = z - pr
                 add_level(pr + k * e)
                 add_score(FORGET * sc + e * e)
             self._level = levels
             self._score = scores
             self._best = scores.index(min(scores))
-            self._mu = mu + (z - mu) / min(self._count + 1, MU_STROKES)
+            mu += moved
+            n = self._count + 1
+            self._mu = mu + (z - mu) / (n if n < MU_STROKES else MU_STROKES)
         self._count += 1
         self._seen += 1
         cold = self._cold
