@@ -595,18 +595,3 @@ def _resolve_group(group: str | int | None) -> int | None:
         return grp.getgrnam(group).gr_gid
     except KeyError:
         raise ValueError(f"group {group!r} does not exist") from None
-
-
-def _resolve_group(group: str | int | None) -> int | None:
-    if group is None:
-        return None
-    if isinstance(group, bool):
-        raise ValueError(f"group must be a name or a gid, got {group!r}")
-    if isinstance(group, int):
-        if group < 0:
-            raise ValueError(f"group gid must be >= 0, got {group!r}")
-        return group
-    try:
-        return grp.getgrnam(group).gr_gid
-    except KeyError:
-        raise ValueError(f"group {group!r} does not exist") from None
