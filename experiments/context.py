@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .data import Strokes
-from .rig import Progress, Rig, SimulatedRig
+from .rig import Progress, Rig, RunSpec, SimulatedRig
 
 MS = 1_000_000
 
@@ -63,7 +63,7 @@ class Context:
         if self.rig is None:
             raise NeedsStrokes(f"{name}: no rig and no records to analyse")
         with self.progress(name, count) as advance:
-            return self.rig.run(name, count, period_ns, target_ns, progress=advance, **kw)  # type: ignore[arg-type]
+            return self.rig.run(RunSpec(name, count, period_ns, target_ns, **kw), advance)  # type: ignore[arg-type]
 
     def _where(self) -> str:
         if self.recorded is not None:

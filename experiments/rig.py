@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -28,24 +29,26 @@ from .data import Strokes
 Progress = Callable[[int], None]  # called with the strokes made since the last call
 
 
+@dataclass(frozen=True)
+class RunSpec:
+    """One run an experiment asks for: its name, strokes, period, target and drive."""
+
+    name: str
+    count: int
+    period_ns: int
+    target_ns: int
+    mode: str = "closed"
+    open_delay_ns: int = 0
+    frequency_hz: float | None = None
+
+
 class Rig(Protocol):
     """What an experiment needs of a rig."""
 
     simulated: bool
     seed: int | None
 
-    def run(
-        self,
-        name: str,
-        count: int,
-        period_ns: int,
-        target_ns: int,
-        *,
-        mode: str = "closed",
-        open_delay_ns: int = 0,
-        frequency_hz: float | None = None,
-        progress: Progress | None = None,
-    ) -> Strokes: ...
+    def run(self, spec: RunSpec, progress: Progress | None = None) -> Strokes: ...
 
     def close(self) -> None: ...
 
@@ -93,27 +96,16 @@ class SimulatedRig:
         if self._progress is not None:
             self._progress(1)
 
-    def run(
-        self,
-        name: str,
-        count: int,
-        period_ns: int,
-        target_ns: int,
-        *,
-        mode: str = "closed",
-        open_delay_ns: int = 0,
-        frequency_hz: float | None = None,
-        progress: Progress | None = None,
-    ) -> Strokes:
-        """One run of `count` strokes; the model and the predictors carry on from the last run."""
-        self.model.set_drive(frequency_hz=frequency_hz or self.params.reference_frequency_hz)
-        self.loop.set_mode(Mode(mode), open_delay_ns)
-        self.loop.set_targets([target_ns, target_ns])  # a short target is an experiment's to choose
+    def run(self, spec: RunSpec, progress: Progress | None = None) -> Strokes:
+        """One run; the model and the predictors carry on from the last run."""
+        self.model.set_drive(frequency_hz=spec.frequency_hz or self.params.reference_frequency_hz)
+        self.loop.set_mode(Mode(spec.mode), spec.open_delay_ns)
+        self.loop.set_targets([spec.target_ns, spec.target_ns])  # a short target is the experiment's choice
         self._collected = []
         self._progress = progress
-        settings = {"experiment": name, "seed": self.seed, "frequency_hz": self.model.frequency_hz}
+        settings = {"experiment": spec.name, "seed": self.seed, "frequency_hz": self.model.frequency_hz}
         try:
-            run = self.loop.run_cycles(period_ns, count, kind="experiment", settings=settings)
+            run = self.loop.run_cycles(spec.period_ns, spec.count, kind="experiment", settings=settings)
         finally:
             self._progress = None
         records, self._collected = self._collected, []
@@ -141,25 +133,16 @@ class LiveRig:
             self.client.close()
             raise RuntimeError(f"the rig is in FAULT ({status['fault']}): `usmswitchctl reset` first")
 
-    def run(
-        self,
-        name: str,
-        count: int,
-        period_ns: int,
-        target_ns: int,
-        *,
-        mode: str = "closed",
-        open_delay_ns: int = 0,
-        frequency_hz: float | None = None,
-        progress: Progress | None = None,
-    ) -> Strokes:
+    def run(self, spec: RunSpec, progress: Progress | None = None) -> Strokes:
         c = self.client
         if c.status()["state"] == "cycling":
             c.stop_cycling()
-        if frequency_hz is not None:
-            c.set_drive(frequency_hz=frequency_hz)  # a drive board or the sim: else UNAVAILABLE
-        c.set_mode(mode, open_delay_ns if mode == "open" else None)
-        run = c.run(count=count, period=period_ns, target=target_ns, allow_late=True, timeout=10)
+        if spec.frequency_hz is not None:
+            c.set_drive(frequency_hz=spec.frequency_hz)  # a drive board or the sim: else UNAVAILABLE
+        c.set_mode(spec.mode, spec.open_delay_ns if spec.mode == "open" else None)
+        run = c.run(
+            count=spec.count, period=spec.period_ns, target=spec.target_ns, allow_late=True, timeout=10
+        )
         records: list[dict[str, Any]] = []
         for rec in run:
             records.append(dict(rec))
