@@ -128,27 +128,16 @@ def cmd_switch(client: Client, args: argparse.Namespace) -> int:
 
 def cmd_cycle(client: Client, args: argparse.Namespace) -> int:
     """Start a run of on/off strokes; with --wait, follow it to its end and report how it ended."""
-    if args.wait:  # subscribed before the start: the end of a short run cannot slip past
-        run = client.run(args.count, args.period, args.target, allow_late=args.allow_late)
-        result = run.started
-    else:
-        result = client.start_cycling(args.period, args.count, target=args.target, allow_late=args.allow_late)
-    if args.json:
-        print_json(result)
-    else:
-        count = f"{args.count} strokes" if args.count else "until stopped"
-        print(
-            f"run {result['run_id']}: every {show_ns(result['period_ns'])}, {count}, "
-            f"T on {show_ns(result['target_on_ns'])} / off {show_ns(result['target_off_ns'])}, "
-            f"from cycle {result['first_cycle']}",
-            flush=True,
-        )
-        for warning in result.get("warnings", []):
-            print(f"{PROG}: warning: {warning}", file=sys.stderr)
     if not args.wait:
+        result = client.start_cycling(args.period, args.count, target=args.target, allow_late=args.allow_late)
+        _print_cycling(result, args)
         return EXIT_OK
+    # Subscribed before the start: the end of a short run cannot slip past. From the start on, a
+    # Ctrl-C (even one that lands while the first line prints) leaves the daemon cycling, and says so.
+    run = client.run(args.count, args.period, args.target, allow_late=args.allow_late)
     try:
-        with CycleProgress(result["first_cycle"], args.count if not args.json else 0) as progress:
+        _print_cycling(run.started, args)
+        with CycleProgress(run.started["first_cycle"], args.count if not args.json else 0) as progress:
             for rec in run:
                 progress.update(rec["cycle"] + 1)
     except KeyboardInterrupt:
@@ -159,6 +148,21 @@ def cmd_cycle(client: Client, args: argparse.Namespace) -> int:
     if not args.json:
         print(f"run {info['run_id']} ended: {info['end_reason']}, {run_strokes(info)} strokes")
     return EXIT_FAULT if info["end_reason"].startswith("fault") else EXIT_OK
+
+
+def _print_cycling(result: dict[str, Any], args: argparse.Namespace) -> None:
+    if args.json:
+        print_json(result)
+        return
+    count = f"{args.count} strokes" if args.count else "until stopped"
+    print(
+        f"run {result['run_id']}: every {show_ns(result['period_ns'])}, {count}, "
+        f"T on {show_ns(result['target_on_ns'])} / off {show_ns(result['target_off_ns'])}, "
+        f"from cycle {result['first_cycle']}",
+        flush=True,
+    )
+    for warning in result.get("warnings", []):
+        print(f"{PROG}: warning: {warning}", file=sys.stderr)
 
 
 def cmd_stop(client: Client, args: argparse.Namespace) -> int:
