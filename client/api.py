@@ -9,6 +9,7 @@ is refused, so a target is never silently taken in the wrong unit.
 from __future__ import annotations
 
 import os
+from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -49,11 +50,12 @@ def find_socket(rig: str | None = None, env: Mapping[str, str] | None = None) ->
     )
 
 
-class Api:
-    """The documented methods; a subclass provides `call(method, *params)`."""
+class Api(ABC):
+    """The documented methods; a transport subclass provides `call(method, *params)`."""
 
-    def call(self, method: str, *params: Any) -> Any:  # pragma: no cover - the transports define it
-        raise NotImplementedError
+    @abstractmethod
+    def call(self, method: str, *params: Any) -> Any:
+        """Send one request; its result (or an awaitable of it, for the asyncio client)."""
 
     def ping(self) -> str:
         """Check that the daemon's server answers ("pong")."""

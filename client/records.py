@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import sqlite3
+from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -36,7 +37,7 @@ class RecordsFileError(Exception):
     """The records cannot be read: a file missing or of an unknown schema, a database unreachable."""
 
 
-class RecordsSource:
+class RecordsSource(ABC):
     """Records for analysis, wherever they are kept: the calls every reader has."""
 
     #: What the records are (a path, a redacted URL and rig), for messages.
@@ -61,17 +62,19 @@ class RecordsSource:
                 yield CycleRecord.from_row(r).to_dict()
             after = rows[-1]["cycle"]
 
+    @abstractmethod
     def _chunk(self, after: int, last: int, run: int | None, n: int) -> list[Any]:
         """Up to `n` rows (mappings of FIELDS) with after < cycle <= last (of one run), by cycle."""
-        raise NotImplementedError
 
+    @abstractmethod
     def runs(self) -> list[dict[str, Any]]:
         """Every run, oldest first."""
-        raise NotImplementedError
 
+    @abstractmethod
     def _column_values(self, field: str, first: int, last: int) -> list[Any]:
-        raise NotImplementedError
+        """One field's values over cycles first..last, in cycle order."""
 
+    @abstractmethod
     def close(self) -> None:
         """Release the file or the connection."""
 
