@@ -29,7 +29,7 @@ from typing import Any
 import msgpack
 
 from usmswitch.daemon.sockdir import check_peer, check_socket_owner
-from usmswitch.daemon.wire import MAX_HISTORY, MAX_MSGID, REQUEST, estop_socket_path
+from usmswitch.daemon.wire import MAX_MSGID, REQUEST, estop_socket_path
 
 from .api import Api, Duration, find_socket
 from .connection import (
@@ -286,15 +286,11 @@ class AsyncRun:
         tracker = self._tracker
         while not tracker.ended:
             rec, missing = tracker.accept(await self.client.next_notification(self.timeout))
-            if missing:
-                up_to = tracker.next_cycle + missing
-                history = await self.client.history(min(MAX_HISTORY, missing + 1000), self.run_id)
-                for old in tracker.fill(history, up_to):
-                    tracker.took(old)
-                    yield old
-            if rec is not None:
-                tracker.took(rec)
-                yield rec
+            history = (
+                await self.client.history(tracker.history_wanted(missing), self.run_id) if missing else []
+            )
+            for r in tracker.deliver(rec, missing, history):
+                yield r
         if self._added_topics and self.client.connected:
             await self.client.unsubscribe(*self._added_topics)
             self._added_topics = []

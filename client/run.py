@@ -74,6 +74,21 @@ class RunTracker:
         self.next_cycle = rec["cycle"] + 1
         self.received += 1
 
+    @staticmethod
+    def history_wanted(missing: int) -> int:
+        """How many of the run's last records to read back for `missing` dropped strokes."""
+        return min(MAX_HISTORY, missing + 1000)
+
+    def deliver(self, rec: CycleRecord | None, missing: int, history: list[CycleRecord]) -> list[CycleRecord]:
+        """What `accept` said, as the strokes to yield in order: the `missing` ones read back from
+        `history` (a read of `history_wanted(missing)` records), then `rec`."""
+        out = self.fill(history, self.next_cycle + missing) if missing else []
+        if rec is not None:
+            out.append(rec)
+        for r in out:
+            self.took(r)
+        return out
+
     def fill(self, history: list[CycleRecord], up_to: int) -> list[CycleRecord]:
         """The missing strokes (cycles next_cycle..up_to-1) from a `history` read of the run."""
         want = [r for r in history if self.next_cycle <= r["cycle"] < up_to]
@@ -113,17 +128,9 @@ class Run:
         tracker = self._tracker
         client = self.client
         while not tracker.ended:
-            note = client.next_notification(self.timeout)
-            rec, missing = tracker.accept(note)
-            if missing:
-                up_to = tracker.next_cycle + missing
-                history = client.history(min(MAX_HISTORY, missing + 1000), self.run_id)
-                for old in tracker.fill(history, up_to):
-                    tracker.took(old)
-                    yield old
-            if rec is not None:
-                tracker.took(rec)
-                yield rec
+            rec, missing = tracker.accept(client.next_notification(self.timeout))
+            history = client.history(tracker.history_wanted(missing), self.run_id) if missing else []
+            yield from tracker.deliver(rec, missing, history)
         self._unsubscribe()
 
     def wait(self) -> RunInfo:

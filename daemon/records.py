@@ -164,14 +164,7 @@ class RecordStore:
     # -- the loop's side ---------------------------------------------------------------------
     def submit(self, record: CycleRecord) -> None:
         """Queue one stroke's record for writing; never blocks, never touches the disk."""
-        if self._closed:
-            raise RecordStoreError(f"record store {self.path} is closed (or read-only)")
-        if type(record) is not CycleRecord:
-            raise TypeError(f"submit takes a CycleRecord, got {type(record).__name__}")
-        if record.driver is None:
-            record.driver = self.driver
-        if record.rig is None:
-            record.rig = self.rig
+        self._stamp(record, CycleRecord, "submit")
         self.submitted += 1
         self._last_submitted_cycle = record.cycle
         self._queue.put(record)
@@ -193,15 +186,19 @@ class RecordStore:
 
     def submit_run(self, run: RunRecord) -> None:
         """Queue a run's row (at its open, and again at its end), in order with the records."""
+        self._stamp(run, RunRecord, "submit_run")
+        self._queue.put(RunRecord(**run.to_dict()))  # a copy: the loop goes on changing its own
+
+    def _stamp(self, item: CycleRecord | RunRecord, kind: type, call: str) -> None:
+        """Refuse what cannot be queued; stamp the store's driver and rig where the item has none."""
         if self._closed:
             raise RecordStoreError(f"record store {self.path} is closed (or read-only)")
-        if type(run) is not RunRecord:
-            raise TypeError(f"submit_run takes a RunRecord, got {type(run).__name__}")
-        if run.driver is None:
-            run.driver = self.driver
-        if run.rig is None:
-            run.rig = self.rig
-        self._queue.put(RunRecord(**run.to_dict()))  # a copy: the loop goes on changing its own
+        if type(item) is not kind:
+            raise TypeError(f"{call} takes a {kind.__name__}, got {type(item).__name__}")
+        if item.driver is None:
+            item.driver = self.driver
+        if item.rig is None:
+            item.rig = self.rig
 
     def flush(self, timeout_ns: int = 5_000_000_000) -> bool:
         """Wait until everything submitted so far is committed; False if that took over `timeout_ns`."""
