@@ -34,6 +34,7 @@ from typing import Any
 
 import msgpack
 
+from .children import wait_exit
 from .rpc_process import serve
 from .wire import BUILTIN_METHODS, SERVER_TOPICS, ErrorCode, Limits, RpcError, note_frame, packb
 
@@ -418,9 +419,7 @@ class RpcServer:
 
     def _end_link(self, link: _Link) -> None:
         if link.proc is not None:
-            try:
-                link.proc.wait(timeout=5)
-            except subprocess.TimeoutExpired:
+            if wait_exit(link.proc, 5.0) is None:
                 link.proc.kill()
                 link.proc.wait()
         elif link.thread is not None:

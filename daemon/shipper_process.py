@@ -29,6 +29,7 @@ from typing import Any
 
 import structlog
 
+from .children import wait_exit
 from .pg_schema import redact_url
 
 log = structlog.get_logger("usmswitch.shipper")
@@ -138,9 +139,7 @@ class ShipperProcess:
         if proc is None:
             return False
         self._send(f"stop {drain_timeout_ns}\n")
-        try:
-            proc.wait(drain_timeout_ns / 1e9 + 10)
-        except subprocess.TimeoutExpired:
+        if wait_exit(proc, drain_timeout_ns / 1e9 + 10) is None:
             proc.kill()
             proc.wait()
         if self._thread is not None:
