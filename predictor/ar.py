@@ -18,7 +18,7 @@ from typing import Any
 from .aic import AicTable, fit_table, min_samples, table_from_gram
 from .checks import MAX_ORDER, MAX_T_NS, check_int, check_model, check_stroke_ns, check_strokes
 from .conditions import Conditions
-from .exact import ExactSolution, NormalPlan, gram_from_columns
+from .exact import ExactSolution, NormalPlan, gram_from_columns, solve_small
 
 STATE_FORMAT = "usmswitch.predictor.ar/1"
 # One index plan per order, shared by every predictor.
@@ -355,6 +355,47 @@ class ARPredictor:
             self._seen += 1
             self._dirty = True
             return
+        if count == w and m <= 3:
+            # Orders 2 and 3 with a full window, unrolled (the general loop below costs twice as
+            # much): the row (o0, o1, ..., om) leaves, (t, n1, ..., nm) comes in. buf[pos + k - w]
+            # is buf[(pos + k) % w] for k < w, without the modulo.
+            n1 = buf[pos - 1]
+            n2 = buf[pos - 2]
+            if m == 3:
+                n3 = buf[pos - 3]
+                o3 = buf[pos]
+                o2 = buf[pos + 1 - w]
+                o1 = buf[pos + 2 - w]
+                o0 = buf[pos + 3 - w]
+                # The flat layout of NormalPlan(3): (j, k) at 4 j + k.
+                g[1] += t * n1 - o0 * o1
+                g[2] += t * n2 - o0 * o2
+                g[3] += t * n3 - o0 * o3
+                g[5] += n1 * n1 - o1 * o1
+                g[6] += n1 * n2 - o1 * o2
+                g[7] += n1 * n3 - o1 * o3
+                g[10] += n2 * n2 - o2 * o2
+                g[11] += n2 * n3 - o2 * o3
+                g[15] += n3 * n3 - o3 * o3
+                s[3] += n3 - o3
+            else:
+                o2 = buf[pos]
+                o1 = buf[pos + 1 - w]
+                o0 = buf[pos + 2 - w]
+                # The flat layout of NormalPlan(2): (j, k) at 3 j + k.
+                g[1] += t * n1 - o0 * o1
+                g[2] += t * n2 - o0 * o2
+                g[4] += n1 * n1 - o1 * o1
+                g[5] += n1 * n2 - o1 * o2
+                g[8] += n2 * n2 - o2 * o2
+            s[0] += t - o0
+            s[1] += n1 - o1
+            s[2] += n2 - o2
+            buf[pos] = t
+            self._pos = nxt
+            self._seen += 1
+            self._dirty = True
+            return
         pairs = self._plan.pairs
         if count == w:
             old = [buf[(pos + m - j) % w] for j in range(m + 1)]  # (target, lag 1, ..., lag m)
@@ -439,16 +480,18 @@ class ARPredictor:
                 sy, sx = self._s
                 xx = rows * g[3] - sx * sx
                 sol = ([rows * g[1] - sx * sy], xx, False) if xx else ([0], 1, True)
-        elif self._c == 0:
-            sol = self._plan.solve(g[:])
         else:
-            # Centered: the slopes' normal equations are rows^2 x the covariance, formed exactly.
-            rows = self._count - m
-            s = self._s
-            a = [0] * self._plan.size
-            for idx, j, k in self._plan.pairs:
-                a[idx] = rows * g[idx] - s[j] * s[k]
-            sol = self._plan.solve(a)
+            if self._c == 0:
+                a = g
+            else:
+                # Centered: the slopes' normal equations are rows^2 x the covariance, formed exactly.
+                rows = self._count - m
+                s = self._s
+                a = [0] * self._plan.size
+                for idx, j, k in self._plan.pairs:
+                    a[idx] = rows * g[idx] - s[j] * s[k]
+            # Orders 2 and 3 in closed form when regular; the elimination (in place) otherwise.
+            sol = solve_small(a, m) or self._plan.solve(a[:])
         self._num, self._det, self._dropped = sol
         self._sol_seen = self._seen
         return sol

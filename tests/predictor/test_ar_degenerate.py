@@ -11,6 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from usmswitch.predictor import SOUND_FIT, ARPredictor
+from usmswitch.predictor import ar as ar_module
 from usmswitch.predictor.exact import NormalPlan
 
 
@@ -92,16 +93,25 @@ def test_cold_start_without_a_nominal_predicts_the_last_stroke_or_refuses_when_e
     assert p.predict() == 10_000_003.0
 
 
-def test_predict_solves_once_per_stroke(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("order", [3, 4])  # 3 in closed form, 4 by the elimination
+def test_predict_solves_once_per_stroke(monkeypatch: pytest.MonkeyPatch, order: int) -> None:
     calls = []
     real = NormalPlan.solve
+    real_small = ar_module.solve_small
 
     def counting(self, a):
         calls.append(1)
         return real(self, a)
 
+    def counting_small(a, m):
+        sol = real_small(a, m)
+        if sol is not None:  # None: not solved here, the elimination solves
+            calls.append(1)
+        return sol
+
     monkeypatch.setattr(NormalPlan, "solve", counting)
-    p = ARPredictor(order=3, window=30)
+    monkeypatch.setattr(ar_module, "solve_small", counting_small)
+    p = ARPredictor(order=order, window=30)
     p.extend([10_000_000 + 1000 * ((i * 37) % 11) for i in range(40)])
     assert calls == []  # updates alone do not solve
     first = p.predict()
