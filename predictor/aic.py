@@ -29,7 +29,10 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 from .checks import MAX_ORDER, check_int, check_model, check_stroke_ns
-from .exact import gram_from_columns, nested_rss
+from .exact import NormalPlan
+
+# One index plan per largest order (AIC's sums use the flat layout of `NormalPlan`).
+_PLANS = {m: NormalPlan(m) for m in range(1, MAX_ORDER + 1)}
 
 #: Variance of rounding a time to a whole nanosecond; the floor of sigma^2.
 SIGMA2_FLOOR_NS2 = 1.0 / 12.0
@@ -84,18 +87,31 @@ def fit_table(samples: Iterable[int], max_order: int = MAX_ORDER, model: str = "
     n = len(values)
     # Common rows i = max_order..n-1: column 0 the target, column j its lag j.
     columns = [values[max_order - j : n - j] for j in range(max_order + 1)]
-    return table_from_gram(gram_from_columns(columns), [sum(col) for col in columns], n - max_order, model)
+    gram = _PLANS[max_order].gram(columns)
+    return table_from_gram(gram, [sum(col) for col in columns], n - max_order, model)
 
 
-def table_from_gram(gram: list[list[int]], sums: list[int], n_rows: int, model: str = "paper") -> AicTable:
-    """Eq. 8 from the common rows' exact sums: `gram` [[y.y, y^T X], [X^T y, X^T X]] over lags 0..M
-    (overwritten) and `sums` the columns' sums (used by "centered"). O(M^3), no pass over the strokes."""
-    max_order = len(gram) - 1
+def table_from_gram(gram: list[int], sums: list[int], n_rows: int, model: str = "paper") -> AicTable:
+    """Eq. 8 from the common rows' exact sums (see `aic_values`) as the table."""
+    aics, sigma2 = aic_values(gram, sums, n_rows, model)
+    return AicTable(tuple(range(1, len(sums))), aics, sigma2, n_rows, model, "fit")
+
+
+def aic_values(
+    gram: list[int], sums: list[int], n_rows: int, model: str = "paper"
+) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """(AIC(m), sigma^2) for m = 1..M from the common rows' exact sums: `gram` the upper triangle of
+    [[y.y, y^T X], [X^T y, X^T X]] over lags 0..M in the flat layout of `NormalPlan(M)` (read, not
+    changed) and `sums` the columns' sums (used by "centered"). O(M^3), no pass over the strokes."""
+    max_order = len(sums) - 1
+    plan = _PLANS[max_order]
     c = 1 if model == "centered" else 0
     if c:
-        gram = [[n_rows * gram[i][j] - sums[i] * sums[j] for j in range(len(gram))] for i in range(len(gram))]
+        a = [0] * plan.size
+        for idx, j, k in plan.gram_pairs:
+            a[idx] = n_rows * gram[idx] - sums[j] * sums[k]
+    else:
+        a = gram[:]
     scale = n_rows * (n_rows if c else 1)
-    sigma2 = [num / (den * scale) for num, den in nested_rss(gram)]
-    orders = tuple(range(1, max_order + 1))
-    aics = tuple(_aic(n_rows, s2, m + c) for m, s2 in zip(orders, sigma2, strict=True))
-    return AicTable(orders, aics, tuple(sigma2), n_rows, model, "fit")
+    sigma2 = tuple([num / (den * scale) for num, den in plan.nested_rss(a)])
+    return tuple([_aic(n_rows, s2, m + c) for m, s2 in enumerate(sigma2, 1)]), sigma2

@@ -15,10 +15,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from .aic import AicTable, fit_table, min_samples, table_from_gram
+from .aic import AicTable, aic_values, fit_table, min_samples
 from .checks import MAX_ORDER, MAX_T_NS, check_int, check_model, check_stroke_ns, check_strokes
 from .conditions import Conditions
-from .exact import ExactSolution, NormalPlan, gram_from_columns, solve_small
+from .exact import ExactSolution, NormalPlan, solve_small
 
 STATE_FORMAT = "usmswitch.predictor.ar/1"
 # One index plan per order, shared by every predictor.
@@ -83,6 +83,8 @@ class ARPredictor:
         "_t_hat",
         "_table",
         "_table_seen",
+        "_values",
+        "_values_seen",
         "_window",
     )
 
@@ -123,6 +125,8 @@ class ARPredictor:
         self._pending: int | None = None  # an order AIC chose, taken at the next stroke
         self._table: AicTable | None = None
         self._table_seen = -1
+        self._values: tuple[tuple[float, ...], tuple[float, ...]] = ((), ())
+        self._values_seen = -1
         self._set_order(m)
         self._build_aic_sums()
 
@@ -159,62 +163,87 @@ class ARPredictor:
         self._dropped = False
 
     def _build_aic_sums(self) -> None:
-        """For `auto`: the exact sums of AIC's common rows (rows M..n-1, lags 0..M), kept up to date by
-        `update` in O(M^2), so that a re-selection never passes over the window (O(M^3) only)."""
+        """For `auto`: the exact sums of AIC's common rows (rows M..n-1, lags 0..M), the upper triangle
+        in the flat layout of `NormalPlan(M)`, kept up to date by `update` in O(M^2), so that a
+        re-selection never passes over the window (O(M^3) only)."""
         if not self._auto:
-            self._ag: list[list[int]] = []
+            self._ag: list[int] = []
             self._as: list[int] = []
             return
         big_m = self._max_order
         x = self.samples()
         n = len(x)
         cols = [x[big_m - j : n - j] if n > big_m else [] for j in range(big_m + 1)]
-        self._ag = gram_from_columns(cols)
+        self._ag = _PLANS[big_m].gram(cols)
         self._as = [sum(c) for c in cols]
 
     def _aic_slide(self, t: int, buf: list[int], pos: int, count: int, w: int) -> None:
         """Before `t` is written at `pos`: drop the common row that leaves a full window, add t's row.
-        Only the upper triangle of the symmetric sums is kept here (`_aic_gram` mirrors it)."""
+        buf[pos - j] is the j-th newest stroke (a negative index wraps a full window, as wanted)."""
         big_m = self._max_order
         if count < big_m:
             return
         ag = self._ag
         sums = self._as
-        new = [t, *[buf[(pos - j) % w] for j in range(1, big_m + 1)]]
-        if count == w:  # the leaving row: (o_M, ..., o_0) of the old window, o_k = buf[(pos + k) % w]
-            old = [buf[(pos + big_m - j) % w] for j in range(big_m + 1)]
+        if count == w and big_m == 3:
+            # The daemon's max_order, unrolled (a third of the loop's cost); the layout of NormalPlan(3).
+            n1 = buf[pos - 1]
+            n2 = buf[pos - 2]
+            n3 = buf[pos - 3]
+            o3 = buf[pos - w]
+            o2 = buf[pos + 1 - w]
+            o1 = buf[pos + 2 - w]
+            o0 = buf[pos + 3 - w]
+            ag[0] += t * t - o0 * o0
+            ag[1] += t * n1 - o0 * o1
+            ag[2] += t * n2 - o0 * o2
+            ag[3] += t * n3 - o0 * o3
+            ag[5] += n1 * n1 - o1 * o1
+            ag[6] += n1 * n2 - o1 * o2
+            ag[7] += n1 * n3 - o1 * o3
+            ag[10] += n2 * n2 - o2 * o2
+            ag[11] += n2 * n3 - o2 * o3
+            ag[15] += n3 * n3 - o3 * o3
+            sums[0] += t - o0
+            sums[1] += n1 - o1
+            sums[2] += n2 - o2
+            sums[3] += n3 - o3
+            return
+        new = [t, *[buf[pos - j] for j in range(1, big_m + 1)]]
+        if count == w:
+            # The leaving row (o_M, ..., o_0) of the old window, o_k = buf[(pos + k) % w] = buf[pos + k - w].
+            top = pos + big_m - w
+            old = [buf[top - j] for j in range(big_m + 1)]
+            for idx, i, j in _PLANS[big_m].gram_pairs:
+                ag[idx] += new[i] * new[j] - old[i] * old[j]
             for i in range(big_m + 1):
-                ni = new[i]
-                oi = old[i]
-                row = ag[i]
-                for j in range(i, big_m + 1):
-                    row[j] += ni * new[j] - oi * old[j]
-                sums[i] += ni - oi
+                sums[i] += new[i] - old[i]
         else:
+            for idx, i, j in _PLANS[big_m].gram_pairs:
+                ag[idx] += new[i] * new[j]
             for i in range(big_m + 1):
-                ni = new[i]
-                row = ag[i]
-                for j in range(i, big_m + 1):
-                    row[j] += ni * new[j]
-                sums[i] += ni
-
-    def _aic_gram(self) -> list[list[int]]:
-        """A full copy of AIC's sums (the upper triangle mirrored)."""
-        ag = self._ag
-        n = len(ag)
-        return [[ag[i][j] if i <= j else ag[j][i] for j in range(n)] for i in range(n)]
+                sums[i] += new[i]
 
     def _set_order_from_aic(self, m: int) -> None:
         """Switch to order m from AIC's sums: rows m..n-1 are AIC's rows M..n-1 plus rows m..M-1."""
         plan = _PLANS[m]
         big_m = self._max_order
-        x = self.samples()
-        ag = self._aic_gram()
+        n1 = big_m + 1
+        # The oldest M strokes of the window: the rows AIC holds back.
+        x = self._buf[: self._count] if self._count < self._window else self._oldest(big_m)
+        ag = self._ag
         g = [0] * plan.size
         for idx, j, k in plan.pairs:
-            g[idx] = ag[j][k] + sum(x[i - j] * x[i - k] for i in range(m, big_m))
-        s = [self._as[j] + sum(x[i - j] for i in range(m, big_m)) for j in range(m + 1)]
+            g[idx] = ag[j * n1 + k] + sum([x[i - j] * x[i - k] for i in range(m, big_m)])
+        s = [self._as[j] + sum(x[m - j : big_m - j]) for j in range(m + 1)]
         self._install(m, g, s)
+
+    def _oldest(self, k: int) -> list[int]:
+        """The oldest k strokes of a full window, oldest first."""
+        buf = self._buf
+        pos = self._pos
+        head = buf[pos : pos + k]
+        return head if len(head) == k else head + buf[: k - len(head)]
 
     @property
     def order(self) -> int:
@@ -566,9 +595,11 @@ class ARPredictor:
         if self._table is None or self._table_seen != self._seen:
             need = min_samples(self._max_order, self._model)
             if self._auto and self._count >= need:
-                gram = self._aic_gram()
                 n_rows = self._count - self._max_order
-                self._table = table_from_gram(gram, self._as, n_rows, self._model)
+                aics, sigma2 = self._aic_values()
+                self._table = AicTable(
+                    tuple(range(1, self._max_order + 1)), aics, sigma2, n_rows, self._model, "fit"
+                )
             else:
                 self._table = fit_table(self.samples(), self._max_order, self._model)
             self._table_seen = self._seen
@@ -593,9 +624,18 @@ class ARPredictor:
         elif self._since_select < self._reselect_every:
             return
         self._since_select = 0
-        best = self.aic_table().best
+        aics = self._aic_values()[0]
+        best = aics.index(min(aics)) + 1  # the lower order on a tie, as AicTable.best
         if best != self._m:
             self._pending = best
+
+    def _aic_values(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """(AIC(m), sigma^2) for m = 1..M from the kept sums, once per stroke (the table's numbers, without
+        building the table on the re-selecting stroke)."""
+        if self._values_seen != self._seen:
+            self._values = aic_values(self._ag, self._as, self._count - self._max_order, self._model)
+            self._values_seen = self._seen
+        return self._values
 
     # ---- persistence ---------------------------------------------------------------------------
 

@@ -32,7 +32,7 @@ class NormalPlan:
     (0, k) is (X^T y)_k and (j, k) is (X^T X)_jk. The lower triangle and (0, 0) are never read.
     """
 
-    __slots__ = ("back", "m", "pairs", "size", "steps")
+    __slots__ = ("back", "gram_pairs", "m", "pairs", "rss_steps", "size", "steps")
 
     def __init__(self, m: int) -> None:
         self.m = m
@@ -44,17 +44,24 @@ class NormalPlan:
 
         # The entries the sums keep: the upper triangle without (0, 0), as (flat index, j, k).
         self.pairs = tuple((at(j, k), j, k) for j in range(n1) for k in range(j, n1) if k)
-        steps = []
-        for k in range(1, n1):
-            rest = [0, *range(k + 1, n1)]
-            ups = tuple(
-                (at(i, j), at(i, k), at(k, j))
-                for a, i in enumerate(rest)
-                for j in rest[a:]
-                if (i, j) != (0, 0)
-            )
-            steps.append((at(k, k), ups))
-        self.steps = tuple(steps)
+        #: With (0, 0), y.y: the sums AIC's nested fits need (`gram`, `nested_rss`).
+        self.gram_pairs = ((0, 0, 0), *self.pairs)
+
+        def elimination(with_target: bool) -> tuple[tuple[int, tuple[tuple[int, int, int], ...]], ...]:
+            steps = []
+            for k in range(1, n1):
+                rest = [0, *range(k + 1, n1)]
+                ups = tuple(
+                    (at(i, j), at(i, k), at(k, j))
+                    for a, i in enumerate(rest)
+                    for j in rest[a:]
+                    if with_target or (i, j) != (0, 0)
+                )
+                steps.append((at(k, k), ups))
+            return tuple(steps)
+
+        self.steps = elimination(False)
+        self.rss_steps = elimination(True)
         self.back = tuple(
             (k - 1, at(k, k), at(0, k), tuple((at(k, j), j - 1) for j in range(k + 1, n1)))
             for k in range(m, 0, -1)
@@ -83,6 +90,31 @@ class NormalPlan:
                     acc -= a[kj] * num[j0]
                 num[k0] = acc // p
         return num, prev, dropped
+
+    def gram(self, columns: list[list[int]]) -> list[int]:
+        """Exact sums Z^T Z of integer columns (0 the target, 1..m the lags), (0, 0) included, flat."""
+        a = [0] * self.size
+        for idx, j, k in self.gram_pairs:
+            a[idx] = sum(map(int.__mul__, columns[j], columns[k]))
+        return a
+
+    def nested_rss(self, a: list[int]) -> list[tuple[int, int]]:
+        """Residual sums of squares of the nested fits on lags 1..k for every k, as exact (num, den).
+
+        `a` holds every sum of `gram` (overwritten). One elimination pass gives every order: after
+        eliminating lag k, the target's diagonal entry is det_k * RSS_k. A dependent lag leaves RSS alone.
+        """
+        prev = 1
+        out: list[tuple[int, int]] = []
+        add = out.append
+        for kk, ups in self.rss_steps:
+            p = a[kk]
+            if p:
+                for ij, ik, kj in ups:
+                    a[ij] = (p * a[ij] - a[ik] * a[kj]) // prev
+                prev = p
+            add((a[0], prev))
+        return out
 
 
 def solve_small(a: list[int], m: int) -> tuple[list[int], int, bool] | None:
@@ -113,40 +145,3 @@ def solve_small(a: list[int], m: int) -> tuple[list[int], int, bool] | None:
             return None
         return [a22 * b1 - a12 * b2, a11 * b2 - a12 * b1], det, False
     return None
-
-
-def gram_from_columns(columns: list[list[int]]) -> list[list[int]]:
-    """Exact Gram matrix Z^T Z of integer columns (column 0 the target, 1..m the lags)."""
-    k = len(columns)
-    out = [[0] * k for _ in range(k)]
-    for i in range(k):
-        ci = columns[i]
-        for j in range(i, k):
-            out[i][j] = out[j][i] = sum(map(int.__mul__, ci, columns[j]))
-    return out
-
-
-def nested_rss(aug: list[list[int]]) -> list[tuple[int, int]]:
-    """Residual sums of squares of the nested fits on lags 1..k for every k, as exact (num, den) pairs.
-
-    `aug` = [[y.y, y^T X], [X^T y, X^T X]] (overwritten). One elimination pass gives every order: after
-    eliminating lag k, the target's diagonal entry is det_k * RSS_k. A dependent lag leaves RSS alone.
-    """
-    m = len(aug) - 1
-    prev = 1
-    out: list[tuple[int, int]] = []
-    for k in range(1, m + 1):
-        rk = aug[k]
-        p = rk[k]
-        if p != 0:
-            rest = [0, *range(k + 1, m + 1)]
-            for a, i in enumerate(rest):
-                ri = aug[i]
-                rik = ri[k]
-                for j in rest[a:]:
-                    v = (p * ri[j] - rik * rk[j]) // prev
-                    ri[j] = v
-                    aug[j][i] = v
-            prev = p
-        out.append((aug[0][0], prev))
-    return out

@@ -141,13 +141,13 @@ def test_auto_reselects_every_k_strokes_exactly(monkeypatch: pytest.MonkeyPatch)
     import usmswitch.predictor.ar as ar_module
 
     selections: list[int] = []
-    real = ar_module.table_from_gram
+    real = ar_module.aic_values
 
     def counting(gram, sums, n_rows, model):
         selections.append(len(seen))
         return real(gram, sums, n_rows, model)
 
-    monkeypatch.setattr(ar_module, "table_from_gram", counting)
+    monkeypatch.setattr(ar_module, "aic_values", counting)
     t = ar_around_mean([0.5], 300, seed=8)
     p = ARPredictor(order="auto", window=60, model="centered", max_order=2, reselect_every=25)
     seen: list[int] = []
