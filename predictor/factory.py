@@ -16,7 +16,11 @@ from .kalman import KalmanPredictor
 
 #: The options each model takes.
 _AR_OPTIONS = frozenset({"order", "window", "max_order", "reselect_every"})
-OPTIONS: dict[str, frozenset[str]] = {"paper": _AR_OPTIONS, "centered": _AR_OPTIONS, "kalman": frozenset()}
+OPTIONS: dict[str, frozenset[str]] = {
+    "paper": _AR_OPTIONS,
+    "centered": _AR_OPTIONS,
+    "kalman": frozenset({"sensitivities"}),
+}
 
 #: The model the daemon runs when its config does not name one.
 DEFAULT_MODEL = "kalman"
@@ -63,7 +67,8 @@ def make_predictor(model: str = DEFAULT_MODEL, nominal_ns: int | None = None, **
 
     "paper" is the paper's Eq. 2-6 exactly, "centered" the same with a least-squares intercept; both
     take `order` (1..8 or "auto"), `window`, `max_order` and `reselect_every` (see `ARPredictor`).
-    "kalman" (`KalmanPredictor`) takes no option.
+    "kalman" (`KalmanPredictor`) takes `sensitivities`: d ln t per kHz, per 100 V, per C as the rig
+    knows them (commissioning, or what it learned before), so a drive step is predicted at once.
     """
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
@@ -73,7 +78,7 @@ def make_predictor(model: str = DEFAULT_MODEL, nominal_ns: int | None = None, **
         raise ValueError(f"model {model!r} takes no option {', '.join(unknown)} (it takes {sorted(allowed)})")
     if model in AR_MODELS:
         return ARPredictor(model=model, nominal_ns=nominal_ns, **options)
-    return KalmanPredictor(nominal_ns=nominal_ns)
+    return KalmanPredictor(nominal_ns=nominal_ns, **options)
 
 
 def make_predictors(model: str, nominals_ns: Sequence[int | None], **options: Any) -> list[Predictor]:

@@ -18,6 +18,7 @@ Cold start: the nominal, then the last stroke, then the paper's AR(1) (`ARPredic
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 from .ar import SOUND_FIT, ARPredictor
@@ -30,27 +31,67 @@ STATE_FORMAT = "usmswitch.predictor.kalman/1"
 #: and two mean-reverting filters. Measured on the scenario suite, six filters predict as well as an
 #: 18-filter (3 x 6) grid (fewer candidates, less chance of picking one by luck) for a third of the work.
 GRID = ((1.0, 0.85), (1.0, 0.55), (1.0, 0.33), (1.0, 0.18), (0.95, 0.8), (0.8, 1.0))
-_FILTERS = tuple((phi, 1.0 - phi, k) for phi, k in GRID)  # (phi, 1 - phi, K), as the loop reads them
 #: Forgetting of the filters' squared errors (memory ~ 1 / (1 - FORGET) strokes).
 FORGET = 0.99
 #: Strokes over which mu is averaged.
 MU_STROKES = 200
 
 
+def _grid_step(
+    levels: list[float], scores: list[float], z: float, mu: float, moved: float
+) -> tuple[list[float], list[float]]:
+    """One stroke z through every filter of GRID: (new levels, new scores). Each filter predicts
+    pr = phi level + (1 - phi) mu + moved (the known conditions moved ln t by `moved`; since
+    phi + (1 - phi) = 1 the prediction moves by exactly that), then level = pr + K (z - pr) and
+    score = FORGET score + (z - pr)^2. Written out with GRID's numbers: the loop over GRID costs
+    2.5x as much, the most of a stroke (tests/predictor/test_kalman.py checks the two agree)."""
+    v0, v1, v2, v3, v4, v5 = levels
+    s0, s1, s2, s3, s4, s5 = scores
+    p0 = v0 + moved
+    p1 = v1 + moved
+    p2 = v2 + moved
+    p3 = v3 + moved
+    p4 = 0.95 * v4 + 0.05 * mu + moved
+    p5 = 0.8 * v5 + 0.2 * mu + moved
+    e0 = z - p0
+    e1 = z - p1
+    e2 = z - p2
+    e3 = z - p3
+    e4 = z - p4
+    e5 = z - p5
+    return (
+        [p0 + 0.85 * e0, p1 + 0.55 * e1, p2 + 0.33 * e2, p3 + 0.18 * e3, p4 + 0.8 * e4, p5 + e5],
+        [
+            0.99 * s0 + e0 * e0,
+            0.99 * s1 + e1 * e1,
+            0.99 * s2 + e2 * e2,
+            0.99 * s3 + e3 * e3,
+            0.99 * s4 + e4 * e4,
+            0.99 * s5 + e5 * e5,
+        ],
+    )
+
+
 class KalmanPredictor:
     """AR(1) + noise Kalman filter on the log stroke time, (phi, K) chosen online by recent error."""
 
-    __slots__ = ("_best", "_cm", "_cold", "_count", "_level", "_mu", "_nominal", "_score", "_seen")
+    __slots__ = ("_best", "_cm", "_cold", "_count", "_level", "_mu", "_nominal", "_score", "_seen", "_zhat")
 
     model = "kalman"
 
-    def __init__(self, nominal_ns: int | None = None) -> None:
+    def __init__(
+        self, nominal_ns: int | None = None, sensitivities: Sequence[float | None] | None = None
+    ) -> None:
+        """`sensitivities`: d ln t per kHz, per 100 V, per C as the rig knows them (its commissioning,
+        `usmswitch-experiment drive-sensitivity`, or what a predictor learned before); without them
+        the first step of a kind is news (see `normalise.ConditionModel`)."""
         self._nominal = None if nominal_ns is None else check_stroke_ns(nominal_ns)
-        self._cm = ConditionModel()
+        self._cm = ConditionModel(sensitivities)
         self._cold: ARPredictor | None = ARPredictor(order=1, window=SOUND_FIT, nominal_ns=nominal_ns)
         self._level = [0.0] * len(GRID)
         self._score = [0.0] * len(GRID)
         self._mu = 0.0
+        self._zhat = 0.0  # ln t_hat of the next stroke before its conditions' shift
         self._best = 0
         self._count = 0
         self._seen = 0
@@ -79,6 +120,12 @@ class KalmanPredictor:
         return self._cm.sensitivities
 
     @property
+    def known_sensitivities(self) -> tuple[float | None, ...]:
+        """The sensitivities given or learned from a step (None: never seen to act), what the daemon
+        keeps across restarts (`sensitivities=` of a new predictor)."""
+        return self._cm.known
+
+    @property
     def seen(self) -> int:
         """Strokes ever given to this predictor."""
         return self._seen
@@ -103,26 +150,18 @@ class KalmanPredictor:
         if self._count == 0:
             self._mu = z
             self._level = [z] * len(GRID)
+            self._zhat = z
         else:
             mu = self._mu
-            # One pass over the grid (a plain loop is the cheapest form in CPython). The known
-            # conditions moved ln t by `moved`: every level and the mean with it, and since
-            # phi + (1 - phi) = 1 the prediction moves by exactly that.
-            levels: list[float] = []
-            scores: list[float] = []
-            add_level = levels.append
-            add_score = scores.append
-            for (a, b, k), v, sc in zip(_FILTERS, self._level, self._score, strict=True):
-                pr = a * v + b * mu + moved
-                e = z - pr
-                add_level(pr + k * e)
-                add_score(FORGET * sc + e * e)
+            levels, scores = _grid_step(self._level, self._score, z, mu, moved)
             self._level = levels
             self._score = scores
-            self._best = scores.index(min(scores))
+            self._best = best = scores.index(min(scores))
             mu += moved
             n = self._count + 1
-            self._mu = mu + (z - mu) / (n if n < MU_STROKES else MU_STROKES)
+            self._mu = mu = mu + (z - mu) / (n if n < MU_STROKES else MU_STROKES)
+            phi = GRID[best][0]
+            self._zhat = mu + phi * (levels[best] - mu)
         self._count += 1
         self._seen += 1
         cold = self._cold
@@ -135,9 +174,7 @@ class KalmanPredictor:
         """t_hat of the next stroke (ns) under its conditions (the last ones told when None)."""
         if self._cold is not None:
             return self._cold.predict()
-        phi = GRID[self._best][0]
-        mu = self._mu
-        return math.exp(mu + phi * (self._level[self._best] - mu) + self._cm.shift(conditions))
+        return math.exp(self._zhat + self._cm.shift(conditions))
 
     def extend(self, samples: Any) -> None:
         """Feed stored strokes in order (warm start); all are validated before any is taken."""
@@ -177,8 +214,9 @@ class KalmanPredictor:
             setattr(p, "_" + key, [float(x) for x in v])
         if not _finite(d.get("mu")):
             raise ValueError(f"predictor state mu must be a finite number, got {d.get('mu')!r}")
-        p._mu = float(d["mu"])
-        p._best = check_int("best", d.get("best"), 0, n - 1)
+        p._mu = mu = float(d["mu"])
+        p._best = best = check_int("best", d.get("best"), 0, n - 1)
+        p._zhat = mu + GRID[best][0] * (p._level[best] - mu)
         p._count = check_int("count", d.get("count"), 0)
         p._seen = check_int("seen", d.get("seen"), p._count)
         return p

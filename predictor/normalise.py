@@ -16,6 +16,7 @@ Units keep s of order one: frequency in kHz, voltage in 100 V, temperature in C.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 from .conditions import Conditions
@@ -30,6 +31,10 @@ P0 = (1.0, 1.0, 1e-3)
 #: A change smaller than this (1 Hz, 0.1 V, 0.1 C) between two strokes teaches nothing (the stroke's
 #: scatter hides it; the process model tracks a slow drift), so RLS runs only on real steps.
 MIN_STEP = (1e-3, 1e-3, 0.1)
+#: Prior variance of sensitivities the rig knows (`ConditionModel(prior)`: measured at commissioning or
+#: learned before): standard deviations of 0.1 per kHz, 0.1 per 100 V and 0.003 per C, a fifth to a
+#: half of a USM's drive sensitivities. A step's first stroke still corrects them (the cap stays P0).
+P_KNOWN = (1e-2, 1e-2, 1e-5)
 #: Forgetting of the sensitivities' information per informative stroke.
 FORGET = 0.995
 #: Variance of the noise on a log-time difference until the caller knows better (`learn`'s noise_var).
@@ -39,12 +44,18 @@ NOISE_VAR = 2.25e-4
 class ConditionModel:
     """Learns d ln t / d condition online; says how much a change of conditions moves ln t. O(9)."""
 
-    __slots__ = ("_c", "_p", "_prev_y", "_s")
+    __slots__ = ("_c", "_known", "_p", "_prev_y", "_s")
 
-    def __init__(self) -> None:
+    def __init__(self, prior: Sequence[float | None] | None = None) -> None:
+        """`prior`: d ln t per kHz, per 100 V, per C known beforehand (variance P_KNOWN); None for one
+        not known (0, variance P0)."""
         n = len(KEYS)
-        self._s = [0.0] * n
-        self._p = [[P0[i] if i == j else 0.0 for j in range(n)] for i in range(n)]
+        given = [None] * n if prior is None else check_sensitivities(prior)
+        self._s = [0.0 if v is None else v for v in given]
+        var = [P0[i] if v is None else P_KNOWN[i] for i, v in enumerate(given)]
+        self._p = [[var[i] if i == j else 0.0 for j in range(n)] for i in range(n)]
+        # Whether each sensitivity is known (given, or learned from a step of its condition).
+        self._known = [v is not None for v in given]
         self._c: list[float | None] = [None] * n  # the last stroke's conditions (held when missing)
         self._prev_y: float | None = None
 
@@ -53,34 +64,44 @@ class ConditionModel:
         """d ln t per kHz, per 100 V, per C, as learned."""
         return tuple(self._s)
 
+    @property
+    def known(self) -> tuple[float | None, ...]:
+        """The sensitivities given or learned from a step, None for one never seen to act: what a
+        predictor built later may start from (`ConditionModel(prior)`)."""
+        return tuple(s if k else None for s, k in zip(self._s, self._known, strict=True))
+
     def share_from(self, other: ConditionModel) -> None:
         """Learn the sensitivities together with `other` (the other direction of the same motor: the
         drive acts on both alike), so a step one direction has seen is known to the other at once.
         Each keeps its own last conditions and stroke; the sharing is not part of `state()`."""
         self._s = other._s
         self._p = other._p
+        self._known = other._known
 
     def _delta(self, conditions: Conditions | None) -> tuple[list[float], list[float | None]] | None:
         """(c - c_last per key, c) for these conditions; None when nothing known changed."""
         if not conditions:
             return None
         get = conditions.get
-        last = self._c
-        l0, l1, l2 = last
-        # Each in its unit; a missing or non-finite one holds its last value (inlined: the hot path).
+        l0, l1, l2 = self._c
+        # Each in its unit; a missing or non-finite one holds its last value (inlined: the hot path;
+        # v - v == 0 is False exactly for NaN and the infinities).
         v = get("frequency_hz")
-        c0 = l0 if v is None or not math.isfinite(v) else v * 1e-3
+        c0 = v * 1e-3 if v is not None and v - v == 0 else l0
         v = get("voltage_v")
-        c1 = l1 if v is None or not math.isfinite(v) else v * 1e-2
+        c1 = v * 1e-2 if v is not None and v - v == 0 else l1
         v = get("temperature_c")
-        c2 = l2 if v is None or not math.isfinite(v) else float(v)
+        c2 = float(v) if v is not None and v - v == 0 else l2
         if c0 == l0 and c1 == l1 and c2 == l2:
             return None
-        dc = [
-            0.0 if c0 is None or l0 is None else c0 - l0,
-            0.0 if c1 is None or l1 is None else c1 - l1,
-            0.0 if c2 is None or l2 is None else c2 - l2,
-        ]
+        if l0 is None or l1 is None or l2 is None or c0 is None or c1 is None or c2 is None:
+            dc = [
+                0.0 if c0 is None or l0 is None else c0 - l0,
+                0.0 if c1 is None or l1 is None else c1 - l1,
+                0.0 if c2 is None or l2 is None else c2 - l2,
+            ]
+        else:
+            dc = [c0 - l0, c1 - l1, c2 - l2]
         return dc, [c0, c1, c2]
 
     def shift(self, conditions: Conditions | None) -> float:
@@ -108,6 +129,10 @@ class ConditionModel:
             abs(dc[0]) >= MIN_STEP[0] or abs(dc[1]) >= MIN_STEP[1] or abs(dc[2]) >= MIN_STEP[2]
         ):
             self._rls(y - prev_y, dc, noise_var)
+            known = self._known
+            for i in range(len(dc)):
+                if abs(dc[i]) >= MIN_STEP[i]:
+                    known[i] = True
         s = self._s
         return s[0] * dc[0] + s[1] * dc[1] + s[2] * dc[2]
 
@@ -136,6 +161,7 @@ class ConditionModel:
             "p": [list(r) for r in self._p],
             "c": list(self._c),
             "prev_y": self._prev_y,
+            "known": list(self._known),
         }
 
     @classmethod
@@ -159,6 +185,14 @@ class ConditionModel:
         m._p = [[_num("p", x) for x in r] for r in p]
         y = d.get("prev_y")
         m._prev_y = None if y is None else _num("prev_y", y)
+        known = d.get("known", [False] * n)  # a state written before it was kept: nothing known
+        if (
+            not isinstance(known, list | tuple)
+            or len(known) != n
+            or not all(isinstance(k, bool) for k in known)
+        ):
+            raise ValueError(f"condition state known must be {n} booleans, got {known!r}")
+        m._known = list(known)
         return m
 
 
@@ -166,3 +200,20 @@ def _num(name: str, v: Any) -> float:
     if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
         raise ValueError(f"condition state {name} holds {v!r}, not a finite number")
     return float(v)
+
+
+def check_sensitivities(v: Any) -> list[float | None]:
+    """Three finite numbers or None (d ln t per kHz, per 100 V, per C); ValueError naming the value."""
+    if (
+        isinstance(v, str | bytes)
+        or not isinstance(v, Sequence)
+        or len(v) != len(KEYS)
+        or not all(
+            x is None or (not isinstance(x, bool) and isinstance(x, int | float) and math.isfinite(x))
+            for x in v
+        )
+    ):
+        raise ValueError(
+            f"sensitivities must be 3 finite numbers or None (per kHz, per 100 V, per C), got {v!r}"
+        )
+    return [None if x is None else float(x) for x in v]

@@ -138,3 +138,57 @@ def test_the_two_directions_learn_the_drive_together() -> None:
     alone = [first_off_error_after_step(False, seed) for seed in range(6)]
     assert sum(shared) / 6 < 150_000  # about a stroke's scatter (~90 us)
     assert sum(alone) / 6 > 300_000  # about the whole step
+
+
+def test_the_written_out_grid_step_is_the_grid() -> None:
+    # _grid_step spells GRID's numbers out for speed: it must be the loop over GRID, bit for bit.
+    from usmswitch.predictor.kalman import FORGET, _grid_step
+
+    rng = random.Random(4)
+    for _ in range(200):
+        levels = [16.0 + rng.gauss(0, 0.05) for _ in GRID]
+        scores = [abs(rng.gauss(0, 1e-3)) for _ in GRID]
+        z, mu, moved = 16.0 + rng.gauss(0, 0.05), 16.0 + rng.gauss(0, 0.05), rng.gauss(0, 0.02)
+        want_levels, want_scores = [], []
+        for (phi, k), v, sc in zip(GRID, levels, scores, strict=True):
+            pr = phi * v + (1.0 - phi) * mu + moved
+            e = z - pr
+            want_levels.append(pr + k * e)
+            want_scores.append(FORGET * sc + e * e)
+        got_levels, got_scores = _grid_step(levels, scores, z, mu, moved)
+        assert got_levels == pytest.approx(want_levels, rel=1e-15, abs=0)
+        assert got_scores == pytest.approx(want_scores, rel=1e-12, abs=1e-18)
+
+
+def _first_step_error(sensitivities: tuple[float, float, float] | None, seed: int) -> float:
+    """|error| of the first stroke after a 40 -> 40.5 kHz, 500 -> 450 V step (ln t: +0.1 per kHz,
+    -0.2 per 100 V), for a predictor told `sensitivities` beforehand."""
+    scale = series(700, seed=seed)
+    p = make_predictor("kalman", nominal_ns=8_000_000, sensitivities=sensitivities)
+    for i in range(700):
+        f, v = (40_000.0, 500.0) if i < 600 else (40_500.0, 450.0)
+        c = {"frequency_hz": f, "voltage_v": v, "temperature_c": 25.0}
+        t = round(8e6 * scale[i] * math.exp(0.1 * (f - 40_000.0) / 1e3 - 0.2 * (v - 500.0) / 1e2))
+        if i == 600:
+            return abs(t - p.predict(c))
+        p.update(t, c)
+    raise AssertionError("no step")
+
+
+def test_known_sensitivities_predict_the_first_step_ever() -> None:
+    # The step moves ln t by 0.15 (~1.3 ms): news to a predictor told nothing; within a stroke's
+    # scatter to one told the sensitivities (here 10 % off, as a commissioning would have them).
+    blind = [_first_step_error(None, seed) for seed in range(5)]
+    known = [_first_step_error((0.11, -0.18, 0.0), seed) for seed in range(5)]
+    assert min(blind) > 1_000_000
+    assert sum(known) / 5 < 200_000
+
+
+def test_sensitivities_are_checked_and_kept_through_the_state() -> None:
+    k = KalmanPredictor(nominal_ns=8_000_000, sensitivities=(0.1, -0.2, 0.01))
+    assert k.sensitivities == (0.1, -0.2, 0.01)
+    q = KalmanPredictor.from_state(msgpack.unpackb(msgpack.packb(k.state())))
+    assert q.sensitivities == (0.1, -0.2, 0.01)
+    for bad in ((0.1, 0.2), (0.1, float("nan"), 0.0), "abc", (True, 0.0, 0.0)):
+        with pytest.raises(ValueError, match="sensitivities"):
+            make_predictor("kalman", nominal_ns=8_000_000, sensitivities=bad)
