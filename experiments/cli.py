@@ -25,7 +25,17 @@ from typing import Any
 from usmswitch.client import RecordsFileError, open_records
 from usmswitch.daemon.version import PACKAGE_VERSION
 
-from . import aic, closed_loop, identify, open_loop, reliability, report, speed, temperature
+from . import (
+    aic,
+    closed_loop,
+    drive_sensitivity,
+    identify,
+    open_loop,
+    reliability,
+    report,
+    speed,
+    temperature,
+)
 from .context import Context, NeedsSimulatedRig, no_progress
 from .data import Strokes
 from .rig import LiveRig, Progress, SimulatedRig
@@ -40,6 +50,7 @@ EXPERIMENTS: dict[str, tuple[str, Callable[[Context], dict[str, Any]]]] = {
     "aic": ("aic", aic.run),
     "closed-loop": ("closed_loop", closed_loop.run),
     "reliability": ("reliability", reliability.run),
+    "drive-sensitivity": ("drive_sensitivity", drive_sensitivity.run),
 }
 #: What a records file can answer (the others need a rig to act on).
 FROM_RECORDS = ("open-loop", "aic", "closed-loop", "reliability")

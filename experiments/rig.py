@@ -40,6 +40,7 @@ class RunSpec:
     mode: str = "closed"
     open_delay_ns: int = 0
     frequency_hz: float | None = None
+    voltage_vpp: float | None = None
 
 
 class Rig(Protocol):
@@ -98,12 +99,20 @@ class SimulatedRig:
 
     def run(self, spec: RunSpec, progress: Progress | None = None) -> Strokes:
         """One run; the model and the predictors carry on from the last run."""
-        self.model.set_drive(frequency_hz=spec.frequency_hz or self.params.reference_frequency_hz)
+        self.model.set_drive(
+            frequency_hz=spec.frequency_hz or self.params.reference_frequency_hz,
+            voltage_vpp=spec.voltage_vpp or self.params.reference_voltage_vpp,
+        )
         self.loop.set_mode(Mode(spec.mode), spec.open_delay_ns)
         self.loop.set_targets([spec.target_ns, spec.target_ns])  # a short target is the experiment's choice
         self._collected = []
         self._progress = progress
-        settings = {"experiment": spec.name, "seed": self.seed, "frequency_hz": self.model.frequency_hz}
+        settings = {
+            "experiment": spec.name,
+            "seed": self.seed,
+            "frequency_hz": self.model.frequency_hz,
+            "voltage_vpp": self.model.voltage_vpp,
+        }
         try:
             run = self.loop.run_cycles(spec.period_ns, spec.count, kind="experiment", settings=settings)
         finally:
@@ -137,8 +146,9 @@ class LiveRig:
         c = self.client
         if c.status()["state"] == "cycling":
             c.stop_cycling()
-        if spec.frequency_hz is not None:
-            c.set_drive(frequency_hz=spec.frequency_hz)  # a drive board or the sim: else UNAVAILABLE
+        if spec.frequency_hz is not None or spec.voltage_vpp is not None:
+            # A drive board or the sim: else UNAVAILABLE.
+            c.set_drive(frequency_hz=spec.frequency_hz, voltage_vpp=spec.voltage_vpp)
         c.set_mode(spec.mode, spec.open_delay_ns if spec.mode == "open" else None)
         run = c.run(
             count=spec.count, period=spec.period_ns, target=spec.target_ns, allow_late=True, timeout=10

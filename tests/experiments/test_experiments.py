@@ -193,3 +193,19 @@ def test_the_console_script_runs(tmp_path: Path) -> None:
     assert r.returncode == 0, r.stderr
     assert "seed 5" in r.stderr and (tmp_path / "report.md").exists()
     assert time.monotonic() - t0 < 120
+
+
+def test_drive_sensitivity_measures_the_rigs_drive_and_prints_the_config(tmp_path: Path) -> None:
+    # Commissioning on the simulated rig: detuning up slows it, a lower voltage slows it; the measured
+    # chords, told to the kalman model, predict the first drive step of the quality scenarios
+    # (benchmarks/bench_quality.py measures how well, on other seeds).
+    from usmswitch.daemon.config import load_config
+
+    out = tmp_path / "ds"
+    assert run("drive-sensitivity", "--seed", "5", "--out", str(out)) == 0
+    ds = json.loads((out / "summary.json").read_text())["drive_sensitivity"]
+    assert 0.05 < ds["per_khz"] < 0.4 and ds["stderr_per_khz"] < 0.02
+    assert -0.5 < ds["per_100v"] < -0.05 and ds["stderr_per_100v"] < 0.02
+    lines = dict(line.split(" = ") for line in ds["config"].splitlines())
+    cfg = load_config(overrides={f"control.{k}": v.strip('"') for k, v in lines.items()})
+    assert cfg.control.sensitivity_frequency == pytest.approx(ds["per_khz"], rel=1e-3)
