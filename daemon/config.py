@@ -22,6 +22,7 @@ from types import MappingProxyType
 from typing import Any
 
 from usmswitch.predictor import DEFAULT_MODEL, MAX_ORDER, MODELS, check_stroke_ns, min_samples
+from usmswitch.predictor.factory import OPTIONS as PREDICTOR_OPTIONS
 from usmswitch.sim import FaultPlan
 
 from .config_values import (
@@ -43,6 +44,7 @@ from .config_values import (
     parse_listen,
     parse_modbus_url,
     path_value,
+    per_unit,
     positive_duration,
     positive_duration_at_most,
     positive_float,
@@ -156,6 +158,11 @@ class ControlConfig:
     nominal_on_ns: int = 10_500_000  # that of "on" strokes (default: nominal)
     nominal_off_ns: int = 10_500_000  # that of "off" strokes (default: nominal)
     warm_start: int = 100  # strokes per direction reloaded from the records at start (<= window)
+    # d ln t per kHz, per 100 V, per C the rig is known to have (usmswitch-experiment drive-sensitivity):
+    # the "kalman" model predicts a drive step with them from the first. None: not known, learned.
+    sensitivity_frequency: float | None = field(default=None, metadata={"unit": "/kHz"})
+    sensitivity_voltage: float | None = field(default=None, metadata={"unit": "/100V"})
+    sensitivity_temperature: float | None = field(default=None, metadata={"unit": "/C"})
     stroke_timeout_ns: int = 50_000_000  # no arrival by then: stall, drive off, FAULT
     late_margin_ns: int = 50_000  # a start later than this past command + delay is flagged LATE
 
@@ -166,6 +173,12 @@ class ControlConfig:
     def nominal_for(self, direction: int) -> int:
         """The cold-start t_hat of a direction (0 on, 1 off), before its first stroke."""
         return self.nominal_off_ns if direction else self.nominal_on_ns
+
+    @property
+    def sensitivities(self) -> tuple[float | None, float | None, float | None] | None:
+        """The configured sensitivities as the predictor takes them; None when none is configured."""
+        s = (self.sensitivity_frequency, self.sensitivity_voltage, self.sensitivity_temperature)
+        return None if s == (None, None, None) else s
 
 
 @dataclass(frozen=True)
@@ -485,6 +498,17 @@ def _control(t: Table) -> ControlConfig:
             check_stroke_ns(value)
         except ValueError as exc:
             raise ConfigError(t.key(key), str(exc)) from None
+    sensitivity = {
+        "sensitivity_frequency": t.get("sensitivity_frequency", per_unit({"/kHz": 1.0, "/Hz": 1e3}), None),
+        "sensitivity_voltage": t.get("sensitivity_voltage", per_unit({"/100V": 1.0, "/V": 1e2}), None),
+        "sensitivity_temperature": t.get("sensitivity_temperature", per_unit({"/C": 1.0, "/K": 1.0}), None),
+    }
+    takes = "sensitivities" in PREDICTOR_OPTIONS[model]
+    for key, value in sensitivity.items():
+        if value is not None and not takes:
+            raise ConfigError(
+                t.key(key), f"model = {model!r} takes no sensitivities (the 'kalman' model does)"
+            )
     # More than the window would be read and thrown away: take what the predictor can hold.
     warm = min(table_int(t, "warm_start", d.warm_start, 0, None), window)
     timeout = t.get("stroke_timeout", positive_duration, d.stroke_timeout_ns)
@@ -508,6 +532,7 @@ def _control(t: Table) -> ControlConfig:
         nominal_on_ns=nominals["nominal_on"],
         nominal_off_ns=nominals["nominal_off"],
         warm_start=warm,
+        **sensitivity,
         stroke_timeout_ns=timeout,
         late_margin_ns=t.get("late_margin", duration, d.late_margin_ns),
     )
@@ -594,6 +619,8 @@ def _section_to_dict(obj: Any) -> dict[str, Any]:
                 value = duration_text(value)  # with its unit, as the loader wants it
         if fl.metadata.get("octal"):
             out[name] = f"0o{value:03o}"
+        elif fl.metadata.get("unit") and value is not None:
+            out[name] = f"{value!r}{fl.metadata['unit']}"  # exact, with its unit, as the loader wants it
         elif is_dataclass(value):
             out[name] = _section_to_dict(value)
         elif isinstance(value, Path):

@@ -7,6 +7,7 @@ each (a duration with its unit, an integer in bounds, a path, a socket mode, CPU
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from collections.abc import Callable
@@ -237,6 +238,33 @@ def choice(choices: tuple[str, ...]) -> Callable[[str, Any], str]:
         if v not in choices:
             raise ConfigError(key, f"{v!r} is not one of {', '.join(repr(c) for c in choices)}")
         return v
+
+    return parse
+
+
+def per_unit(units: dict[str, float]) -> Callable[[str, Any], float]:
+    """A rate written with its unit, "0.15/kHz": the number per the first unit of `units` (each unit
+    maps to the factor that converts to it). A bare number is refused: 0.15 per Hz or per kHz differ
+    a thousandfold."""
+    first = next(iter(units))
+
+    def parse(key: str, v: Any) -> float:
+        if isinstance(v, bool) or not isinstance(v, str):
+            example = (
+                f'"{v}{first}"' if isinstance(v, int | float) and not isinstance(v, bool) else f'"0.1{first}"'
+            )
+            raise ConfigError(key, f"{show(v)} has no unit: write it as text with one, e.g. {example}")
+        text = v.strip().replace(" ", "")
+        for unit, factor in units.items():
+            if text.endswith(unit):
+                try:
+                    x = float(text[: -len(unit)])
+                except ValueError:
+                    break
+                if not math.isfinite(x):
+                    break
+                return x * factor
+        raise ConfigError(key, f'{v!r} is not a number per {" or ".join(units)} (e.g. "0.1{first}")')
 
     return parse
 

@@ -59,7 +59,11 @@ def direction_predictors(config: Config) -> list[Predictor]:
     """The two directions' predictors as [control] configures them (each its own nominal; a model that
     learns the motor as a whole learns it from both)."""
     c = config.control
-    options = {"order": c.order, "window": c.window, "max_order": c.max_order} if c.model in AR_MODELS else {}
+    options: dict[str, Any] = {}
+    if c.model in AR_MODELS:
+        options = {"order": c.order, "window": c.window, "max_order": c.max_order}
+    elif c.sensitivities is not None:  # the config refuses them for a model that does not take them
+        options = {"sensitivities": c.sensitivities}
     nominals = [c.nominal_for(d) for d in (Direction.ON, Direction.OFF)]
     return make_predictors(c.model, nominals, **options)
 

@@ -247,6 +247,19 @@ def test_file_values_and_units(tmp_path: Path):
         ('[metrics]\nlisten = "localhost"', "metrics.listen: 'localhost' is not host:port"),
         ('[metrics]\nlisten = "127.0.0.1:70000"', "metrics.listen: '127.0.0.1:70000': port 70000 is outside"),
         ('[metrics]\nport = "9817"', "metrics.port: unknown key (known in [metrics]: listen)"),
+        (
+            "[control]\nsensitivity_frequency = 0.15",
+            "control.sensitivity_frequency: 0.15 (float) has no unit",
+        ),
+        (
+            '[control]\nsensitivity_voltage = "-0.2"',
+            "control.sensitivity_voltage: '-0.2' is not a number per",
+        ),
+        ('[control]\nsensitivity_frequency = "0.1/MHz"', "control.sensitivity_frequency: '0.1/MHz' is not"),
+        (
+            '[control]\nmodel = "paper"\nsensitivity_frequency = "0.1/kHz"',
+            "control.sensitivity_frequency: model = 'paper' takes no sensitivities",
+        ),
         ("daemon = 3", "daemon: expected a table, got 3 (int)"),
         ('[deamon]\nlog_level = "info"', "deamon: unknown key (known sections: "),
     ],
@@ -397,3 +410,15 @@ def test_each_direction_gets_its_own_nominal(tmp_path: Path):
     on, off = direction_predictors(cfg)
     assert (on.predict(), off.predict()) == (9_000_000.0, 8_500_000.0)
     assert cfg.control.model == DEFAULT_MODEL
+
+
+def test_sensitivities_with_their_units_reach_the_kalman_predictors_and_write_back(tmp_path: Path):
+    text = '[control]\nsensitivity_frequency = "150e-6/Hz"\nsensitivity_voltage = "-0.0023/V"\n'
+    cfg = load_config(write(tmp_path, text), env=ENV)
+    f, v, t = cfg.control.sensitivities
+    assert f == pytest.approx(0.15) and v == pytest.approx(-0.23) and t is None
+    on, off = direction_predictors(cfg)
+    assert on.known_sensitivities == off.known_sensitivities == (f, v, None)
+    again = load_config(overrides={f"control.{k}": x for k, x in cfg.to_dict()["control"].items()}, env=ENV)
+    assert again.control.sensitivities == cfg.control.sensitivities  # written with the unit, exactly
+    assert load_config(env=ENV).control.sensitivities is None  # unset: learned
