@@ -19,6 +19,7 @@ strokes: the last load starts the server, and the window runs while the shipper 
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import random
@@ -37,7 +38,8 @@ import msgpack
 
 from benchmarks.bench_loop import PRIORITY, fifo_allowed, percentiles
 from benchmarks.table import print_table
-from usmswitch.client import Client, RpcError
+from usmswitch.client import Client, ConnectionClosed, RpcError
+from usmswitch.daemon.children import wait_exit
 from usmswitch.daemon.wire import estop_socket_path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -77,7 +79,14 @@ def load_unread_history(path: str, stop: Any, conns: int = 1) -> None:
 def load_exports(path: str, stop: Any) -> None:
     with Client(path, timeout=60) as c:
         while not stop.is_set():
-            c.history(10_000)
+            try:
+                c.history(10_000)
+            except ConnectionClosed:
+                return  # the daemon went (the SIGTERM row ends it under this load)
+            except (OSError, RpcError):
+                if stop.is_set():
+                    return  # the load ended mid-call
+                raise
 
 
 def load_set_target(path: str, stop: Any) -> None:
@@ -255,13 +264,64 @@ def sigterm_exit_ms(runs: int = 5) -> list[float]:
         ]  # fmt: skip
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         time.sleep(2.5)  # started and waiting for the first start
-        t0 = time.perf_counter()
-        proc.send_signal(signal.SIGTERM)
-        rc = proc.wait(30)
-        out.append((time.perf_counter() - t0) * 1e3)
+        rc, took = term_and_wait(proc)
+        out.append(took)
+        if rc is None:
+            proc.kill()
+            raise RuntimeError("usmswitchd still ran 30 s after SIGTERM")
         if rc != 0:
             raise RuntimeError(f"usmswitchd exited {rc} after SIGTERM")
     return out
+
+
+HEAVY_LOAD = "10 export clients and 8 x 32 unread history 10000"
+
+
+def term_and_wait(proc: subprocess.Popen[bytes]) -> tuple[int | None, float]:
+    """SIGTERM `proc`; (exit status or None after 30 s, ms from the signal to the exit).
+
+    Not proc.wait(30): its polling sleeps grow to 50 ms and landed in the figure (114 ms measured
+    for an exit at 64 ms); the pidfd wakes us the moment the daemon exits. And the observer runs
+    above the daemon's priority while it waits, when it may: at normal priority, on a machine
+    the load keeps busy, its own wake-up came 30-60 ms late and was counted as the daemon's.
+    """
+    raised = False
+    if fifo_allowed():
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(PRIORITY + 1))
+            raised = True
+    try:
+        t0 = time.perf_counter()
+        proc.send_signal(signal.SIGTERM)
+        rc = wait_exit(proc, 30)
+        return rc, (time.perf_counter() - t0) * 1e3
+    finally:
+        if raised:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
+def sigterm_under_load(proc: subprocess.Popen[bytes], sock: str, ctx: Any) -> float:
+    """SIGTERM to exit (ms) of the cycling bench daemon while the heaviest readers pull its history:
+    the server process must not wait for a reader thread packing a long reply."""
+    stop = ctx.Event()
+    workers = [ctx.Process(target=load_exports, args=(sock, stop)) for _ in range(10)]
+    workers.append(ctx.Process(target=load_unread_history, args=(sock, stop), kwargs={"conns": 8}))
+    for w in workers:
+        w.start()
+    try:
+        time.sleep(3.0)  # the readers have started and are busy packing
+        rc, took = term_and_wait(proc)
+    finally:
+        stop.set()
+        for w in workers:
+            w.join(10)
+            if w.is_alive():
+                w.kill()
+    if rc is None:
+        raise RuntimeError("usmswitchd still ran 30 s after SIGTERM under load")
+    if rc != 0:
+        raise RuntimeError(f"usmswitchd exited {rc} after SIGTERM under load")
+    return took
 
 
 def postgres_with_backlog(state: Path) -> tuple[Any, str] | None:
@@ -374,9 +434,11 @@ def main() -> int:
                 (name, len(lat), p50 / 1e3, p99 / 1e3, mx / 1e3, e50 / 1e3, e99 / 1e3, emx / 1e3, *rss)
             )
             time.sleep(2.5)  # connections the load left die on their timeouts
+        term_loaded = sigterm_under_load(proc, str(sock), ctx)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        proc.communicate(timeout=30)
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            proc.communicate(timeout=30)
         if pg is not None:
             pg[0].close()
     idle_p99 = rows[0][3]
@@ -394,7 +456,9 @@ def main() -> int:
     checks += [(f"late p99 <= 1.2x idle: {r[0]}", r[3] <= 1.2 * max(idle_p99, 1.0)) for r in rows[1:]]
     term = sigterm_exit_ms()
     print(f"SIGTERM -> exit with a 5 s target, ms: {' '.join(f'{x:.0f}' for x in term)}")
+    print(f"SIGTERM -> exit while cycling under {HEAVY_LOAD}: {term_loaded:.0f} ms")
     checks.append(("SIGTERM exits within 100 ms (worst of 5)", max(term) <= 100.0))
+    checks.append((f"SIGTERM exits within 100 ms under {HEAVY_LOAD}", term_loaded <= 100.0))
     for label, ok in checks:
         print(f"  {'ok  ' if ok else 'MISS'} {label}")
     return 0 if all(ok for _, ok in checks) else 1
