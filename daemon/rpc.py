@@ -40,6 +40,10 @@ from .wire import BUILTIN_METHODS, SERVER_TOPICS, ErrorCode, Limits, RpcError, n
 
 log = logging.getLogger("usmswitch.rpc")
 
+#: How long stop() lets the server process close its clients before it is killed. An idle one
+#: exits in ~5 ms; one starved of CPU by busy clients may take 100 ms and more.
+STOP_GRACE_S = 0.02
+
 
 # -- the daemon side -------------------------------------------------------------------------------
 
@@ -419,7 +423,9 @@ class RpcServer:
 
     def _end_link(self, link: _Link) -> None:
         if link.proc is not None:
-            if wait_exit(link.proc, 5.0) is None:
+            # The process holds nothing to save: a grace for it to close its clients cleanly,
+            # then SIGKILL, so a server starved by busy clients never delays the daemon's exit.
+            if wait_exit(link.proc, STOP_GRACE_S) is None:
                 link.proc.kill()
                 link.proc.wait()
         elif link.thread is not None:
