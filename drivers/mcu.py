@@ -291,8 +291,7 @@ class McuDaq(Daq):
                 try:
                     self._send(msg, waiter)
                 except TransportLost as exc:
-                    self._link_failed(f"write failed: {exc}")
-                    raise
+                    raise self._write_lost(exc) from exc
                 if waiter.done.wait(self.reply_timeout_ns / 1e9):
                     break
                 self.stats.reply_timeouts += 1
@@ -324,8 +323,7 @@ class McuDaq(Daq):
         try:
             self._send(msg)
         except TransportLost as exc:
-            self._link_failed(f"write failed: {exc}")
-            raise
+            raise self._write_lost(exc) from exc
 
     def _command(self, t_cmd_ns: int | None) -> int:
         arm = self._armed_msg
@@ -535,6 +533,12 @@ class McuDaq(Daq):
             except TransportLost as exc:
                 self._link_failed(f"write failed: {exc}")
         return True
+
+    def _write_lost(self, exc: TransportLost) -> DaqDisconnected:
+        """Drop the link after a write failed; the error for the caller to raise says the link was
+        lost (the bare OS error, such as EBADF from a port closed under the write, does not)."""
+        self._link_failed(f"write failed: {exc}")
+        return DaqDisconnected(f"{self.name}: link lost: write failed: {exc}")
 
     def _link_failed(self, why: str) -> None:
         if self._mark_lost(why, report=True):
