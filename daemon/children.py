@@ -30,3 +30,21 @@ def wait_exit(proc: subprocess.Popen[bytes], timeout_s: float) -> int | None:
         return proc.wait(timeout=timeout_s)
     except subprocess.TimeoutExpired:
         return None
+
+
+#: How long a child killed at stop is waited for. Its exit runs at its own priority: a niced
+#: child on a busy machine can take 50 ms and more to be torn down after SIGKILL, time the
+#: daemon's exit must not wait for (a killed process holds no lock and serves nobody; whoever
+#: reaps orphans reaps it).
+KILLED_REAP_S = 0.005
+
+
+def end_child(proc: subprocess.Popen[bytes], grace_s: float) -> int | None:
+    """Give a child told to stop `grace_s` to exit, then SIGKILL it; its exit status, or None when
+    it was killed and is still being torn down (it cannot run another instruction)."""
+    code = wait_exit(proc, grace_s)
+    if code is not None:
+        return code
+    with contextlib.suppress(ProcessLookupError):
+        proc.kill()
+    return wait_exit(proc, KILLED_REAP_S)

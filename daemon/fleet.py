@@ -21,8 +21,11 @@ from .metrics import STATE_FEED, STROKES_FEED, StrokeMetrics
 from .record import CycleRecord, RunRecord
 from .records import RecordStore
 from .rpc import RpcServer
-from .shipper_process import ShipperProcess
+from .shipper_process import STOP_OVERHEAD_NS, ShipperProcess
 from .version import PACKAGE_VERSION
+
+#: The least a stopping shipper is given to ship what the records file committed last.
+SHIP_DRAIN_MIN_NS = 5_000_000
 
 log = structlog.get_logger("usmswitch.fleet")
 
@@ -81,12 +84,14 @@ class Fleet:
         if self.shipper is not None:
             self.shipper.start()
 
-    def stop(self) -> None:
-        """After the record store closed: ship what it committed (bounded), then stop the shipper."""
+    def stop(self, deadline_ns: int) -> None:
+        """After the record store closed: ship what it committed, the shipper gone by `deadline_ns`
+        (monotonic; at least SHIP_DRAIN_MIN_NS of shipping); what is left ships at the next start."""
         if self.shipper is not None:
-            self.shipper.stop()
+            drain = deadline_ns - time.monotonic_ns() - STOP_OVERHEAD_NS
+            caught_up = self.shipper.stop(max(drain, SHIP_DRAIN_MIN_NS))
             status = self.shipper.status()
-            if status["lag"] or status["error"]:
+            if not caught_up:
                 log.warning("postgres shipping stopped behind: the rest ships at the next start", **status)
 
     def status(self) -> dict[str, Any] | None:

@@ -34,7 +34,7 @@ from typing import Any
 
 import msgpack
 
-from .children import wait_exit
+from .children import end_child
 from .rpc_process import serve
 from .wire import BUILTIN_METHODS, SERVER_TOPICS, ErrorCode, Limits, RpcError, note_frame, packb
 
@@ -425,9 +425,7 @@ class RpcServer:
         if link.proc is not None:
             # The process holds nothing to save: a grace for it to close its clients cleanly,
             # then SIGKILL, so a server starved by busy clients never delays the daemon's exit.
-            if wait_exit(link.proc, STOP_GRACE_S) is None:
-                link.proc.kill()
-                link.proc.wait()
+            end_child(link.proc, STOP_GRACE_S)
         elif link.thread is not None:
             link.thread.join(timeout=5)
         with contextlib.suppress(OSError):

@@ -29,13 +29,17 @@ from typing import Any
 
 import structlog
 
-from .children import wait_exit
+from .children import KILLED_REAP_S, end_child, wait_exit
 from .pg_schema import redact_url
 
 log = structlog.get_logger("usmswitch.shipper")
 
 STATUS_EVERY_S = 0.2
 RESTART_PAUSE_S = 2.0
+#: How long past its drain a stopping shipper may take to end before it is killed.
+EXIT_GRACE_S = 0.02
+#: The most stop() takes beyond its drain: the grace, then the wait for a killed one.
+STOP_OVERHEAD_NS = int((EXIT_GRACE_S + KILLED_REAP_S) * 1e9) + 1_000_000
 NICE = 10
 
 
@@ -133,17 +137,23 @@ class ShipperProcess:
         self._send("w\n")
 
     def stop(self, drain_timeout_ns: int = 2_000_000_000) -> bool:
-        """Ship what is committed for up to `drain_timeout_ns`, then end; True when caught up."""
+        """Ship what is committed for up to `drain_timeout_ns`, then end; True when caught up.
+
+        A shipper still busy EXIT_GRACE_S after that (a statement the database is slow to answer,
+        a process starved of CPU) is killed: its transaction rolls back, and what it held ships
+        again, once, at the next start."""
         self._stopping = True
         proc = self._proc
         if proc is None:
             return False
         self._send(f"stop {drain_timeout_ns}\n")
-        if wait_exit(proc, drain_timeout_ns / 1e9 + 10) is None:
-            proc.kill()
-            proc.wait()
-        if self._thread is not None:
-            self._thread.join(5)
+        killed = wait_exit(proc, drain_timeout_ns / 1e9 + EXIT_GRACE_S) is None
+        if killed:
+            end_child(proc, 0.0)
+        if self._thread is not None and not killed:
+            self._thread.join(5)  # a killed one's pipe closes when the kernel is done with it
+        if killed:  # its last status may predate the final commits: say it did not finish
+            self._status = {**self._status, "error": "stopped before its drain finished"}
         status = self._status
         return status["lag"] == 0 and status["error"] is None
 
@@ -208,4 +218,9 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    status = main()
+    # Shipped, stopped and reported: skip the teardown (psycopg's pool and threads, the modules),
+    # which the daemon's SIGTERM-to-exit would otherwise wait for.
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
