@@ -55,7 +55,7 @@ SWITCH_INTERVAL_S = 0.0002
 #: server process gone and the records committed is what PostgreSQL shipping may still take;
 #: the rest ships at the next start. Keeps SIGTERM-to-exit within 100 ms with a database (the
 #: exit itself takes ~5 ms after stop()).
-STOP_BUDGET_NS = 70_000_000
+STOP_BUDGET_NS = 50_000_000
 # The live line in a terminal is redrawn at most this often.
 LIVE_LINE_NS = 250_000_000
 
