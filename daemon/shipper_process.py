@@ -68,6 +68,7 @@ class ShipperProcess:
         self.where = redact_url(url)
         #: Called before each status line is handled (the loop's wait_turn).
         self.gate = gate
+        self._committed_cycle = 0  # the last stroke committed here, as the record writer said
         self._status: dict[str, Any] = {
             "url": self.where,
             "connected": False,
@@ -134,6 +135,8 @@ class ShipperProcess:
 
     def wake(self, records: list[Any] | None = None) -> None:
         """Records were committed (the record writer's thread): a few bytes down a pipe."""
+        if records:
+            self._committed_cycle = max(self._committed_cycle, records[-1].cycle)
         self._send("w\n")
 
     def stop(self, drain_timeout_ns: int = 2_000_000_000) -> bool:
@@ -152,8 +155,10 @@ class ShipperProcess:
             end_child(proc, 0.0)
         if self._thread is not None and not killed:
             self._thread.join(5)  # a killed one's pipe closes when the kernel is done with it
-        if killed:  # its last status may predate the final commits: say it did not finish
-            self._status = {**self._status, "error": "stopped before its drain finished"}
+        if killed:  # its last status predates the final commits: the lag as we know it
+            shipped = self._status.get("shipped_cycle") or 0
+            lag = max(self._status.get("lag") or 0, self._committed_cycle - shipped)
+            self._status = {**self._status, "lag": lag, "error": "stopped before its drain finished"}
         status = self._status
         return status["lag"] == 0 and status["error"] is None
 

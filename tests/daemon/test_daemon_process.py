@@ -199,3 +199,47 @@ def test_sigterm_during_a_5_s_target_exits_at_once_recording_the_abort(tmp_path:
     con = sqlite3.connect(tmp_path / "state" / "records.sqlite")
     (flags, start_ns) = con.execute("SELECT flags, t_start_ns FROM cycles ORDER BY cycle DESC").fetchone()
     assert start_ns is None and flags & Flag.ABORTED and not flags & (Flag.STALL | Flag.FAULT)
+
+
+def test_a_frozen_server_process_does_not_hold_the_exit(tmp_path: Path) -> None:
+    """A server process that cannot answer the stop (here SIGSTOPped; in life, starved by busy
+    clients) is killed after its grace: the daemon exits 0 with its records, not 5 s later."""
+    proc = start(tmp_path)
+    try:
+        with wait_for_socket(tmp_path, proc) as client:
+            while client.status()["cycle"] < 5:
+                time.sleep(0.02)
+        children = subprocess.run(
+            ["pgrep", "-P", str(proc.pid), "-f", "usmswitch.daemon.rpc_process"],
+            capture_output=True,
+            text=True,
+        ).stdout.split()
+        assert len(children) == 1, children
+        server = int(children[0])
+        os.kill(server, signal.SIGSTOP)
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err.decode()[-2000:]
+    assert took < 2.0, f"exit took {took:.2f} s"  # it waited 5 s for the server before
+    assert _ended(server), f"the server process {server} still runs"
+    stopped = [x for x in log_lines(err) if x.get("event") == "stopped"]
+    assert stopped and stopped[0]["flushed"] and stopped[0]["records"] == len(rows(tmp_path))
+
+
+def _ended(pid: int, timeout_s: float = 5.0) -> bool:
+    """True once `pid` is gone or a zombie (killed; reaped by whoever reaps orphans here)."""
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (FileNotFoundError, ProcessLookupError):
+            return True
+        if state in ("Z", "X"):
+            return True
+        time.sleep(0.05)
+    return False

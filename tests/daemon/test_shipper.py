@@ -278,3 +278,42 @@ def test_a_shipper_process_that_dies_is_started_again_and_catches_up(pg, tmp_pat
         )
         assert _status(sock)["state"] == "cycling"
     assert pg_records(server, db, "rigA") == sqlite_records(tmp_path / "state" / "records.sqlite")
+
+
+def test_a_frozen_shipper_does_not_hold_the_exit_and_the_rest_ships_next_time(pg, ship, tmp_path: Path):
+    """At SIGTERM the shipper is given until 50 ms after the signal: one that cannot ship (here
+    SIGSTOPped; in life, a slow database or a starved process) is killed, the daemon exits at once
+    saying it stopped behind, and what was not shipped ships, once, at the next start."""
+    server, db, url = pg
+    args = daemonproc.daemon_args(tmp_path, "--rig", "rigA", "--period", "20ms", "--postgres", url)
+    proc = daemonproc.spawn(args)
+    try:
+        sock = tmp_path / "d.sock"
+        daemonproc.wait_serving(sock, proc)
+        wait_for(lambda: _status(sock)["records"]["postgres"]["shipped_cycle"] >= 10, what="shipping")
+        children = subprocess.run(
+            ["pgrep", "-P", str(proc.pid), "-f", "usmswitch.daemon.shipper_process"],
+            capture_output=True,
+            text=True,
+            check=False,
+        ).stdout.split()
+        assert len(children) == 1, children
+        os.kill(int(children[0]), signal.SIGSTOP)
+        time.sleep(0.3)  # strokes committed that it cannot ship
+        t0 = time.monotonic()
+        err = daemonproc.stop(proc).decode()
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err[-2000:]
+    assert took < 2.0, f"exit took {took:.2f} s"  # the drain was 2 s, and a frozen shipper 12 s
+    behind = [json.loads(x) for x in err.splitlines() if "postgres shipping stopped behind" in x]
+    assert behind and behind[0]["lag"] > 0, err[-2000:]
+    path = tmp_path / "state" / "records.sqlite"
+    local = sqlite_records(path)
+    assert len(pg_records(server, db, "rigA")) < len(local)
+    again = ship(path, url, "rigA")
+    wait_for(lambda: again.shipped_cycle == local[-1].cycle, what="the rest shipped")
+    assert again.duplicates == 0
+    assert pg_records(server, db, "rigA") == local
