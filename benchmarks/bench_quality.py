@@ -12,10 +12,16 @@ ever seen: news, as for the paper's AR(1)), and told the drive sensitivities tha
 experiment (`usmswitch-experiment drive-sensitivity`) measured on another seed of the rig
 (`COMMISSION_SEED`, not a scenario's): the daemon's configuration after commissioning. The step target
 binds that one.
+
+Last, an oracle that no controller has: the simulated rig's own physics at each stroke's conditions
+and the exact Kalman filter of its friction and noise. Its step column is what the step metric reads
+at the floor (the worst of six strokes' errors, with the slower motor's larger scatter after the
+step): the least any predictor can reach on these seeds.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import math
 import tempfile
@@ -27,10 +33,13 @@ from typing import Any
 import numpy as np
 
 from benchmarks.table import print_table
+from usmswitch.drivers.events import Direction
 from usmswitch.experiments.context import Context
 from usmswitch.experiments.drive_sensitivity import DriveSensitivity, measure
 from usmswitch.experiments.rig import SimulatedRig
 from usmswitch.predictor import AR_MODELS, DEFAULT_MODEL, MODELS, ARPredictor, make_predictors
+from usmswitch.sim.model import UsmSwitchModel
+from usmswitch.sim.params import RigParams
 from usmswitch.sim.scenarios import SCENARIOS, ScenarioRun, run_scenario
 
 SEEDS = (1, 2, 3, 4, 5)
@@ -47,6 +56,7 @@ TARGET_RESELECT_US = 50.0
 #: The simulated rig's seed the commissioning runs on: none of SEEDS.
 COMMISSION_SEED = 1001
 COMMISSIONED = " + commissioned"
+ORACLE = "oracle: the rig's physics + exact Kalman"
 #: The step metric is also taken this many cycles before the step, where nothing stepped: the worst of
 #: six strokes' errors is ~1.7 innovation sds (~150 us on the default rig) with no step at all.
 QUIET = 1000
@@ -78,6 +88,40 @@ class StatsmodelsRefit:
             self.params = (float(fit.params[0]), float(fit.params[1]))
 
 
+class Oracle:
+    """Not a predictor a controller can have: the scenario rig's deterministic stroke time at the
+    stroke's conditions (dead time + motion at friction's mean) and the exact steady Kalman filter of
+    the motion's scale 1 + F + w (F AR(1), w white, the rig's parameters). Its one-step error is the
+    innovation floor (it knows all but the unreported sensor shift)."""
+
+    def __init__(self, params: RigParams, direction: Direction) -> None:
+        self.rig = UsmSwitchModel(params)
+        self.direction = direction
+        self.dead = self.rig.dead_time_ns(direction)
+        self.phi = params.friction_phi
+        self.q = params.friction_std**2 * (1.0 - params.friction_phi**2)
+        self.r = params.white_std**2
+        self.f = 0.0  # friction's estimate
+        self.var = params.friction_std**2
+
+    def _motion(self, c: dict[str, Any]) -> float:
+        return self.rig.motion_ns(
+            self.direction,
+            frequency_hz=c["frequency_hz"],
+            voltage_vpp=c["voltage_v"],
+            temperature_c=c["temperature_c"],
+        )
+
+    def predict(self, conditions: dict[str, Any]) -> float:
+        return self.dead + self._motion(conditions) * (1.0 + self.phi * self.f)
+
+    def update(self, t_ns: int, conditions: dict[str, Any]) -> None:
+        y = (t_ns - self.dead) / self._motion(conditions) - 1.0
+        f, var = self.phi * self.f, self.phi**2 * self.var + self.q
+        gain = var / (var + self.r)
+        self.f, self.var = f + gain * (y - f), (1.0 - gain) * var
+
+
 def commission() -> DriveSensitivity:
     """The drive sensitivities as `usmswitch-experiment drive-sensitivity` measures them, on a rig of
     another seed than the scenarios'."""
@@ -89,27 +133,31 @@ def commission() -> DriveSensitivity:
             rig.close()
 
 
-def _makers(known: DriveSensitivity) -> dict[str, Callable[[], list[Any]]]:
-    out: dict[str, Callable[[], list[Any]]] = {}
+def _makers(known: DriveSensitivity) -> dict[str, Callable[[ScenarioRun], list[Any]]]:
+    """Each row's pair of predictors (on, off) for a run."""
+    out: dict[str, Callable[[ScenarioRun], list[Any]]] = {}
     for model in MODELS:
         label = f"{model} AR(1)" if model in AR_MODELS else model
         if model == DEFAULT_MODEL:
             label += " (default)"
-        out[label] = lambda model=model: make_predictors(model, [NOMINAL_NS, NOMINAL_NS])
+        out[label] = lambda run, model=model: make_predictors(model, [NOMINAL_NS, NOMINAL_NS])
         if model == DEFAULT_MODEL:
-            out[label + COMMISSIONED] = lambda model=model: make_predictors(
+            out[label + COMMISSIONED] = lambda run, model=model: make_predictors(
                 model, [NOMINAL_NS, NOMINAL_NS], sensitivities=known.sensitivities
             )
-    out["statsmodels AutoReg(1, c) refit"] = lambda: [StatsmodelsRefit(), StatsmodelsRefit()]
+    out["statsmodels AutoReg(1, c) refit"] = lambda run: [StatsmodelsRefit(), StatsmodelsRefit()]
+    out[ORACLE] = lambda run: [
+        Oracle(dataclasses.replace(RigParams(), **run.scenario.params), d) for d in Direction
+    ]
     return out
 
 
 def _score(
-    make: Callable[[], list[Any]], run: ScenarioRun
+    make: Callable[[ScenarioRun], list[Any]], run: ScenarioRun
 ) -> tuple[float, float, list[float], list[float], list[float]]:
     """(sum e^2, sum floor^2) from cycle SKIP; |e| within 3 strokes per direction of the step; after
     idles; |e| over the same window QUIET cycles before the step (the metric with no step: its floor)."""
-    ps = make()  # one per direction, as the daemon makes them
+    ps = make(run)  # one per direction, as the daemon makes them
     se = sf = 0.0
     step: list[float] = []
     quiet: list[float] = []
@@ -229,7 +277,8 @@ def main() -> int:
             "the step (its floor); shift: the same at the far sensor's unreported "
             "move (shift-noise4); idle: |error| of the first stroke per "
             f"direction after 120 s; {COMMISSIONED.strip()}: told the drive sensitivities measured on "
-            f"seed {COMMISSION_SEED}"
+            f"seed {COMMISSION_SEED}; oracle: the rig's own physics and Kalman filter (no controller has"
+            " them): what each column reads at the floor"
         ),
     )
     missed = []
@@ -245,7 +294,8 @@ def main() -> int:
         quiet_mean = float(np.mean(quiets[commissioned]))
         missed.append(
             f"step error, commissioned, {step_mean / 1e3:.0f} us > {TARGET_STEP_NS / 1e3:.0f} us"
-            f" (the same metric with no step: {quiet_mean / 1e3:.0f} us)"
+            f" (the same metric with no step: {quiet_mean / 1e3:.0f} us; the oracle at the step:"
+            f" {np.mean(steps[ORACLE]) / 1e3:.0f} us)"
         )
     idle_mean = float(np.mean(idles[default]))
     if idle_mean > TARGET_IDLE_NS:

@@ -144,9 +144,9 @@ class KalmanPredictor:
         if type(t_ns) is not int or t_ns <= 0 or t_ns > MAX_T_NS:
             t_ns = check_stroke_ns(t_ns)
         z = math.log(t_ns)
-        # A log-time difference's noise: twice the best filter's recent one-step error variance.
-        noise = 2.0 * (1.0 - FORGET) * self._score[self._best] if self._count > SOUND_FIT else NOISE_VAR
-        moved = self._cm.learn(z, conditions, noise)
+        # The best filter's recent one-step error variance: what the conditions' change cannot explain.
+        noise = (1.0 - FORGET) * self._score[self._best] if self._count > SOUND_FIT else NOISE_VAR
+        moved = self._cm.learn(z, self._zhat if self._count else None, conditions, noise)
         if self._count == 0:
             self._mu = z
             self._level = [z] * len(GRID)

@@ -5,10 +5,13 @@ says how much ln t moves when the conditions change from the last stroke's, s . 
 model of the remaining process (friction and noise) shifts its level by that and sees no step when the
 drive setting changes. Only changes are used, never absolute levels: an error in s costs s_err . dc
 once, and the process model corrects it at the next stroke. The sensitivities s are learned by
-recursive least squares with forgetting on consecutive strokes of the direction:
-ln t_k - ln t_{k-1} = s . (c_k - c_{k-1}) + noise, only when a condition stepped (`MIN_STEP`), the
-covariance capped so it never blows up. A missing condition holds its last value; `idle_ns` is not
-used (its effect is the motor's cooling, which the temperature carries).
+recursive least squares with forgetting on the process model's one-step error at the strokes where a
+condition stepped (`MIN_STEP`): ln t_k - (ln t_hat_k + s . (c_k - c_{k-1})) = s_err . (c_k - c_{k-1}) +
+innovation, the covariance capped so it never blows up. The one-step error is the innovation alone
+(variance ~ the floor's), where the difference of two strokes' log times carries two strokes' scatter
+and the friction's change (about 1.4x as much variance on the default rig). A missing condition holds
+its last value; `idle_ns` is not used (its effect is the motor's cooling, which the temperature
+carries).
 
 Units keep s of order one: frequency in kHz, voltage in 100 V, temperature in C.
 """
@@ -32,19 +35,28 @@ P0 = (1.0, 1.0, 1e-3)
 #: scatter hides it; the process model tracks a slow drift), so RLS runs only on real steps.
 MIN_STEP = (1e-3, 1e-3, 0.1)
 #: Prior variance of sensitivities the rig knows (`ConditionModel(prior)`: measured at commissioning or
-#: learned before): standard deviations of 0.1 per kHz, 0.1 per 100 V and 0.003 per C, a fifth to a
-#: half of a USM's drive sensitivities. A step's first stroke still corrects them (the cap stays P0).
-P_KNOWN = (1e-2, 1e-2, 1e-5)
+#: learned before): standard deviations of 0.01 per kHz, 0.01 per 100 V and 0.003 per C. A
+#: commissioning measures the drive's to +-0.003 (`usmswitch-experiment drive-sensitivity`); its value
+#: is the chord of the change it made, and a step of the same kind but another size has a chord a few
+#: hundredths away (the simulated rig: 0.146-0.167 per kHz for +0.25 to +1 kHz). The first stroke
+#: after a step then moves s by ~a fifth of its one-step error (mostly the stroke's scatter), not ~all
+#: of it as a wide prior did, which passed the first direction's scatter to the other's first stroke;
+#: a step that acts otherwise than s says beyond its uncertainty resets the variance (`SURPRISE`).
+P_KNOWN = (1e-4, 1e-4, 1e-5)
+#: A step's one-step error beyond this many variances (3 sd) of what s's uncertainty and the scatter
+#: allow resets the stepped sensitivities' variance to P0 (`_rls`).
+SURPRISE = 9.0
 #: Forgetting of the sensitivities' information per informative stroke.
 FORGET = 0.995
-#: Variance of the noise on a log-time difference until the caller knows better (`learn`'s noise_var).
-NOISE_VAR = 2.25e-4
+#: Variance of the process model's one-step error in ln t until the caller knows better (`learn`'s
+#: noise_var): a 1 % stroke scatter.
+NOISE_VAR = 1e-4
 
 
 class ConditionModel:
     """Learns d ln t / d condition online; says how much a change of conditions moves ln t. O(9)."""
 
-    __slots__ = ("_c", "_known", "_p", "_prev_y", "_s")
+    __slots__ = ("_c", "_known", "_p", "_s")
 
     def __init__(self, prior: Sequence[float | None] | None = None) -> None:
         """`prior`: d ln t per kHz, per 100 V, per C known beforehand (variance P_KNOWN); None for one
@@ -57,7 +69,6 @@ class ConditionModel:
         # Whether each sensitivity is known (given, or learned from a step of its condition).
         self._known = [v is not None for v in given]
         self._c: list[float | None] = [None] * n  # the last stroke's conditions (held when missing)
-        self._prev_y: float | None = None
 
     @property
     def sensitivities(self) -> tuple[float, ...]:
@@ -113,27 +124,28 @@ class ConditionModel:
         dc = d[0]
         return s[0] * dc[0] + s[1] * dc[1] + s[2] * dc[2]
 
-    def learn(self, y: float, conditions: Conditions | None, noise_var: float = NOISE_VAR) -> float:
-        """Take a stroke's log time and conditions: s is updated from ln t - ln t_prev when a condition
-        stepped since the last stroke, and the shift the change made by s so updated is returned (the
-        stroke itself is the best evidence of how its step acted). `noise_var` is the variance of a
-        log-time difference that the conditions do not explain."""
+    def learn(
+        self, y: float, y_hat: float | None, conditions: Conditions | None, noise_var: float = NOISE_VAR
+    ) -> float:
+        """Take a stroke's log time `y` and conditions, `y_hat` being the process model's prediction of
+        it before the conditions' shift (None: it has none yet). When a condition stepped since the
+        last stroke, s is updated from the one-step error y - (y_hat + s . dc), and the shift the change
+        made by s so updated is returned (the stroke itself is the best evidence of how its step acted).
+        `noise_var` is the variance of that error which the conditions do not explain."""
         d = self._delta(conditions)
-        prev_y = self._prev_y
-        self._prev_y = y
         if d is None:
             return 0.0
         dc, c = d
         self._c = c
-        if prev_y is not None and (
+        s = self._s
+        if y_hat is not None and (
             abs(dc[0]) >= MIN_STEP[0] or abs(dc[1]) >= MIN_STEP[1] or abs(dc[2]) >= MIN_STEP[2]
         ):
-            self._rls(y - prev_y, dc, noise_var)
+            self._rls(y - y_hat, dc, noise_var)
             known = self._known
             for i in range(len(dc)):
                 if abs(dc[i]) >= MIN_STEP[i]:
                     known[i] = True
-        s = self._s
         return s[0] * dc[0] + s[1] * dc[1] + s[2] * dc[2]
 
     def _rls(self, dy: float, x: list[float], noise_var: float) -> None:
@@ -142,6 +154,17 @@ class ConditionModel:
         px = [sum(p[i][j] * x[j] for j in range(n)) for i in range(n)]
         denom = FORGET * noise_var + sum(x[i] * px[i] for i in range(n))
         err = dy - sum(self._s[i] * x[i] for i in range(n))
+        if err * err > SURPRISE * denom:
+            # The step acted otherwise than s said, by more than s's uncertainty and the scatter
+            # explain (a chord commissioned for another change, a rig that changed): the variance of
+            # each sensitivity that stepped goes back to the wide prior, so this stroke teaches it.
+            for i in range(n):
+                if abs(x[i]) >= MIN_STEP[i]:
+                    for j in range(n):
+                        p[i][j] = p[j][i] = 0.0
+                    p[i][i] = P0[i]
+            px = [sum(p[i][j] * x[j] for j in range(n)) for i in range(n)]
+            denom = FORGET * noise_var + sum(x[i] * px[i] for i in range(n))
         for i in range(n):
             self._s[i] += px[i] * err / denom
         for i in range(n):
@@ -160,7 +183,6 @@ class ConditionModel:
             "s": list(self._s),
             "p": [list(r) for r in self._p],
             "c": list(self._c),
-            "prev_y": self._prev_y,
             "known": list(self._known),
         }
 
@@ -183,8 +205,6 @@ class ConditionModel:
         if not isinstance(p, list | tuple) or len(p) != n or any(len(r) != n for r in p):
             raise ValueError(f"condition state p must be {n}x{n}, got {p!r}")
         m._p = [[_num("p", x) for x in r] for r in p]
-        y = d.get("prev_y")
-        m._prev_y = None if y is None else _num("prev_y", y)
         known = d.get("known", [False] * n)  # a state written before it was kept: nothing known
         if (
             not isinstance(known, list | tuple)

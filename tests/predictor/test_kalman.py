@@ -192,3 +192,49 @@ def test_sensitivities_are_checked_and_kept_through_the_state() -> None:
     for bad in ((0.1, 0.2), (0.1, float("nan"), 0.0), "abc", (True, 0.0, 0.0)):
         with pytest.raises(ValueError, match="sensitivities"):
             make_predictor("kalman", nominal_ns=8_000_000, sensitivities=bad)
+
+
+def _off_errors(
+    told: tuple[float, float, None], true_rate: float, seed: int
+) -> tuple[list[float], list[float]]:
+    """The drive steps 40 -> 40.5 kHz and back every 200 strokes of each direction, ln t moving
+    `true_rate` per kHz; the predictors were told `told`. |error| of "off"'s first stroke after each
+    step ("on" meets each step first), and of its stroke 100 strokes later (nothing stepped)."""
+    scale_on, scale_off = series(1400, seed=seed), series(1400, seed=seed + 100)
+    on, off = make_predictors("kalman", [8_000_000, 8_000_000], sensitivities=told)
+    at_step, quiet = [], []
+    for i in range(1400):
+        f = 40_000.0 + 500.0 * ((i // 200) % 2)
+        c = {"frequency_hz": f, "voltage_v": 500.0}
+        step = math.exp(true_rate * (f - 40_000.0) / 1000)
+        on.update(round(8e6 * scale_on[i] * step), c)
+        t_off = round(8e6 * scale_off[i] * step)
+        if i % 200 == 0 and i:
+            at_step.append(abs(t_off - off.predict(c)))
+        if i % 200 == 100 and i > 200:
+            quiet.append(abs(t_off - off.predict(c)))
+        off.update(t_off, c)
+    return at_step, quiet
+
+
+def _rms(v: list[float]) -> float:
+    return math.sqrt(sum(e * e for e in v) / len(v))
+
+
+def test_a_known_sensitivity_is_not_moved_by_the_first_strokes_scatter() -> None:
+    # Told the right sensitivity, "on"'s first stroke after a step is mostly scatter: s must move by
+    # little, or "off"'s first stroke inherits "on"'s scatter (rms 1.3x that of a stroke where nothing
+    # stepped, with the wide prior and the log-difference learning this replaced).
+    runs = [_off_errors((0.15, -0.23, None), 0.15, seed) for seed in range(20)]
+    at_step = _rms([e for a, _ in runs for e in a])
+    quiet = _rms([e for _, q in runs for e in q])
+    assert at_step < 1.08 * quiet, (at_step, quiet)
+
+
+def test_a_step_that_contradicts_the_known_sensitivity_is_learned_at_once() -> None:
+    # Told +0.15 per kHz (the chord of detuning up), the drive acts at -0.1 per kHz: "on"'s first
+    # stroke after the first step errs by the whole difference (~1 ms), beyond s's uncertainty, so
+    # its variance is reset and "off"'s first stroke after it, and the later steps, are predicted.
+    for seed in range(3):
+        at_step, _ = _off_errors((0.15, -0.23, None), -0.1, seed)
+        assert max(at_step) < 300_000, at_step
