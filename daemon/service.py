@@ -37,6 +37,7 @@ from .record import CycleRecord, Flag, RunRecord
 from .records import RecordStore, RecordStoreError
 from .rig_memory import RigMemory
 from .sdnotify import Notifier
+from .sensitivity_memory import Sensitivities, SensitivityMemory
 from .sockdir import ensure_private_dir, prepare_socket_dir
 from .units import format_ns
 
@@ -60,15 +61,17 @@ STOP_BUDGET_NS = 50_000_000
 LIVE_LINE_NS = 250_000_000
 
 
-def direction_predictors(config: Config) -> list[Predictor]:
+def direction_predictors(config: Config, learned: Sensitivities | None = None) -> list[Predictor]:
     """The two directions' predictors as [control] configures them (each its own nominal; a model that
-    learns the motor as a whole learns it from both)."""
+    learns the motor as a whole learns it from both). `learned`: the sensitivities a predictor of this
+    configuration learned before (`sensitivities.json`), taken instead of the configured ones."""
     c = config.control
     options: dict[str, Any] = {}
+    sensitivities = c.sensitivities if learned is None else learned
     if c.model in AR_MODELS:
         options = {"order": c.order, "window": c.window, "max_order": c.max_order}
-    elif c.sensitivities is not None:  # the config refuses them for a model that does not take them
-        options = {"sensitivities": c.sensitivities}
+    elif sensitivities is not None:  # the config refuses them for a model that does not take them
+        options = {"sensitivities": sensitivities}
     nominals = [c.nominal_for(d) for d in (Direction.ON, Direction.OFF)]
     return make_predictors(c.model, nominals, **options)
 
@@ -131,6 +134,7 @@ class Daemon:
         self.store: RecordStore | None = None
         self.daq: Daq | None = None
         self.rig_memory: RigMemory | None = None
+        self.sensitivity_memory: SensitivityMemory | None = None
         self.loop: ControlLoop | None = None
         self.rpc: Any = None
         self.board: BoardPoller | None = None
@@ -157,7 +161,16 @@ class Daemon:
             rig=cfg.daemon.rig,
             file_mode=0o640 if group else 0o600,
         )
-        predictors = direction_predictors(cfg)
+        # What the predictors learned of the drive before, if it is this driver's, rig's and config's.
+        self.sensitivity_memory = memory = SensitivityMemory(
+            state_dir,
+            driver=daq.name,
+            rig=cfg.daemon.rig,
+            model=cfg.control.model,
+            configured=cfg.control.sensitivities,
+        )
+        predictors = direction_predictors(cfg, memory.load())
+        memory.watch(predictors[0])
         for d in (Direction.ON, Direction.OFF):
             # Only this driver's strokes on this rig: never a real rig from simulated strokes.
             samples = self.store.last_strokes(
@@ -296,6 +309,8 @@ class Daemon:
         if self.rpc is not None:
             self.rpc.stop()
             self.rpc = None
+        if self.sensitivity_memory is not None:
+            self.sensitivity_memory.save()  # only if they changed since the last save
         if self.daq is not None:
             if self.rig_memory is not None:
                 self.rig_memory.save()
@@ -437,6 +452,8 @@ class Daemon:
         self.notifier.maybe_watchdog(now)
         if self.rig_memory is not None:
             self.rig_memory.maybe_save(now)
+        if self.sensitivity_memory is not None:
+            self.sensitivity_memory.maybe_save(now)
         if now >= self._next_summary_ns:
             self._next_summary_ns = now + self.config.daemon.summary_interval_ns
             self._summary(only_if_changed=True)

@@ -422,3 +422,6 @@ def test_sensitivities_with_their_units_reach_the_kalman_predictors_and_write_ba
     again = load_config(overrides={f"control.{k}": x for k, x in cfg.to_dict()["control"].items()}, env=ENV)
     assert again.control.sensitivities == cfg.control.sensitivities  # written with the unit, exactly
     assert load_config(env=ENV).control.sensitivities is None  # unset: learned
+    # What the predictors learned before (sensitivities.json) is taken over the configured values.
+    on, off = direction_predictors(cfg, (0.16, -0.2, 0.01))
+    assert on.known_sensitivities == off.known_sensitivities == (0.16, -0.2, 0.01)
