@@ -10,7 +10,7 @@ MAX_T_NS = 2**53
 #: The models `ARPredictor` fits (Eq. 2 with or without an intercept).
 AR_MODELS = ("paper", "centered")
 #: Every model `make_predictor` builds: the AR fits and the models beyond the paper.
-MODELS = (*AR_MODELS, "kalman")
+MODELS = (*AR_MODELS, "kalman", "rls")
 MAX_ORDER = 8
 
 

@@ -13,6 +13,7 @@ from .ar import ARPredictor
 from .checks import AR_MODELS, MODELS
 from .conditions import Conditions
 from .kalman import KalmanPredictor
+from .rls import RlsPredictor
 
 #: The options each model takes.
 _AR_OPTIONS = frozenset({"order", "window", "max_order", "reselect_every"})
@@ -20,6 +21,7 @@ OPTIONS: dict[str, frozenset[str]] = {
     "paper": _AR_OPTIONS,
     "centered": _AR_OPTIONS,
     "kalman": frozenset({"sensitivities"}),
+    "rls": frozenset({"sensitivities"}),
 }
 
 #: The model the daemon runs when its config does not name one.
@@ -69,6 +71,7 @@ def make_predictor(model: str = DEFAULT_MODEL, nominal_ns: int | None = None, **
     take `order` (1..8 or "auto"), `window`, `max_order` and `reselect_every` (see `ARPredictor`).
     "kalman" (`KalmanPredictor`) takes `sensitivities`: d ln t per kHz, per 100 V, per C as the rig
     knows them (commissioning, or what it learned before), so a drive step is predicted at once.
+    "rls" (`RlsPredictor`: condition-normalised least squares with forgetting) takes the same.
     """
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
@@ -78,15 +81,18 @@ def make_predictor(model: str = DEFAULT_MODEL, nominal_ns: int | None = None, **
         raise ValueError(f"model {model!r} takes no option {', '.join(unknown)} (it takes {sorted(allowed)})")
     if model in AR_MODELS:
         return ARPredictor(model=model, nominal_ns=nominal_ns, **options)
+    if model == "rls":
+        return RlsPredictor(nominal_ns=nominal_ns, **options)
     return KalmanPredictor(nominal_ns=nominal_ns, **options)
 
 
 def make_predictors(model: str, nominals_ns: Sequence[int | None], **options: Any) -> list[Predictor]:
     """One predictor per direction (each with its own nominal), sharing what the model learns of the
-    motor as a whole: "kalman" learns how the drive and temperature act from both directions' strokes."""
+    motor as a whole: "kalman" and "rls" learn how the drive and temperature act from both directions'
+    strokes."""
     out = [make_predictor(model, nominal_ns=n, **options) for n in nominals_ns]
     first = out[0] if out else None
     for p in out[1:]:
-        if isinstance(p, KalmanPredictor) and isinstance(first, KalmanPredictor):
-            p.share_conditions_with(first)
+        if isinstance(p, KalmanPredictor | RlsPredictor) and type(first) is type(p):
+            p.share_conditions_with(first)  # type: ignore[arg-type]
     return out
