@@ -724,8 +724,24 @@ class RecordStore:
         self._writer_error = message
 
     def _finish(self, conn: sqlite3.Connection) -> None:
+        """Make every commit durable, then close without waiting for anyone.
+
+        The WAL is fsynced (synchronous=NORMAL syncs it only at checkpoints), so what was committed
+        survives a power cut after the exit. The checkpoint is PASSIVE: a TRUNCATE one waits on
+        the busy handler for every reader (the shipper catching up, a history being read), and
+        took 80 ms of a 100 ms SIGTERM-to-exit. Closing the last connection then folds the WAL
+        into the file and removes it; with a reader still open it stays, and the next open of
+        the file reads it (nothing is lost either way).
+        """
         try:
-            conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+            with open(f"{self.path}-wal", "rb") as wal:
+                os.fsync(wal.fileno())
+        except FileNotFoundError:
+            pass  # nothing was written since the last checkpoint removed it
+        except OSError as exc:
+            log.warning("record file WAL sync at close failed", path=str(self.path), error=str(exc))
+        try:
+            conn.execute("PRAGMA wal_checkpoint(PASSIVE)")
         except sqlite3.Error as exc:
             log.warning("record file checkpoint at close failed", path=str(self.path), error=str(exc))
         conn.close()
