@@ -42,7 +42,7 @@ log = logging.getLogger("usmswitch.rpc")
 
 #: How long stop() lets the server process close its clients before it is killed. An idle one
 #: exits in ~5 ms; one starved of CPU by busy clients may take 100 ms and more.
-STOP_GRACE_S = 0.02
+STOP_GRACE_S = 0.01
 
 
 # -- the daemon side -------------------------------------------------------------------------------

@@ -37,7 +37,7 @@ log = structlog.get_logger("usmswitch.shipper")
 STATUS_EVERY_S = 0.2
 RESTART_PAUSE_S = 2.0
 #: How long past its drain a stopping shipper may take to end before it is killed.
-EXIT_GRACE_S = 0.02
+EXIT_GRACE_S = 0.01
 #: The most stop() takes beyond its drain: the grace, then the wait for a killed one.
 STOP_OVERHEAD_NS = int((EXIT_GRACE_S + KILLED_REAP_S) * 1e9) + 1_000_000
 NICE = 10
