@@ -14,6 +14,8 @@ import sys
 # Inherited by the server process. A user's own setting wins.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+from usmswitch.predictor import DEFAULT_MODEL, MODELS
+
 from .config import ConfigError, load_config
 from .version import version_text
 from .wire import PROTOCOL_VERSION
@@ -46,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--log-level", choices=("debug", "info", "warning", "error"), help="daemon.log_level")
     p.add_argument("--target", help="control.target for both directions, e.g. 12ms")
     p.add_argument("--mode", choices=("closed", "open"), help="control.mode")
-    p.add_argument("--model", choices=("paper", "centered"), help="control.model")
+    p.add_argument("--model", choices=MODELS, help=f"control.model (else {DEFAULT_MODEL})")
     p.add_argument("--order", help="control.order: 1..8 or auto")
     p.add_argument("--window", type=int, help="control.window (strokes)")
     p.add_argument("--period", help="cycle.period, e.g. 50ms")
