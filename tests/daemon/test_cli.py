@@ -50,3 +50,14 @@ def test_every_exit_status_is_documented(repo_root: Path) -> None:
     section = text[start : text.index("- **", start)]
     documented = {int(m) for m in re.findall(r"^\s*\| (\d+) \|", section, re.M)}
     assert documented == {0, cli.EXIT_CONFIG, cli.EXIT_START, service.EXIT_RECORDS_LOST}
+
+
+def test_model_flag_takes_every_model_and_names_a_bad_one(tmp_path: Path) -> None:
+    from usmswitch.predictor import MODELS
+
+    for model in MODELS:
+        r = run("--check-config", "--model", model, "--state-dir", str(tmp_path / "s"))
+        assert r.returncode == 0, r.stderr
+        assert json.loads(r.stdout)["control"]["model"] == model
+    r = run("--check-config", "--model", "arima")
+    assert r.returncode == 2 and "invalid choice: 'arima'" in r.stderr
