@@ -275,6 +275,7 @@ def sigterm_exit_ms(runs: int = 5) -> list[float]:
 
 
 HEAVY_LOAD = "10 export clients and 8 x 32 unread history 10000"
+IDLE_AGAIN = "idle again, after the loads"
 
 
 def term_and_wait(proc: subprocess.Popen[bytes]) -> tuple[int | None, float]:
@@ -378,6 +379,7 @@ def main() -> int:
     ctx = multiprocessing.get_context("spawn")
     rng = random.Random(1)
     rows = []
+    idle_lat: list[int] = []
     try:
         end = time.monotonic() + 30
         while True:
@@ -401,6 +403,9 @@ def main() -> int:
         if pg is not None:
             loads.append(("shipper catching up a backlog", None, 0, {}))
         loads = [x for x in loads if not ONLY or x[0] == "idle" or any(w in x[0] for w in ONLY)]
+        # Idle again at the end: the machine's own drift over the run shows, and the reference
+        # p99 (pooled over both idle windows, 2x the strokes) is less at the mercy of a few.
+        loads.append((IDLE_AGAIN, load_stats, 0, {}))
         for name, body, procs, kw in loads:
             stop = ctx.Event()
             workers = [ctx.Process(target=body, args=(str(sock), stop), kwargs=kw) for _ in range(procs)]
@@ -428,6 +433,8 @@ def main() -> int:
                 w.join(10)
                 if w.is_alive():
                     w.kill()
+            if body is load_stats and not procs:
+                idle_lat += lat
             p50, p99, _, mx = percentiles(lat)
             e50, e99, _, emx = percentiles([round(s * 1000) for s in stops])
             rows.append(
@@ -441,7 +448,8 @@ def main() -> int:
             proc.communicate(timeout=30)
         if pg is not None:
             pg[0].close()
-    idle_p99 = rows[0][3]
+    idle_p99 = percentiles(idle_lat)[1] / 1e3
+    print(f"idle reference: late p99 {idle_p99:.1f} us over both idle windows ({len(idle_lat)} strokes)")
     print_table(
         ["load", "strokes", "late p50 us", "late p99 us", "late max us", "x idle p99",
          "estop p50 ms", "estop p99 ms", "estop max ms", "daemon MB", "server MB"],
@@ -453,7 +461,11 @@ def main() -> int:
         title="start lateness from the records, and estop request -> drive-off reply, per load",
     )  # fmt: skip
     checks = [(f"estop p99 <= 5 ms: {r[0]}", r[6] <= 5.0) for r in rows]
-    checks += [(f"late p99 <= 1.2x idle: {r[0]}", r[3] <= 1.2 * max(idle_p99, 1.0)) for r in rows[1:]]
+    checks += [
+        (f"late p99 <= 1.2x idle: {r[0]}", r[3] <= 1.2 * max(idle_p99, 1.0))
+        for r in rows
+        if r[0] not in ("idle", IDLE_AGAIN)
+    ]
     term = sigterm_exit_ms()
     print(f"SIGTERM -> exit with a 5 s target, ms: {' '.join(f'{x:.0f}' for x in term)}")
     print(f"SIGTERM -> exit while cycling under {HEAVY_LOAD}: {term_loaded:.0f} ms")
