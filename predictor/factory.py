@@ -11,6 +11,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from .ar import ARPredictor
 from .checks import AR_MODELS, MODELS
+from .conditioned import ConditionedPredictor
 from .conditions import Conditions
 from .kalman import KalmanPredictor
 from .rls import RlsPredictor
@@ -93,6 +94,6 @@ def make_predictors(model: str, nominals_ns: Sequence[int | None], **options: An
     out = [make_predictor(model, nominal_ns=n, **options) for n in nominals_ns]
     first = out[0] if out else None
     for p in out[1:]:
-        if isinstance(p, KalmanPredictor | RlsPredictor) and type(first) is type(p):
+        if isinstance(p, ConditionedPredictor) and type(first) is type(p):
             p.share_conditions_with(first)  # type: ignore[arg-type]
     return out

@@ -21,10 +21,11 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from .ar import SOUND_FIT, ARPredictor
-from .checks import MAX_T_NS, check_int, check_stroke_ns, check_strokes
+from .ar import SOUND_FIT
+from .checks import MAX_T_NS, check_int, check_stroke_ns
+from .conditioned import ConditionedPredictor, finite_number, finite_numbers
 from .conditions import Conditions
-from .normalise import NOISE_VAR, ConditionModel
+from .normalise import NOISE_VAR
 
 STATE_FORMAT = "usmswitch.predictor.kalman/1"
 #: The (phi, K) grid: gains log-spaced at phi = 1 (a drifting level under little to much stroke noise)
@@ -72,72 +73,31 @@ def _grid_step(
     )
 
 
-class KalmanPredictor:
+class KalmanPredictor(ConditionedPredictor):
     """AR(1) + noise Kalman filter on the log stroke time, (phi, K) chosen online by recent error."""
 
-    __slots__ = ("_best", "_cm", "_cold", "_count", "_level", "_mu", "_nominal", "_score", "_seen", "_zhat")
+    __slots__ = ("_best", "_level", "_mu", "_score", "_zhat")
 
     model = "kalman"
+    STATE_FORMAT = STATE_FORMAT
 
     def __init__(
         self, nominal_ns: int | None = None, sensitivities: Sequence[float | None] | None = None
     ) -> None:
-        """`sensitivities`: d ln t per kHz, per 100 V, per C as the rig knows them (its commissioning,
-        `usmswitch-experiment drive-sensitivity`, or what a predictor learned before); without them
-        the first step of a kind is news (see `normalise.ConditionModel`)."""
-        self._nominal = None if nominal_ns is None else check_stroke_ns(nominal_ns)
-        self._cm = ConditionModel(sensitivities)
-        self._cold: ARPredictor | None = ARPredictor(order=1, window=SOUND_FIT, nominal_ns=nominal_ns)
+        super().__init__(nominal_ns, sensitivities)
         self._level = [0.0] * len(GRID)
         self._score = [0.0] * len(GRID)
         self._mu = 0.0
         self._zhat = 0.0  # ln t_hat of the next stroke before its conditions' shift
         self._best = 0
-        self._count = 0
-        self._seen = 0
 
     # ---- the Predictor calls -------------------------------------------------------------------
-
-    @property
-    def ready(self) -> bool:
-        """False while the cold-start fallback predicts (fewer than SOUND_FIT strokes)."""
-        return self._cold is None
-
-    @property
-    def order(self) -> int:
-        """1: an AR(1) process (with noise)."""
-        return 1
 
     @property
     def coefficients(self) -> tuple[float, ...]:
         """(phi, K) of the filter predicting now; while cold, the paper's AR(1)'s (a_1,) or ()."""
         cold = self._cold
         return GRID[self._best] if cold is None else cold.coefficients
-
-    @property
-    def sensitivities(self) -> tuple[float, ...]:
-        """d ln t per kHz, per 100 V, per C, as learned (see `normalise`)."""
-        return self._cm.sensitivities
-
-    @property
-    def known_sensitivities(self) -> tuple[float | None, ...]:
-        """The sensitivities given or learned from a step (None: never seen to act), what the daemon
-        keeps across restarts (`sensitivities=` of a new predictor)."""
-        return self._cm.known
-
-    @property
-    def seen(self) -> int:
-        """Strokes ever given to this predictor."""
-        return self._seen
-
-    @property
-    def nominal_ns(self) -> int | None:
-        """The prediction before the first stroke."""
-        return self._nominal
-
-    def share_conditions_with(self, other: KalmanPredictor) -> None:
-        """Learn how the conditions act together with `other`, the other direction's predictor."""
-        self._cm.share_from(other._cm)
 
     def update(self, t_ns: int, conditions: Conditions | None = None) -> None:
         """Learn the stroke just finished (ns) under its conditions. O(grid)."""
@@ -162,13 +122,7 @@ class KalmanPredictor:
             self._mu = mu = mu + (z - mu) / (n if n < MU_STROKES else MU_STROKES)
             phi = GRID[best][0]
             self._zhat = mu + phi * (levels[best] - mu)
-        self._count += 1
-        self._seen += 1
-        cold = self._cold
-        if cold is not None:
-            cold.update(t_ns)
-            if self._count >= SOUND_FIT:
-                self._cold = None
+        self._taken(t_ns)
 
     def predict(self, conditions: Conditions | None = None) -> float:
         """t_hat of the next stroke (ns) under its conditions (the last ones told when None)."""
@@ -176,54 +130,23 @@ class KalmanPredictor:
             return self._cold.predict()
         return math.exp(self._zhat + self._cm.shift(conditions))
 
-    def extend(self, samples: Any) -> None:
-        """Feed stored strokes in order (warm start); all are validated before any is taken."""
-        for v in check_strokes(samples):
-            self.update(v)
-
     # ---- persistence ---------------------------------------------------------------------------
 
     def state(self) -> dict[str, Any]:
         """Plain-typed state (msgpack-safe); `from_state` rebuilds one that predicts identically."""
-        return {
-            "format": STATE_FORMAT,
-            "nominal_ns": self._nominal,
-            "conditions": self._cm.state(),
-            "cold": None if self._cold is None else self._cold.state(),
-            "level": list(self._level),
-            "score": list(self._score),
-            "mu": self._mu,
-            "best": self._best,
-            "count": self._count,
-            "seen": self._seen,
-        }
+        return self._state(level=list(self._level), score=list(self._score), mu=self._mu, best=self._best)
 
     @classmethod
     def from_state(cls, d: Any) -> KalmanPredictor:
         """Rebuild from `state()`; ValueError naming the field if the state is bad."""
-        if not isinstance(d, dict) or d.get("format") != STATE_FORMAT:
-            raise ValueError(f"predictor state must be a dict of format {STATE_FORMAT!r}")
-        p = cls(nominal_ns=d.get("nominal_ns"))
-        p._cm = ConditionModel.from_state(d.get("conditions"))
-        p._cold = None if d.get("cold") is None else ARPredictor.from_state(d["cold"])
+        p = cls._restore(d)
         n = len(GRID)
-        for key in ("level", "score"):
-            v = d.get(key)
-            if not isinstance(v, list | tuple) or len(v) != n or not all(_finite(x) for x in v):
-                raise ValueError(f"predictor state {key} must be {n} finite numbers, got {v!r}")
-            setattr(p, "_" + key, [float(x) for x in v])
-        if not _finite(d.get("mu")):
-            raise ValueError(f"predictor state mu must be a finite number, got {d.get('mu')!r}")
-        p._mu = mu = float(d["mu"])
+        p._level = finite_numbers(d, "level", n)
+        p._score = finite_numbers(d, "score", n)
+        p._mu = mu = finite_number(d, "mu")
         p._best = best = check_int("best", d.get("best"), 0, n - 1)
         p._zhat = mu + GRID[best][0] * (p._level[best] - mu)
-        p._count = check_int("count", d.get("count"), 0)
-        p._seen = check_int("seen", d.get("seen"), p._count)
         return p
 
     def __repr__(self) -> str:
         return f"KalmanPredictor(seen={self._seen}, ready={self.ready}, phi_k={self.coefficients})"
-
-
-def _finite(v: Any) -> bool:
-    return not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)

@@ -17,10 +17,10 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from .ar import SOUND_FIT, ARPredictor
-from .checks import MAX_T_NS, check_int, check_stroke_ns, check_strokes
+from .checks import MAX_T_NS, check_stroke_ns
+from .conditioned import ConditionedPredictor, finite_number, finite_numbers
 from .conditions import Conditions
-from .normalise import NOISE_VAR, ConditionModel
+from .normalise import NOISE_VAR
 
 STATE_FORMAT = "usmswitch.predictor.rls/1"
 #: Forgetting per stroke: memory ~100 strokes (the friction wanders over tens to hundreds).
@@ -29,20 +29,18 @@ FORGET = 0.99
 P_PRIOR = 100.0
 
 
-class RlsPredictor:
+class RlsPredictor(ConditionedPredictor):
     """AR(1) + intercept on the condition-normalised log stroke time, recursive least squares."""
 
-    __slots__ = ("_a", "_c", "_cm", "_cold", "_count", "_m", "_nominal", "_off", "_p", "_seen", "_var", "_x")
+    __slots__ = ("_a", "_c", "_m", "_off", "_p", "_var", "_x")
 
     model = "rls"
+    STATE_FORMAT = STATE_FORMAT
 
     def __init__(
         self, nominal_ns: int | None = None, sensitivities: Sequence[float | None] | None = None
     ) -> None:
-        """`sensitivities`: d ln t per kHz, per 100 V, per C as the rig knows them (see `kalman`)."""
-        self._nominal = None if nominal_ns is None else check_stroke_ns(nominal_ns)
-        self._cm = ConditionModel(sensitivities)
-        self._cold: ARPredictor | None = ARPredictor(order=1, window=SOUND_FIT, nominal_ns=nominal_ns)
+        super().__init__(nominal_ns, sensitivities)
         self._c = 0.0
         self._a = 1.0
         self._p = [P_PRIOR, 0.0, P_PRIOR]  # (c c, c a, a a)
@@ -50,48 +48,12 @@ class RlsPredictor:
         self._m = 0.0
         self._x = 0.0  # the last stroke's x - m
         self._var = NOISE_VAR  # the one-step error's variance, forgotten as the fit is
-        self._count = 0
-        self._seen = 0
-
-    @property
-    def ready(self) -> bool:
-        """False while the cold-start fallback predicts (fewer than SOUND_FIT strokes)."""
-        return self._cold is None
-
-    @property
-    def order(self) -> int:
-        """1: an AR(1) with intercept."""
-        return 1
 
     @property
     def coefficients(self) -> tuple[float, ...]:
         """(c, a) of the fit on x - m; while cold, the paper's AR(1)'s (a_1,) or ()."""
         cold = self._cold
         return (self._c, self._a) if cold is None else cold.coefficients
-
-    @property
-    def sensitivities(self) -> tuple[float, ...]:
-        """d ln t per kHz, per 100 V, per C, as learned (see `normalise`)."""
-        return self._cm.sensitivities
-
-    @property
-    def known_sensitivities(self) -> tuple[float | None, ...]:
-        """The sensitivities given or learned from a step (None: never seen to act)."""
-        return self._cm.known
-
-    @property
-    def seen(self) -> int:
-        """Strokes ever given to this predictor."""
-        return self._seen
-
-    @property
-    def nominal_ns(self) -> int | None:
-        """The prediction before the first stroke."""
-        return self._nominal
-
-    def share_conditions_with(self, other: RlsPredictor) -> None:
-        """Learn how the conditions act together with `other`, the other direction's predictor."""
-        self._cm.share_from(other._cm)
 
     def update(self, t_ns: int, conditions: Conditions | None = None) -> None:
         """Learn the stroke just finished (ns) under its conditions. O(1)."""
@@ -125,13 +87,7 @@ class RlsPredictor:
             self._p = [pcc, pca, paa]
             self._var = FORGET * self._var + (1.0 - FORGET) * e * e
             self._x = x
-        self._count += 1
-        self._seen += 1
-        cold = self._cold
-        if cold is not None:
-            cold.update(t_ns)
-            if self._count >= SOUND_FIT:
-                self._cold = None
+        self._taken(t_ns)
 
     def predict(self, conditions: Conditions | None = None) -> float:
         """t_hat of the next stroke (ns) under its conditions (the last ones told when None)."""
@@ -139,53 +95,20 @@ class RlsPredictor:
             return self._cold.predict()
         return math.exp(self._off + self._m + self._c + self._a * self._x + self._cm.shift(conditions))
 
-    def extend(self, samples: Any) -> None:
-        """Feed stored strokes in order (warm start); all are validated before any is taken."""
-        for v in check_strokes(samples):
-            self.update(v)
-
     def state(self) -> dict[str, Any]:
         """Plain-typed state (msgpack-safe); `from_state` rebuilds one that predicts identically."""
-        return {
-            "format": STATE_FORMAT,
-            "nominal_ns": self._nominal,
-            "conditions": self._cm.state(),
-            "cold": None if self._cold is None else self._cold.state(),
-            "fit": [self._c, self._a],
-            "p": list(self._p),
-            "offset": self._off,
-            "m": self._m,
-            "x": self._x,
-            "var": self._var,
-            "count": self._count,
-            "seen": self._seen,
-        }
+        return self._state(
+            fit=[self._c, self._a], p=list(self._p), offset=self._off, m=self._m, x=self._x, var=self._var
+        )
 
     @classmethod
     def from_state(cls, d: Any) -> RlsPredictor:
         """Rebuild from `state()`; ValueError naming the field if the state is bad."""
-        if not isinstance(d, dict) or d.get("format") != STATE_FORMAT:
-            raise ValueError(f"predictor state must be a dict of format {STATE_FORMAT!r}")
-        p = cls(nominal_ns=d.get("nominal_ns"))
-        p._cm = ConditionModel.from_state(d.get("conditions"))
-        p._cold = None if d.get("cold") is None else ARPredictor.from_state(d["cold"])
-        for key, n in (("fit", 2), ("p", 3)):
-            v = d.get(key)
-            if not isinstance(v, list | tuple) or len(v) != n or not all(_finite(x) for x in v):
-                raise ValueError(f"predictor state {key} must be {n} finite numbers, got {v!r}")
-        p._c, p._a = (float(x) for x in d["fit"])
-        p._p = [float(x) for x in d["p"]]
-        for key in ("offset", "m", "x", "var"):
-            if not _finite(d.get(key)):
-                raise ValueError(f"predictor state {key} must be a finite number, got {d.get(key)!r}")
-        p._off, p._m, p._x, p._var = (float(d[k]) for k in ("offset", "m", "x", "var"))
-        p._count = check_int("count", d.get("count"), 0)
-        p._seen = check_int("seen", d.get("seen"), p._count)
+        p = cls._restore(d)
+        p._c, p._a = finite_numbers(d, "fit", 2)
+        p._p = finite_numbers(d, "p", 3)
+        p._off, p._m, p._x, p._var = (finite_number(d, k) for k in ("offset", "m", "x", "var"))
         return p
 
     def __repr__(self) -> str:
         return f"RlsPredictor(seen={self._seen}, ready={self.ready}, c_a={self.coefficients})"
-
-
-def _finite(v: Any) -> bool:
-    return not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
