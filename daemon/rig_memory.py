@@ -9,7 +9,6 @@ then and at stop, and taken up at start with the motor cooled for the time the d
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -17,6 +16,8 @@ from typing import Any
 import structlog
 
 from usmswitch.drivers import Daq
+
+from .statefile import write_private_json
 
 log = structlog.get_logger("usmswitch.rig")
 
@@ -63,12 +64,8 @@ class RigMemory:
         if not self.active:
             return
         state = {"saved_wall_ns": time.time_ns(), "rig": self.model.state(self.clock.now_ns())}  # type: ignore[union-attr]
-        tmp = self.path.with_name(self.path.name + ".tmp")
         try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o600)
-            with os.fdopen(fd, "w") as fh:
-                json.dump(state, fh)
-            os.replace(tmp, self.path)
+            write_private_json(self.path, state)
         except OSError as exc:
             log.warning("rig state not saved", path=str(self.path), error=str(exc))
 

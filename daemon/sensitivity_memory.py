@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import structlog
+
+from .statefile import write_private_json
 
 log = structlog.get_logger("usmswitch.sensitivities")
 
@@ -117,12 +118,8 @@ class SensitivityMemory:
             "units": ["ln t per kHz", "ln t per 100 V", "ln t per C"],
             "saved_wall_ns": time.time_ns(),
         }
-        tmp = self.path.with_name(self.path.name + ".tmp")
         try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_CLOEXEC, 0o600)
-            with os.fdopen(fd, "w") as fh:
-                json.dump(state, fh)
-            os.replace(tmp, self.path)
+            write_private_json(self.path, state)
         except OSError as exc:
             log.warning("sensitivities not saved", path=str(self.path), error=str(exc))
             return
