@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import os
 import sys
 
@@ -17,6 +16,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from usmswitch.predictor import DEFAULT_MODEL, MODELS
 
 from .config import ConfigError, load_config
+from .process_exit import exit_now
 from .version import version_text
 from .wire import PROTOCOL_VERSION
 
@@ -108,18 +108,10 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def entry() -> None:
-    """The `usmswitchd` command: main(), then out without the interpreter's teardown.
-
-    Once main() returns, the drive is off, every record is committed and checkpointed, the
-    children are reaped and the state directory unlocked (Daemon.stop). Unloading modules and
-    collecting what is left then took 20-55 ms of the 100 ms that SIGTERM-to-exit may take, and
-    more on a busy machine; there is nothing left for it to save.
-    """
-    status = main()
-    logging.shutdown()
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(status)
+    """The `usmswitchd` command: main(), then out without the interpreter's teardown (once main()
+    returns, the drive is off, every record is committed, the children are gone and the state
+    directory unlocked: Daemon.stop)."""
+    exit_now(main())
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from typing import Any
 
 import msgpack
 
+from .process_exit import exit_now
 from .rpc_params import PARAMS, check_params, show
 from .wire import (
     BUILTIN_METHODS,
@@ -727,10 +728,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    status = main()
-    # Nothing here is left to save (every read is read-only, every client already closed), so skip
-    # the interpreter's teardown: it joins the reader threads, one of which may be packing a long
-    # history, and unloads modules, 20 ms and more that the daemon's SIGTERM-to-exit would wait for.
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(status)
+    exit_now(main())  # every read is read-only and every client closed: nothing is left to save

@@ -31,6 +31,7 @@ import structlog
 
 from .children import KILLED_REAP_S, end_child, wait_exit
 from .pg_schema import redact_url
+from .process_exit import exit_now
 
 log = structlog.get_logger("usmswitch.shipper")
 
@@ -223,9 +224,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    status = main()
-    # Shipped, stopped and reported: skip the teardown (psycopg's pool and threads, the modules),
-    # which the daemon's SIGTERM-to-exit would otherwise wait for.
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(status)
+    exit_now(main())  # shipped, stopped and reported: nothing is left for the teardown to do
