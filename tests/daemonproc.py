@@ -52,6 +52,21 @@ def wait_serving(sock: Path, proc: subprocess.Popen[bytes], timeout_s: float = 2
 
 def stop(proc: subprocess.Popen[bytes], timeout_s: float = 20.0) -> bytes:
     """SIGTERM and wait; returns what the daemon logged on stderr."""
+    return stop_timed(proc, timeout_s)[0]
+
+
+def stop_timed(proc: subprocess.Popen[bytes], timeout_s: float = 20.0) -> tuple[bytes, float]:
+    """SIGTERM and wait; (what the daemon logged on stderr, seconds from the signal to its exit)."""
+    t0 = time.monotonic()
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=timeout_s)
-    return err or b""
+    return err or b"", time.monotonic() - t0
+
+
+def child_pid(proc: subprocess.Popen[bytes], module: str) -> int:
+    """The pid of the daemon's one child running `module` (usmswitch.daemon.rpc_process, ...)."""
+    found = subprocess.run(
+        ["pgrep", "-P", str(proc.pid), "-f", module], capture_output=True, text=True, check=False
+    ).stdout.split()
+    assert len(found) == 1, found
+    return int(found[0])

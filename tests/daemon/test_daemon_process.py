@@ -187,10 +187,7 @@ def test_sigterm_during_a_5_s_target_exits_at_once_recording_the_abort(tmp_path:
                     break
                 time.sleep(0.02)
         time.sleep(0.3)  # the first stroke is waiting for its start, 5 s - t_hat after its command
-        t0 = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=20)
-        took = time.monotonic() - t0
+        err, took = daemonproc.stop_timed(proc)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -209,18 +206,9 @@ def test_a_frozen_server_process_does_not_hold_the_exit(tmp_path: Path) -> None:
         with wait_for_socket(tmp_path, proc) as client:
             while client.status()["cycle"] < 5:
                 time.sleep(0.02)
-        children = subprocess.run(
-            ["pgrep", "-P", str(proc.pid), "-f", "usmswitch.daemon.rpc_process"],
-            capture_output=True,
-            text=True,
-        ).stdout.split()
-        assert len(children) == 1, children
-        server = int(children[0])
+        server = daemonproc.child_pid(proc, "usmswitch.daemon.rpc_process")
         os.kill(server, signal.SIGSTOP)
-        t0 = time.monotonic()
-        proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=20)
-        took = time.monotonic() - t0
+        err, took = daemonproc.stop_timed(proc)
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -256,14 +256,7 @@ def test_shipping_without_psycopg_refuses_to_start_saying_what_to_install(tmp_pa
 def test_a_shipper_process_that_dies_is_started_again_and_catches_up(pg, tmp_path: Path):
     server, db, url = pg
     with shipping_daemon(tmp_path, url, shipped=10) as (sock, proc, _):
-        children = subprocess.run(
-            ["pgrep", "-P", str(proc.pid), "-f", "usmswitch.daemon.shipper_process"],
-            capture_output=True,
-            text=True,
-            check=False,
-        ).stdout.split()
-        assert len(children) == 1, children
-        os.kill(int(children[0]), signal.SIGKILL)
+        os.kill(daemonproc.child_pid(proc, "usmswitch.daemon.shipper_process"), signal.SIGKILL)
         wait_for(
             lambda: "exited" in (_status(sock)["records"]["postgres"]["error"] or ""), what="the death seen"
         )
@@ -291,18 +284,10 @@ def test_a_frozen_shipper_does_not_hold_the_exit_and_the_rest_ships_next_time(pg
         sock = tmp_path / "d.sock"
         daemonproc.wait_serving(sock, proc)
         wait_for(lambda: _status(sock)["records"]["postgres"]["shipped_cycle"] >= 10, what="shipping")
-        children = subprocess.run(
-            ["pgrep", "-P", str(proc.pid), "-f", "usmswitch.daemon.shipper_process"],
-            capture_output=True,
-            text=True,
-            check=False,
-        ).stdout.split()
-        assert len(children) == 1, children
-        os.kill(int(children[0]), signal.SIGSTOP)
+        os.kill(daemonproc.child_pid(proc, "usmswitch.daemon.shipper_process"), signal.SIGSTOP)
         time.sleep(0.3)  # strokes committed that it cannot ship
-        t0 = time.monotonic()
-        err = daemonproc.stop(proc).decode()
-        took = time.monotonic() - t0
+        logged, took = daemonproc.stop_timed(proc)
+        err = logged.decode()
     finally:
         if proc.poll() is None:
             proc.kill()
