@@ -42,8 +42,8 @@ from .connection import (
     result_of,
     sort_message,
 )
-from .run import RunTracker
-from .types import CycleRecord, Cycling, Notification, RunInfo, Stats
+from .run import RunHandle
+from .types import CycleRecord, Notification, RunInfo, Stats
 
 
 class AsyncClient(Api):
@@ -253,7 +253,7 @@ class AsyncSubscription:
         while True:
             note = await self.client.next_notification(self.timeout)
             if note.topic == "dropped":
-                self.dropped += int(note.payload.get("count", 0)) if type(note.payload) is dict else 0
+                self.dropped += note.dropped
             elif note.topic in self.topics:
                 yield note
 
@@ -262,22 +262,10 @@ class AsyncSubscription:
             await self.client.unsubscribe(*self.topics)
 
 
-class AsyncRun:
+class AsyncRun(RunHandle):
     """One run started by `AsyncClient.run`: `async for` yields its strokes, then ends."""
 
-    def __init__(
-        self, client: AsyncClient, started: Cycling, added_topics: list[str], timeout: float | None
-    ) -> None:
-        self.client = client
-        self.started = started
-        self.run_id = started["run_id"]
-        self.timeout = timeout
-        self._tracker = RunTracker(started)
-        self._added_topics = added_topics
-
-    @property
-    def info(self) -> RunInfo | None:
-        return self._tracker.info
+    client: AsyncClient
 
     def __aiter__(self) -> AsyncIterator[CycleRecord]:
         return self._strokes()

@@ -376,7 +376,7 @@ class Subscription:
         while True:
             note = self.client.next_notification(self.timeout)
             if note.topic == "dropped":
-                self.dropped += int(note.payload.get("count", 0)) if type(note.payload) is dict else 0
+                self.dropped += note.dropped
                 continue
             if note.topic in self.topics:
                 yield note

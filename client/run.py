@@ -101,19 +101,17 @@ class RunTracker:
         return want
 
 
-class Run:
-    """One run started by `Client.run`; iterate it for its strokes (see the module's doc)."""
+class RunHandle:
+    """What `Run` and `aio.AsyncRun` share: the run's start reply, its tracker and its end."""
 
-    def __init__(
-        self, client: Client, started: Cycling, added_topics: list[str], timeout: float | None
-    ) -> None:
+    def __init__(self, client: Any, started: Cycling, added_topics: list[str], timeout: float | None) -> None:
         self.client = client
         #: start_cycling's reply: run_id, first_cycle, period_ns, count, targets, warnings.
         self.started = started
         self.run_id = started["run_id"]
         self.timeout = timeout
         self._tracker = RunTracker(started)
-        self._added_topics = added_topics
+        self._added_topics = added_topics  # the topics subscribed for the run, dropped at its end
 
     @property
     def info(self) -> RunInfo | None:
@@ -123,6 +121,12 @@ class Run:
     @property
     def ended(self) -> bool:
         return self._tracker.ended
+
+
+class Run(RunHandle):
+    """One run started by `Client.run`; iterate it for its strokes (see the module's doc)."""
+
+    client: Client
 
     def __iter__(self) -> Iterator[CycleRecord]:
         tracker = self._tracker

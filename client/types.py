@@ -139,3 +139,10 @@ class Notification(NamedTuple):
 
     topic: str
     payload: Any
+
+    @property
+    def dropped(self) -> int:
+        """For the server's "dropped" notification, how many it dropped for this connection; else 0."""
+        if self.topic != "dropped" or type(self.payload) is not dict:
+            return 0
+        return int(self.payload.get("count", 0))
