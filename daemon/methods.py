@@ -392,6 +392,8 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         feeds=FEEDS if daemon.config.metrics.listen else (),
         metrics=parse_listen(daemon.config.metrics.listen) if daemon.config.metrics.listen else None,
         limits=Limits(max_connections=cfg.max_clients, max_tcp_connections=cfg.max_tcp_clients),
+        log_format=daemon.config.daemon.log_format,
+        log_level=daemon.config.daemon.log_level,
     )
     server.start()
     methods.server = server

@@ -90,6 +90,28 @@ def apply_realtime(
     return result
 
 
+def renice(increment: int, process: str, cost: str) -> bool:
+    """Lower this process's priority by `increment` (os.nice); a refusal is a warning saying `cost`.
+
+    A service manager's syscall filter or a container may deny setpriority: the process then runs
+    at its parent's priority, which costs the loop some CPU under load but is no reason to stop.
+    """
+    if not increment:
+        return True
+    try:
+        os.nice(increment)
+        return True
+    except OSError as exc:
+        log.warning(
+            "nice refused, carrying on at the inherited priority",
+            process=process,
+            nice=increment,
+            reason=_describe(exc),
+            cost=cost,
+        )
+        return False
+
+
 def lift_helpers(priority: int) -> list[str]:
     """SCHED_FIFO `priority` for every other thread of this process; the names of those lifted.
 

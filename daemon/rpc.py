@@ -99,6 +99,8 @@ class RpcServer:
         isolation: str = "process",
         nice: int = 5,
         max_restarts: int = 5,
+        log_format: str = "auto",
+        log_level: str = "info",
     ) -> None:
         urgent = dict(urgent or {})
         for name, handler in [*handlers.items(), *urgent.items()]:
@@ -154,6 +156,7 @@ class RpcServer:
         self.limits = limits or Limits()
         self.isolation = isolation
         self.nice = nice
+        self.log_settings = (log_format, log_level)
         self.max_restarts = max_restarts
         #: Where TCP listens once started (the port resolved when 0 was asked).
         self.tcp_address: tuple[str, int] | None = None
@@ -363,6 +366,7 @@ class RpcServer:
                 for sock, kind in self._listeners:
                     cmd += ["--listen", f"{sock.fileno()}:{kind}"]
                 cmd += ["--nice", str(self.nice)]
+                cmd += ["--log-format", self.log_settings[0], "--log-level", self.log_settings[1]]
                 fds = [theirs.fileno(), u_theirs.fileno()] + [sock.fileno() for sock, _ in self._listeners]
                 proc = subprocess.Popen(cmd, pass_fds=fds, stdin=subprocess.DEVNULL)
                 theirs.close()

@@ -25,7 +25,9 @@ from typing import Any
 
 import msgpack
 
+from .logsetup import configure_logging
 from .process_exit import exit_now
+from .realtime import renice
 from .rpc_params import PARAMS, check_params, show
 from .wire import (
     BUILTIN_METHODS,
@@ -688,8 +690,7 @@ def serve(chan_fd: int, urgent_fd: int, listeners: list[tuple[int, str]], nice: 
     if body is None:
         return
     cfg = msgpack.unpackb(body, raw=False)
-    if nice:
-        os.nice(nice)
+    renice(nice, "server", "the socket's clients compete with the loop for CPU at the loop's nice")
     socks = [(socket.socket(fileno=fd), kind) for fd, kind in listeners]
     for sock, _ in socks:
         sock.setblocking(False)
@@ -708,7 +709,10 @@ def main(argv: list[str] | None = None) -> int:
         "--listen", action="append", default=[], help="FD:unix, FD:tcp or FD:metrics, a listening socket"
     )
     parser.add_argument("--nice", type=int, default=0)
+    parser.add_argument("--log-format", default="auto", help="as [daemon] log_format")
+    parser.add_argument("--log-level", default="info", help="as [daemon] log_level")
     args = parser.parse_args(argv)
+    configure_logging(args.log_format, args.log_level, sys.stderr)
     # The daemon owns shutdown: a Ctrl-C to the terminal's process group or systemd's SIGTERM to the
     # cgroup must not kill the server under it mid-stop. It ends when the daemon's channel closes.
     signal.signal(signal.SIGINT, signal.SIG_IGN)

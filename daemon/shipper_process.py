@@ -173,7 +173,7 @@ def main() -> int:
     import signal
 
     from .logsetup import configure_logging
-    from .realtime import drop_realtime
+    from .realtime import drop_realtime, renice
     from .shipper import PostgresShipper
 
     # Started again by the daemon's watcher thread, which runs SCHED_FIFO when the loop does: the
@@ -186,8 +186,7 @@ def main() -> int:
         signal.signal(sig, signal.SIG_IGN)
     settings = json.loads(sys.stdin.readline())
     configure_logging(settings["log_format"], settings["log_level"], sys.stderr)
-    with contextlib.suppress(OSError):
-        os.nice(NICE)
+    renice(NICE, "shipper", "shipping competes with the loop for CPU at the loop's nice")
     shipper = PostgresShipper(settings["records"], settings["url"], settings["rig"])
     shipper.start()
     out = sys.stdout
