@@ -10,7 +10,23 @@ daemon; a lab machine needs only this package.
 """
 
 from usmswitch.daemon.sockdir import client_socket_paths
-from usmswitch.daemon.wire import ErrorCode, RpcError
+from usmswitch.daemon.wire import (
+    Busy,
+    CallTimeout,
+    ErrorCode,
+    Faulted,
+    InternalError,
+    InvalidParams,
+    InvalidRequest,
+    ParseError,
+    RpcError,
+    TargetUnreachable,
+    TooLarge,
+    Unauthorized,
+    Unavailable,
+    UnknownMethod,
+    WrongState,
+)
 
 from .aio import AsyncClient, AsyncRun
 from .api import Duration, find_socket
@@ -34,6 +50,8 @@ from .types import (
 __all__ = [
     "AsyncClient",
     "AsyncRun",
+    "Busy",
+    "CallTimeout",
     "Client",
     "ConnectionClosed",
     "CycleRecord",
@@ -41,9 +59,14 @@ __all__ = [
     "DirectionStats",
     "Duration",
     "ErrorCode",
+    "Faulted",
+    "InternalError",
+    "InvalidParams",
+    "InvalidRequest",
     "Listener",
     "Notification",
     "Notifier",
+    "ParseError",
     "PostgresRecords",
     "RecordsFile",
     "RecordsFileError",
@@ -55,8 +78,14 @@ __all__ = [
     "Stats",
     "Status",
     "Subscription",
+    "TargetUnreachable",
     "Targets",
+    "TooLarge",
+    "Unauthorized",
+    "Unavailable",
+    "UnknownMethod",
     "UntrustedSocketError",
+    "WrongState",
     "client_socket_paths",
     "find_socket",
     "open_records",

@@ -187,6 +187,7 @@ class AsyncClient(Api):
         target: Duration | None = None,
         *,
         allow_late: bool = False,
+        take_over: bool = False,
         timeout: float | None = None,
     ) -> AsyncRun:
         """Start a run; `async for` over the result yields its strokes and ends with the run."""
@@ -194,7 +195,9 @@ class AsyncClient(Api):
         if added:
             self.topics = set((await self.call("subscribe", added))["topics"])
         try:
-            started = await self.start_cycling(period, count, target=target, allow_late=allow_late)
+            started = await self.start_cycling(
+                period, count, target=target, allow_late=allow_late, take_over=take_over
+            )
         except BaseException:
             if added and self.connected:
                 await self.unsubscribe(*added)

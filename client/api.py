@@ -8,7 +8,10 @@ is refused, so a target is never silently taken in the wrong unit.
 
 from __future__ import annotations
 
+import getpass
 import os
+import socket
+import sys
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
 from pathlib import Path
@@ -102,12 +105,17 @@ class Api(ABC):
         *,
         target: Duration | None = None,
         allow_late: bool = False,
+        take_over: bool = False,
     ) -> Cycling:
         """Open a run: alternate on/off strokes every `period`, `count` of them (0: until stopped),
-        at `target` when given (else the current targets). Fails with STATE while cycling."""
+        at `target` when given (else the current targets).
+
+        The daemon's own start-up run (`make run`) gives way to it. A run that a client or an
+        experiment started raises WrongState naming it, unless `take_over` ends it first.
+        """
         period_ns = duration_ns("period", period)
         target_ns = None if target is None else duration_ns("target", target)
-        return self.call("start_cycling", period_ns, count, target_ns, allow_late)
+        return self.call("start_cycling", period_ns, count, target_ns, allow_late, take_over, run_owner())
 
     def stop_cycling(self) -> dict[str, Any]:
         """Stop cycling after the stroke in progress; the reply carries the ended run."""
@@ -140,3 +148,14 @@ class Api(ABC):
         if enabled is not None:
             settings["enabled"] = enabled
         return self.call("set_drive", settings)
+
+
+def run_owner() -> str:
+    """Who starts a run, for the daemon's records and for the refusal another client reads:
+    user, host, pid and program."""
+    try:
+        user = getpass.getuser()
+    except (KeyError, OSError):
+        user = f"uid {os.getuid()}"
+    program = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else "python"
+    return f"{user}@{socket.gethostname()} pid {os.getpid()} ({program})"[:200]

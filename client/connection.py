@@ -326,6 +326,7 @@ class Client(Api):
         target: Duration | None = None,
         *,
         allow_late: bool = False,
+        take_over: bool = False,
         timeout: float | None = None,
     ) -> Run:
         """Start a run and return it: iterating the `Run` yields its stroke records (none missed:
@@ -335,7 +336,9 @@ class Client(Api):
         if added:
             self._subscribed(self.call("subscribe", added))
         try:
-            started = self.start_cycling(period, count, target=target, allow_late=allow_late)
+            started = self.start_cycling(
+                period, count, target=target, allow_late=allow_late, take_over=take_over
+            )
         except BaseException:
             if added and self.connected:
                 self.unsubscribe(*added)
@@ -427,4 +430,4 @@ def result_of(reply: list[Any]) -> Any:
 
 
 def _raise(code: int, message: str) -> Any:
-    raise RpcError(code, message)
+    raise RpcError.of(code, message)

@@ -47,8 +47,16 @@ class State(StrEnum):
     STOPPED = "stopped"  # shut down
 
 
+#: The owner of the run the daemon starts by itself (`[cycle] autostart`): a client's run takes it over.
+AUTOSTART_OWNER = "autostart"
+
+
 class LoopError(Exception):
     """A request the loop refuses in its present state; the message says why."""
+
+
+class TargetUnreachableError(ValueError):
+    """A closed-loop target below the shortest stroke the rig makes; the message names the shortest."""
 
 
 class ControlLoop:
@@ -219,7 +227,7 @@ class ControlLoop:
                     else ""
                 )
                 name = "on" if d is Direction.ON else "off"
-                raise ValueError(
+                raise TargetUnreachableError(
                     f"target {format_ns(targets[d])}{hint} is below the shortest the rig reaches "
                     f"in direction {name}: {format_ns(typed)} (predicted stroke "
                     f"{format_ns(shortest - self.late_margin_ns)} + late margin "
@@ -254,6 +262,11 @@ class ControlLoop:
             # After a fault the mover may be anywhere: ask the sensors where it rests.
             self._next_dir = direction_from_levels(self.daq.levels(), self._next_dir)
             self._plan = None
+
+    def check_period(self, period_ns: int, targets: Sequence[int] | None = None) -> None:
+        """Refuse (ValueError) a period that `targets` (default: the current ones) do not fit in."""
+        chosen = self.targets if targets is None else targets
+        self._check_period(period_ns, chosen, self.mode, self.open_delay_ns)
 
     def start_cycling(
         self,

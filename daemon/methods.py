@@ -15,18 +15,22 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any, Protocol
 
+import structlog
+
 from usmswitch.drivers import Daq, DaqError, Direction
 
 from .config import Config
 from .config_values import parse_host_port, parse_listen
 from .estop_socket import EstopSocket
-from .loop import ControlLoop, LoopError, Mode, State
+from .loop import AUTOSTART_OWNER, ControlLoop, LoopError, Mode, State, TargetUnreachableError
 from .metrics import FEEDS
 from .record import CycleRecord, RunRecord
 from .records import RecordStore
 from .rpc import RpcServer
 from .version import PACKAGE_VERSION
 from .wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, estop_socket_path
+
+log = structlog.get_logger("usmswitch.daemon")
 
 
 class Daemon(Protocol):
@@ -136,6 +140,8 @@ class Methods:
             except LoopError as exc:
                 code = ErrorCode.FAULT if self.loop.state is State.FAULT else ErrorCode.STATE
                 raise RpcError(code, str(exc)) from None
+            except TargetUnreachableError as exc:
+                raise RpcError(ErrorCode.UNREACHABLE, str(exc)) from None
             except ValueError as exc:
                 raise RpcError(ErrorCode.INVALID_PARAMS, str(exc)) from None
             except DaqError as exc:
@@ -221,20 +227,28 @@ class Methods:
         return done
 
     def start_cycling(self, params: list[Any]) -> Future[Any]:
-        """A new run: the target (when given) is set with it, and the run records both."""
-        period_ns, count, target_ns, allow_late = params
+        """A new run: the target (when given) is set with it, and the run records both.
+
+        A run going is never ended silently: the daemon's own start-up run (`[cycle] autostart`,
+        what `make run` starts) gives way to a client's run with a log line; a run a client or an
+        experiment started is taken over only when asked (`take_over`), else refused naming it.
+        """
+        period_ns, count, target_ns, allow_late, take_over, owner = params
 
         def run() -> dict[str, Any]:
             loop = self.loop
-            if loop.state is State.CYCLING:
-                raise LoopError("already cycling: stop_cycling first (or wait for the run to end)")
             targets = list(loop.targets) if target_ns is None else [target_ns, target_ns]
             if not allow_late:
                 loop.check_reach(targets)
+            loop.check_period(period_ns, targets)
+            taken = self._give_way(take_over, owner) if loop.state is State.CYCLING else None
             old = list(loop.targets)
             warnings = loop.set_targets(targets) if target_ns is not None else []
+            settings: dict[str, Any] = {"allow_late": allow_late, "owner": owner}
+            if taken is not None:
+                settings["took_over_run"] = taken.run_id
             try:
-                run = loop.start_cycling(period_ns, count, settings={"allow_late": allow_late})
+                run = loop.start_cycling(period_ns, count, settings=settings)
             except Exception:
                 loop.set_targets(old)  # a refused run changes nothing
                 raise
@@ -257,9 +271,27 @@ class Methods:
                 "target_on_ns": loop.targets[0],
                 "target_off_ns": loop.targets[1],
                 "warnings": warnings,
+                "took_over": None if taken is None else taken.run_id,
             }
 
         return self._on_loop(run)
+
+    def _give_way(self, take_over: bool, owner: str) -> RunRecord:
+        """End the run going so that a new one can start, or refuse (LoopError) naming it."""
+        loop = self.loop
+        going = loop.latest_run
+        assert going is not None
+        by = going.settings.get("owner") or "a client"
+        if by != AUTOSTART_OWNER and not take_over:
+            raise LoopError(
+                f"already cycling: run {going.run_id} ({by}, {going.settings.get('count') or 'endless'}"
+                f" strokes from cycle {going.first_cycle}) is going; stop it first (stop_cycling,"
+                " `usmswitchctl stop`) or take it over deliberately (take_over=True,"
+                " `usmswitchctl cycle --take-over`)"
+            )
+        log.info("run taken over", run=going.run_id, owner=by, by=owner or "a client", at_cycle=loop.cycle)
+        loop.stop_cycling(f"taken over by {owner or 'a client'}")
+        return going
 
     def stop_cycling(self, params: list[Any]) -> Future[Any]:
         def run() -> dict[str, Any]:

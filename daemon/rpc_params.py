@@ -79,6 +79,18 @@ def _string(name: str) -> Callable[[str, object], object]:
     return check
 
 
+def _text(name: str, max_len: int) -> Callable[[str, object], object]:
+    def check(method: str, value: object) -> object:
+        if type(value) is not str or len(value) > max_len:
+            raise RpcError(
+                ErrorCode.INVALID_PARAMS,
+                f"{method}: {name} must be a string of at most {max_len} characters, got {show(value)}",
+            )
+        return value
+
+    return check
+
+
 def _topics(method: str, value: object) -> object:
     if type(value) is not list or not all(type(t) is str for t in value):
         raise RpcError(
@@ -143,6 +155,8 @@ PARAMS: dict[str, _Spec] = {
         ("count", _integer("count", 0, _MAX_COUNT), 0),
         ("target_ns", _optional(_integer("target_ns", 1, _MAX_TARGET_NS)), None),
         ("allow_late", _boolean("allow_late"), False),
+        ("take_over", _boolean("take_over"), False),
+        ("owner", _text("owner", 200), ""),
     ),
     "stop_cycling": (),
     "set_mode": (

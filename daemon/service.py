@@ -30,7 +30,7 @@ from .config import Config
 from .daqfactory import make_daq
 from .fleet import Fleet
 from .logsetup import configure_logging
-from .loop import ControlLoop, State, direction_from_levels
+from .loop import AUTOSTART_OWNER, ControlLoop, State, direction_from_levels
 from .methods import start_rpc
 from .realtime import apply_realtime, lift_helpers
 from .record import CycleRecord, Flag, RunRecord
@@ -275,8 +275,17 @@ class Daemon:
         if cfg.autostart:
             # Queued, so the first tick is laid after run() has set up the collector.
             loop = self.loop
-            loop.call(lambda: loop.start_cycling(cfg.cycle.period_ns, cfg.cycle.count))
-            self.log.info("cycling", period_ns=cfg.cycle.period_ns, count=cfg.cycle.count or "forever")
+            loop.call(
+                lambda: loop.start_cycling(
+                    cfg.cycle.period_ns, cfg.cycle.count, settings={"owner": AUTOSTART_OWNER}
+                )
+            )
+            self.log.info(
+                "cycling",
+                period_ns=cfg.cycle.period_ns,
+                count=cfg.cycle.count or "forever",
+                note="a client's run takes this start-up run over",
+            )
         self._next_summary_ns = time.monotonic_ns() + cfg.daemon.summary_interval_ns
         self.notifier.ready(status=self._status_line())
         status = 0

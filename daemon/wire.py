@@ -43,6 +43,7 @@ class ErrorCode(IntEnum):
     UNAVAILABLE = 5  # not configured or not ready (no drive board, no stats yet, daemon restarting)
     TIMEOUT = 6  # no answer from the daemon within the call timeout, or an idle connection closed
     TOO_LARGE = 7  # a frame or a reply above the limits
+    UNREACHABLE = 8  # a closed-loop target below the shortest the rig reaches (the message names it)
 
 
 class RpcError(Exception):
@@ -56,6 +57,84 @@ class RpcError(Exception):
     def to_wire(self) -> list[object]:
         """The `[code, message]` pair of a response's error slot."""
         return [self.code, self.message]
+
+    @staticmethod
+    def of(code: int, message: str) -> RpcError:
+        """The error for `code` as its own subclass (`except TargetUnreachable:`), else RpcError."""
+        cls = _BY_CODE.get(int(code), RpcError)
+        err = cls.__new__(cls)
+        RpcError.__init__(err, code, message)
+        return err
+
+
+# One subclass per code, so that scripts catch what they can handle by name.
+class ParseError(RpcError):
+    """The frame was not msgpack or broke a limit; the server closes the connection."""
+
+
+class InvalidRequest(RpcError):
+    """msgpack, but not a request `[0, msgid, method, params]`."""
+
+
+class UnknownMethod(RpcError):
+    """No such method."""
+
+
+class InvalidParams(RpcError):
+    """A parameter is missing, of the wrong type or out of range; the message names it."""
+
+
+class InternalError(RpcError):
+    """A bug in the daemon; the message says where."""
+
+
+class Busy(RpcError):
+    """Too many requests, connections or calls in flight: retry later."""
+
+
+class Unauthorized(RpcError):
+    """TCP without a valid token."""
+
+
+class Faulted(RpcError):
+    """The rig is in FAULT: `reset_fault` first."""
+
+
+class WrongState(RpcError):
+    """Not possible now (a run is going, the rig is busy); the message says what would be."""
+
+
+class Unavailable(RpcError):
+    """Not configured or not ready (no drive board, the daemon restarting)."""
+
+
+class CallTimeout(RpcError):
+    """No answer within the call's timeout, or an idle connection closed."""
+
+
+class TooLarge(RpcError):
+    """A frame or a reply above the limits."""
+
+
+class TargetUnreachable(RpcError):
+    """A closed-loop target below the shortest the rig reaches; the message names the shortest."""
+
+
+_BY_CODE: dict[int, type[RpcError]] = {
+    ErrorCode.PARSE_ERROR: ParseError,
+    ErrorCode.INVALID_REQUEST: InvalidRequest,
+    ErrorCode.UNKNOWN_METHOD: UnknownMethod,
+    ErrorCode.INVALID_PARAMS: InvalidParams,
+    ErrorCode.INTERNAL: InternalError,
+    ErrorCode.BUSY: Busy,
+    ErrorCode.UNAUTHORIZED: Unauthorized,
+    ErrorCode.FAULT: Faulted,
+    ErrorCode.STATE: WrongState,
+    ErrorCode.UNAVAILABLE: Unavailable,
+    ErrorCode.TIMEOUT: CallTimeout,
+    ErrorCode.TOO_LARGE: TooLarge,
+    ErrorCode.UNREACHABLE: TargetUnreachable,
+}
 
 
 @dataclass(frozen=True, slots=True)

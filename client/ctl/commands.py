@@ -129,12 +129,16 @@ def cmd_switch(client: Client, args: argparse.Namespace) -> int:
 def cmd_cycle(client: Client, args: argparse.Namespace) -> int:
     """Start a run of on/off strokes; with --wait, follow it to its end and report how it ended."""
     if not args.wait:
-        result = client.start_cycling(args.period, args.count, target=args.target, allow_late=args.allow_late)
+        result = client.start_cycling(
+            args.period, args.count, target=args.target, allow_late=args.allow_late, take_over=args.take_over
+        )
         _print_cycling(result, args)
         return EXIT_OK
     # Subscribed before the start: the end of a short run cannot slip past. From the start on, a
     # Ctrl-C (even one that lands while the first line prints) leaves the daemon cycling, and says so.
-    run = client.run(args.count, args.period, args.target, allow_late=args.allow_late)
+    run = client.run(
+        args.count, args.period, args.target, allow_late=args.allow_late, take_over=args.take_over
+    )
     try:
         _print_cycling(run.started, args)
         with CycleProgress(run.started["first_cycle"], args.count if not args.json else 0) as progress:

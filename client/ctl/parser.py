@@ -130,6 +130,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--allow-late", action="store_true", help="take a target below what the rig reaches (late strokes)"
     )
     c.add_argument("--wait", action="store_true", help="return when the run ends (exit 4 if in FAULT)")
+    c.add_argument(
+        "--take-over",
+        action="store_true",
+        help="end a run another client started first (the daemon's start-up run gives way anyway)",
+    )
     command("stop", "stop cycling after the stroke in progress")
     c = command("mode", "closed loop (T_d = T - t_hat) or open loop (fixed delay)")
     c.add_argument("mode", choices=("open", "closed"))

@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 
 from usmswitch.client import Client, ConnectionClosed
+from usmswitch.client.api import run_owner
 from usmswitch.client.connection import parse_address
 from usmswitch.daemon.rpc import RpcServer
 from usmswitch.daemon.wire import ErrorCode, Limits, RpcError
@@ -120,8 +121,8 @@ def test_every_typed_method_sends_the_documented_params(server: RpcServer, rec: 
         ("history", [5, 3]),
         ("runs", [20]),
         ("switch", ["on"]),
-        ("start_cycling", [50_000_000, 1000, None, False]),
-        ("start_cycling", [20_000_000, 0, 12_000_000, False]),
+        ("start_cycling", [50_000_000, 1000, None, False, False, run_owner()]),
+        ("start_cycling", [20_000_000, 0, 12_000_000, False, False, run_owner()]),
         ("stop_cycling", []),
         ("set_mode", ["open", None]),
         ("set_mode", ["open", 2_000_000]),

@@ -29,6 +29,7 @@ from usmswitch.client import (
     RecordsFile,
     RpcError,
     RunLost,
+    TargetUnreachable,
 )
 from usmswitch.client.run import RunTracker
 
@@ -88,13 +89,13 @@ def test_a_target_in_the_wrong_unit_is_refused_before_a_stroke(rig: Rig) -> None
         before = lab.status()["cycle"]
         with pytest.raises(ValueError, match=r"'12': needs a unit .*'12ms'"):
             lab.run(count=5, period=PERIOD, target="12")
-        with pytest.raises(RpcError) as err:
+        with pytest.raises(TargetUnreachable) as err:  # a subclass of RpcError per code
             lab.set_target(12)  # an int is nanoseconds: 12 ns
-        assert err.value.code == ErrorCode.INVALID_PARAMS
+        assert err.value.code == ErrorCode.UNREACHABLE
         assert "bare number is nanoseconds" in err.value.message and "'12ms'" in err.value.message
-        with pytest.raises(RpcError) as err:
+        with pytest.raises(TargetUnreachable) as err:
             lab.run(count=5, period=PERIOD, target="5ms")  # below the ~10.5 ms stroke
-        assert err.value.code == ErrorCode.INVALID_PARAMS
+        assert err.value.code == ErrorCode.UNREACHABLE and isinstance(err.value, RpcError)
         assert "shortest the rig reaches" in err.value.message and "allow late" in err.value.message
         assert lab.status()["cycle"] == before and lab.status()["state"] == "idle"
         assert lab.get_target()["target_on_ns"] != 5_000_000  # a refused run changed nothing

@@ -191,7 +191,7 @@ def test_errors_carry_documented_codes_and_name_the_value(server: RpcServer) -> 
 
 def test_check_params_fills_defaults_and_refuses_extra() -> None:
     assert check_params("history", []) == [20, None]
-    assert check_params("start_cycling", [50_000_000]) == [50_000_000, 0, None, False]
+    assert check_params("start_cycling", [50_000_000]) == [50_000_000, 0, None, False, False, ""]
     assert check_params("stats", [None, 5]) == [None, 5, None]
     assert check_params("switch", []) == ["next"]
     assert check_params("set_drive", [{"enabled": False, "voltage_vpp": 480.5}]) == [
