@@ -157,6 +157,8 @@ class ControlConfig:
     nominal_ns: int = 10_500_000  # t_hat before a direction's first stroke (both directions)
     nominal_on_ns: int = 10_500_000  # that of "on" strokes (default: nominal)
     nominal_off_ns: int = 10_500_000  # that of "off" strokes (default: nominal)
+    # Which of nominal_on/off the config gave (else the driver's model or a commissioning stroke).
+    nominal_given: tuple[bool, bool] = field(default=(False, False), metadata={"derived": True})
     warm_start: int = 100  # strokes per direction reloaded from the records at start (<= window)
     # d ln t per kHz, per 100 V, per C the rig is known to have (usmswitch-experiment drive-sensitivity):
     # the "kalman" model predicts a drive step with them from the first. None: not known, learned.
@@ -272,6 +274,11 @@ class Config:
         `redact=True` hides the TCP token and the database password, for logs and the status reply.
         """
         out = _section_to_dict(self)
+        # A nominal nobody gave stays unset, so that the dict loads back to the same first strokes.
+        on, off = self.control.nominal_given
+        for key, given in (("nominal", on and off), ("nominal_on", on), ("nominal_off", off)):
+            if not given:
+                del out["control"][key]
         if redact and out["socket"]["tcp_token"]:
             out["socket"]["tcp_token"] = "<redacted>"
         if redact:
@@ -531,6 +538,10 @@ def _control(t: Table) -> ControlConfig:
         nominal_ns=nominal,
         nominal_on_ns=nominals["nominal_on"],
         nominal_off_ns=nominals["nominal_off"],
+        nominal_given=(
+            t.has("nominal") or t.has("nominal_on"),
+            t.has("nominal") or t.has("nominal_off"),
+        ),
         warm_start=warm,
         **sensitivity,
         stroke_timeout_ns=timeout,
@@ -611,6 +622,8 @@ def _register_map(key: str, v: Any) -> Mapping[str, Any]:
 def _section_to_dict(obj: Any) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for fl in fields(obj):
+        if fl.metadata.get("derived"):
+            continue
         value = getattr(obj, fl.name)
         name = fl.name
         if name.endswith("_ns"):

@@ -79,6 +79,7 @@ class ControlLoop:
         conditions: Callable[[], Conditions | None] | None = None,
         first_run_id: int = 1,
         run_sink: Callable[[RunRecord], None] | None = None,
+        commissioning: Sequence[Direction] = (),
     ) -> None:
         if len(predictors) != 2:
             raise ValueError(f"one predictor per direction (on, off) is needed, got {len(predictors)}")
@@ -92,6 +93,8 @@ class ControlLoop:
         self.stroke_timeout_ns = check_ns("stroke_timeout_ns", stroke_timeout_ns, minimum=1)
         self.late_margin_ns = check_ns("late_margin_ns", late_margin_ns)
         self.sink = sink
+        #: Directions whose next completed stroke commissions them (nothing known before it).
+        self.commissioning = set(commissioning)
         self.cycle = first_cycle
         self.state = State.IDLE
         self.fault_reason = ""
@@ -525,6 +528,8 @@ class ControlLoop:
         flags = Flag.LATE | Flag.CLAMPED if late else Flag(0)
         if not p.ready:
             flags |= Flag.WARMUP
+        if direction in self.commissioning:
+            flags |= Flag.COMMISSIONING
         return Plan(direction, target, self.mode, t_hat, delay, late, p.order, tuple(p.coefficients), flags)
 
     def _arm(self, direction: Direction) -> None:
@@ -730,6 +735,8 @@ class ControlLoop:
             else None,
         )
         self.cycle += 1
+        if operating is not None:
+            self.commissioning.discard(plan.direction)
         self.stats[plan.direction].add_record(rec)
         self.stats_all.add_record(rec)
         if rec.run_id is not None:

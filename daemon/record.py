@@ -39,6 +39,9 @@ class Flag(IntFlag):
     # The mover did not start from the source sensor (an estop or a fault had stopped it midway):
     # a part of a stroke, recorded but not fed to the predictor.
     PARTIAL = 1 << 8
+    # A direction's first stroke on a rig nothing was known of (no records, no configured nominal,
+    # no model of the rig): t_hat was a guess. Its error is shown apart in the statistics.
+    COMMISSIONING = 1 << 9
 
 
 #: Flags after which `operating_ns` is not a real stroke time (the predictor must not learn it).

@@ -16,6 +16,7 @@ import signal
 import stat
 import sys
 import time
+from collections.abc import Sequence
 from concurrent.futures import Future
 from pathlib import Path
 from typing import Any, TextIO
@@ -61,10 +62,13 @@ STOP_BUDGET_NS = 50_000_000
 LIVE_LINE_NS = 250_000_000
 
 
-def direction_predictors(config: Config, learned: Sensitivities | None = None) -> list[Predictor]:
+def direction_predictors(
+    config: Config, learned: Sensitivities | None = None, nominals: Sequence[int] | None = None
+) -> list[Predictor]:
     """The two directions' predictors as [control] configures them (each its own nominal; a model that
     learns the motor as a whole learns it from both). `learned`: the sensitivities a predictor of this
-    configuration learned before (`sensitivities.json`), taken instead of the configured ones."""
+    configuration learned before (`sensitivities.json`), taken instead of the configured ones.
+    `nominals`: each direction's first t_hat, when known better than the config's (`first_guesses`)."""
     c = config.control
     options: dict[str, Any] = {}
     sensitivities = c.sensitivities if learned is None else learned
@@ -72,8 +76,30 @@ def direction_predictors(config: Config, learned: Sensitivities | None = None) -
         options = {"order": c.order, "window": c.window, "max_order": c.max_order}
     elif sensitivities is not None:  # the config refuses them for a model that does not take them
         options = {"sensitivities": sensitivities}
-    nominals = [c.nominal_for(d) for d in (Direction.ON, Direction.OFF)]
+    if nominals is None:
+        nominals = [c.nominal_for(d) for d in (Direction.ON, Direction.OFF)]
     return make_predictors(c.model, nominals, **options)
+
+
+def first_guesses(config: Config, daq: Daq) -> tuple[list[int], list[str]]:
+    """Each direction's t_hat before its first stroke, and where it came from: the config when it
+    gives a nominal, else the driver's model of the rig (the simulated rig knows its own), else the
+    config's default as a guess ("guess": that direction's first stroke is a commissioning stroke).
+    Records, when there are any, replace all of these at the warm start."""
+    c = config.control
+    nominals, sources = [], []
+    for d in (Direction.ON, Direction.OFF):
+        known = None if c.nominal_given[d] else daq.expected_stroke_ns(d)
+        if c.nominal_given[d]:
+            nominals.append(c.nominal_for(d))
+            sources.append("config")
+        elif known is not None:
+            nominals.append(known)
+            sources.append("rig model")
+        else:
+            nominals.append(c.nominal_for(d))
+            sources.append("guess")
+    return nominals, sources
 
 
 class StateDirBusyError(RuntimeError):
@@ -169,7 +195,9 @@ class Daemon:
             model=cfg.control.model,
             configured=cfg.control.sensitivities,
         )
-        predictors = direction_predictors(cfg, memory.load())
+        nominals, sources = first_guesses(cfg, daq)
+        predictors = direction_predictors(cfg, memory.load(), nominals)
+        commissioning = []
         memory.watch(predictors[0])
         for d in (Direction.ON, Direction.OFF):
             # Only this driver's strokes on this rig: never a real rig from simulated strokes.
@@ -177,6 +205,9 @@ class Daemon:
                 int(d), cfg.control.warm_start, driver=daq.name, rig=cfg.daemon.rig
             )
             predictors[d].extend(samples)
+            first = "records" if samples else sources[d]
+            if first == "guess":
+                commissioning.append(d)
             self.log.info(
                 "warm start",
                 direction=d.name.lower(),
@@ -184,6 +215,15 @@ class Daemon:
                 ready=predictors[d].ready,
                 driver=daq.name,
                 rig=cfg.daemon.rig,
+                first_prediction=first,
+                nominal_ns=nominals[d],
+            )
+        if commissioning:
+            self.log.warning(
+                "commissioning strokes",
+                directions=[d.name.lower() for d in commissioning],
+                why="no records, no configured nominal and no model of this rig: the first stroke of "
+                "each is predicted from the default nominal, flagged COMMISSIONING and shown apart in stats",
             )
         daq.open()
         self.daq = daq
@@ -214,6 +254,7 @@ class Daemon:
             run_sink=self._on_run,
             next_direction=first_direction(self.daq, last_rec),
             conditions=conditions,
+            commissioning=commissioning,
         )
         self.store.gate = self.loop.wait_turn
         self.loop.slack_hooks.append(self._watch_records)

@@ -17,6 +17,8 @@ from .record import CycleRecord, Flag, RunRecord
 
 # |error| and lateness percentiles are taken over the most recent strokes only, in fixed memory.
 PERCENTILE_WINDOW = 4096
+# Commissioning strokes listed apart per direction (a rig has one per direction in its life).
+COMMISSIONING_KEPT = 8
 
 
 class Running:
@@ -126,6 +128,9 @@ class DirectionStats:
         self.stalls = 0
         self.bounces = 0
         self.faults = 0
+        # Commissioning strokes (a first stroke predicted from nothing known): apart, never in
+        # the error figures. At most two a rig's life, so a short list is fixed memory enough.
+        self.commissioning: list[dict[str, int | None]] = []
 
     def add(
         self,
@@ -159,8 +164,32 @@ class DirectionStats:
         self.faults += fault
 
     def add_record(self, rec: CycleRecord) -> None:
-        """Fold one stroke's record in (what the loop and a read of the records file both do)."""
+        """Fold one stroke's record in (what the loop and a read of the records file both do).
+
+        A commissioning stroke feeds the operating time and the counters; its error is kept apart."""
         flags = rec.flags
+        if flags & Flag.COMMISSIONING and rec.error_ns is not None:
+            if len(self.commissioning) < COMMISSIONING_KEPT:
+                self.commissioning.append(
+                    {
+                        "cycle": rec.cycle,
+                        "direction": rec.direction,
+                        "error_ns": rec.error_ns,
+                        "t_hat_ns": rec.t_hat_ns,
+                    }
+                )
+            self.add(
+                operating_ns=rec.operating_ns,
+                total_ns=None,
+                error_ns=None,
+                target_ns=rec.target_ns,
+                lateness_ns=rec.lateness_ns,
+                late=bool(flags & Flag.LATE),
+                stall=False,
+                bounce=bool(flags & Flag.BOUNCE),
+                fault=bool(flags & Flag.FAULT),
+            )
+            return
         self.add(
             operating_ns=rec.operating_ns,
             total_ns=rec.total_ns,
@@ -178,7 +207,8 @@ class DirectionStats:
 
         `raw=True` leaves the percentiles to `finish_direction`: the windows travel as bytes.
         """
-        out: dict[str, object] = {"count": self.operating.count, "strokes": self.error.count + self.stalls}
+        strokes = self.error.count + self.stalls + len(self.commissioning)
+        out: dict[str, object] = {"count": self.operating.count, "strokes": strokes}
         out.update(self.operating.as_dict("operating"))
         out.update(self.total.as_dict("total"))
         out.update(self.error.as_dict("error"))
@@ -186,6 +216,7 @@ class DirectionStats:
         out["abs_error_raw"] = self.abs_error.raw()
         out["abs_lateness_raw"] = self.abs_lateness.raw()
         out.update(late=self.late, stalls=self.stalls, bounces=self.bounces, faults=self.faults)
+        out["commissioning"] = list(self.commissioning)
         return out if raw else finish_direction(out)
 
 

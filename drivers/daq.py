@@ -134,6 +134,11 @@ class Daq(ABC):
         """Drive conditions now (temperature, frequency), when this driver knows them."""
         return None
 
+    def expected_stroke_ns(self, direction: Direction) -> int | None:
+        """A stroke's operating time as this driver knows it before any is made (a model of the
+        rig), else None: on a real rig the first stroke of each direction is a commissioning one."""
+        return None
+
     def levels(self) -> tuple[int, int] | None:
         """Limit-sensor levels (A, B) now, when this driver knows them: where the mover rests."""
         return None

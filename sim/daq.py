@@ -164,6 +164,11 @@ class SimDaq(Daq):
             m = self.model
             return Conditions(m.temperature_c(self.clock.now_ns()), m.frequency_hz, m.voltage_vpp)
 
+    def expected_stroke_ns(self, direction: Direction) -> int:
+        """The model's stroke at the drive and temperature now, friction at its mean."""
+        with self._lock:
+            return self.model.nominal_operating_ns(direction)
+
     def set_drive(self, *, frequency_hz: float | None = None, voltage_vpp: float | None = None) -> None:
         """Set excitation frequency and/or voltage, as the daemon would over Modbus; next stroke on."""
         with self._lock:

@@ -246,17 +246,39 @@ def stats_table(stats: dict[str, Any]) -> str:
         row("start lateness p99", ns("lateness_p99_ns")),
         row("start lateness max", ns("lateness_max_ns")),
     ]
-    head = (
-        f"state {stats.get('state', '?')}"
-        + (f" ({stats['fault']})" if stats.get("fault") else "")
-        + f", mode {stats.get('mode', '?')}, next cycle {stats.get('cycle', '?')}, "
-        f"T on {show_ns(stats.get('target_on_ns'))} / off {show_ns(stats.get('target_off_ns'))}"
-    )
-    foot = (
-        f"spurious edges {stats.get('spurious_edges', '-')}, overruns {stats.get('overruns', '-')}, "
-        f"driver bounces {stats.get('driver_bounces', '-')}"
-    )
-    return "\n".join([head, "", table(rows, ["", "on", "off", "all"]), "", foot])
+    run = stats.get("run")
+    if "state" in stats:
+        head = (
+            f"state {stats['state']}"
+            + (f" ({stats['fault']})" if stats.get("fault") else "")
+            + f", mode {stats.get('mode', '?')}, next cycle {stats.get('cycle', '?')}, "
+            f"T on {show_ns(stats.get('target_on_ns'))} / off {show_ns(stats.get('target_off_ns'))}"
+        )
+    elif run:  # a past run, read from the records (scope_line names it): its settings, not today's
+        settings = run.get("settings", {})
+        head = (
+            f"mode {settings.get('mode', '?')}, T on {show_ns(settings.get('target_on_ns'))}"
+            f" / off {show_ns(settings.get('target_off_ns'))} (the run's settings)"
+        )
+    else:
+        head = "from the records"
+    lines = [head, "", table(rows, ["", "on", "off", "all"]), ""]
+    if "spurious_edges" in stats:
+        lines.append(
+            f"spurious edges {stats['spurious_edges']}, overruns {stats.get('overruns', '-')}, "
+            f"driver bounces {stats.get('driver_bounces', '-')}"
+        )
+    commissioning = stats.get("all", {}).get("commissioning") or []
+    if commissioning:
+        lines.append(
+            "commissioning strokes (first of a direction, nothing known before; not in the figures above):"
+        )
+        for c in commissioning:
+            lines.append(
+                f"  cycle {c['cycle']} {direction_name(c['direction'])}: error {show_ns(c['error_ns'])}"
+                f" (t_hat {show_ns(c['t_hat_ns'])}, a guess)"
+            )
+    return "\n".join(lines)
 
 
 class RunningStats:

@@ -348,7 +348,10 @@ def test_to_dict_round_trips_through_the_loader(tmp_path: Path):
     assert again == cfg
     # Durations come out as text with their unit, exactly, so the dict loads back from a file too.
     d = cfg.to_dict()
-    assert d["control"]["target_on"] == "12ms" and d["control"]["nominal"] == "10500us"
+    assert d["control"]["target_on"] == "12ms" and "nominal" not in d["control"]  # not given: a guess
+    given = load_config(None, {"control.nominal_off": "9ms"}, env=ENV)
+    assert given.control.nominal_given == (False, True) and given.to_dict()["control"]["nominal_off"] == "9ms"
+    assert "nominal_on" not in given.to_dict()["control"] and apply_overrides(given) == given
     assert d["daemon"]["summary_interval"] == "5s" and d["control"]["open_delay"] == "0s"
     odd = load_config(None, {"control.late_margin": "1234567ns"}, env=ENV)
     assert odd.to_dict()["control"]["late_margin"] == "1234567ns"
