@@ -60,7 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
     auto.add_argument("--no-autostart", dest="autostart", action="store_false", help="start idle")
     p.add_argument("--seed", type=int, help="sim.seed")
     p.add_argument("--sim-clock", choices=("real", "virtual"), help="sim.clock")
-    p.add_argument("--priority", type=int, help="realtime.sched_fifo_priority (0 = off)")
+    p.add_argument(
+        "--priority",
+        help='realtime.sched_fifo_priority: "auto" (default: 50 where permitted), 0 (off) or 1..99',
+    )
     p.add_argument(
         "--postgres",
         metavar="URL",

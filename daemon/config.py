@@ -48,6 +48,7 @@ from .config_values import (
     positive_duration,
     positive_duration_at_most,
     positive_float,
+    priority_value,
     rig_name,
     show,
     table_int,
@@ -196,7 +197,9 @@ class CycleConfig:
 class RealtimeConfig:
     """[realtime]: scheduling of the loop thread (refusals are logged, not fatal)."""
 
-    sched_fifo_priority: int = 0  # 0 = off, else 1..99
+    # "auto": SCHED_FIFO 50 where this process may use it (root, CAP_SYS_NICE, RLIMIT_RTPRIO >= 50),
+    # else SCHED_OTHER with a warning; 0 = off; 1..99 = that priority, asked for (refused: a warning).
+    sched_fifo_priority: int | str = "auto"
     cpu_affinity: tuple[int, ...] = ()  # () = leave as is
     mlockall: bool = False
 
@@ -450,7 +453,7 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     t.done()
 
     t = top.table("realtime")
-    prio = table_int(t, "sched_fifo_priority", 0, 0, 99)
+    prio = t.get("sched_fifo_priority", priority_value, "auto")
     realtime = RealtimeConfig(
         sched_fifo_priority=prio,
         cpu_affinity=t.get("cpu_affinity", cpu_list, ()),

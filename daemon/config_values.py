@@ -143,6 +143,17 @@ def table_int(t: Table, k: str, default: int | None, lo: int, hi: int | None) ->
     return t.get(k, lambda key, v: int_value(key, v, lo, hi), default)
 
 
+def priority_value(key: str, v: Any) -> int | str:
+    """A SCHED_FIFO priority 0..99 (0: off), or "auto" (the default: where permitted)."""
+    if v == "auto":
+        return "auto"
+    if isinstance(v, str) and v.strip().isdigit():
+        v = int(v)  # from the command line
+    if isinstance(v, str):
+        raise ConfigError(key, f'expected "auto" or an integer 0..99, got {show(v)}')
+    return int_value(key, v, 0, 99)
+
+
 def positive_float(key: str, v: Any) -> float:
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise ConfigError(key, f"expected a number, got {show(v)}")

@@ -93,6 +93,8 @@ class ControlLoop:
         self.stroke_timeout_ns = check_ns("stroke_timeout_ns", stroke_timeout_ns, minimum=1)
         self.late_margin_ns = check_ns("late_margin_ns", late_margin_ns)
         self.sink = sink
+        #: How the loop thread is scheduled, in words (the daemon sets it once it has asked).
+        self.scheduling = "SCHED_OTHER"
         #: Directions whose next completed stroke commissions them (nothing known before it).
         self.commissioning = set(commissioning)
         self.cycle = first_cycle
@@ -441,6 +443,7 @@ class ControlLoop:
             "overruns": self.overruns,
             "driver_bounces": self.daq.bounces,
             "driver": self.daq.counters(),
+            "scheduling": self.scheduling,
         }
         run = self.latest_run
         if run is None:  # no run yet: every stroke since the start

@@ -110,6 +110,7 @@ class Methods:
             "target_on_ns": loop.targets[Direction.ON],
             "target_off_ns": loop.targets[Direction.OFF],
             "metrics_url": self._metrics_url(),
+            "scheduling": loop.scheduling,
         }
 
     def _metrics_url(self) -> str | None:

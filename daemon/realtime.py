@@ -112,6 +112,43 @@ def renice(increment: int, process: str, cost: str) -> bool:
         return False
 
 
+#: The loop's SCHED_FIFO priority when the config says "auto" and the process may use it: above
+#: the kernel's threaded IRQ handlers' default (50) would starve them; at it, they share the CPU.
+AUTO_PRIORITY = 50
+CAP_SYS_NICE = 23
+
+
+def fifo_refusal(priority: int) -> str | None:
+    """Why this process may not use SCHED_FIFO `priority` (None: it may): CAP_SYS_NICE (root has it,
+    unless a container or a unit took it away) or an RLIMIT_RTPRIO at least that high allow it."""
+    if _has_capability(CAP_SYS_NICE):
+        return None
+    rtprio = resource.getrlimit(resource.RLIMIT_RTPRIO)[0]
+    if rtprio == resource.RLIM_INFINITY or rtprio >= priority:
+        return None
+    who = "root without CAP_SYS_NICE" if os.geteuid() == 0 else "no CAP_SYS_NICE"
+    return f"{who}, RLIMIT_RTPRIO {_limit(rtprio)} < {priority}"
+
+
+def resolve_priority(setting: int | str) -> tuple[int, str | None]:
+    """The priority to ask for and, when that is 0 because of "auto", why (for the log and status)."""
+    if setting != "auto":
+        return int(setting), None
+    why = fifo_refusal(AUTO_PRIORITY)
+    return (0, why) if why else (AUTO_PRIORITY, None)
+
+
+def scheduling_text(result: RealtimeResult, priority: int, not_permitted: str | None) -> str:
+    """How the loop thread is scheduled, in words for `status` and `stats`."""
+    if "sched_fifo_priority" in result.applied:
+        return result.applied["sched_fifo_priority"]
+    if "sched_fifo_priority" in result.refused:
+        return f"SCHED_OTHER (SCHED_FIFO {priority} refused: {result.refused['sched_fifo_priority']})"
+    if not_permitted:
+        return f"SCHED_OTHER (SCHED_FIFO not permitted: {not_permitted})"
+    return "SCHED_OTHER (realtime.sched_fifo_priority = 0)"
+
+
 def lift_helpers(priority: int) -> list[str]:
     """SCHED_FIFO `priority` for every other thread of this process; the names of those lifted.
 

@@ -140,6 +140,7 @@ def status_table(st: dict[str, Any]) -> str:
         ["target off", show_ns(st["target_off_ns"])],
         ["next cycle", str(st["cycle"])],
         ["driver", st["driver"] + answering],
+        ["loop scheduling", st.get("scheduling", "-")],
         ["version", f"{st['version']} (protocol {st['protocol_version']})"],
         ["uptime", format_elapsed(st["uptime_ns"])],
     ]
@@ -268,6 +269,12 @@ def stats_table(stats: dict[str, Any]) -> str:
             f"spurious edges {stats['spurious_edges']}, overruns {stats.get('overruns', '-')}, "
             f"driver bounces {stats.get('driver_bounces', '-')}"
         )
+    scheduling = stats.get("scheduling")
+    if scheduling and not scheduling.startswith("SCHED_FIFO"):
+        both = stats.get("all", {})
+        n, late = both.get("strokes") or 0, both.get("late") or 0
+        rate = f"{late} of {n} strokes late ({100.0 * late / n:.1f} %)" if n else "no strokes yet"
+        lines.append(f"loop {scheduling}: {rate}")
     commissioning = stats.get("all", {}).get("commissioning") or []
     if commissioning:
         lines.append(
