@@ -59,6 +59,7 @@
 #include "avr_ioport.h"
 #include "avr_timer.h"
 #include "avr_uart.h"
+#include "avr_watchdog.h"
 #include "sim_avr.h"
 #include "sim_elf.h"
 #include "sim_interrupts.h"
@@ -72,6 +73,14 @@
 #define A_TCNT4L 0xA4
 #define A_TCNT5L 0x124
 #define A_GTCCR 0x43
+#define A_MCUSR 0x54
+#define MCUSR_PORF 0x01
+#define MCUSR_WDRF 0x08
+/* The vector table: 57 vectors of 4 bytes (jmp); a capture vector address is its number times 4. */
+#define VECTORS_END (57 * 4)
+#define VEC_CAPT4 41
+#define VEC_CAPT5 46
+#define OP_WDR 0x95A8
 #define BIT_FOC4A 7
 /* Real time: the longest sleep once emulated time has caught up with the wall clock. */
 #define IDLE_NS 500000
@@ -86,6 +95,34 @@ static uint16_t clock_ovf_addr;
 static avr_cycle_count_t origin_cycle; /* cycle of the firmware's TCNT4 = 0 */
 static avr_cycle_count_t max_lag, max_lag_at; /* the worst lag behind the wall clock, and when */
 static int origin_set;
+
+/* ---- what the harness measures of the firmware ("stats", and at exit on stderr) ----
+ * Every stretch with interrupts off (SREG.I = 0), keyed by where it began: the instruction after
+ * the CLI (or the write to SREG) that cleared the flag, or the vector an interrupt entered by.
+ * Its length runs from the cycle the flag went to 0 to the cycle it is 1 again (one instruction
+ * more then runs before a pending interrupt is taken, as on the chip). Also the longest time
+ * between two WDR instructions (the main loop's watchdog kicks) and the watchdog resets. */
+#define MAX_SPANS 160
+struct span {
+    uint32_t pc;
+    unsigned long long count;
+    avr_cycle_count_t max, max_at;
+};
+static struct span spans[MAX_SPANS];
+static int nspans;
+static int i_prev = 1;
+static avr_cycle_count_t span_start;
+static uint32_t span_pc;
+static avr_cycle_count_t wdr_last, wdr_max, wdr_max_at;
+static unsigned long long wdr_count;
+static unsigned long resets_wdt;
+static int reset_seen;
+/* lockstep "trace N": 1 prints "irq VECTOR CYCLE" as each interrupt is entered and "sensor CH
+ * LEVEL CYCLE FW_US SPAN" as each sensor edge comes (SPAN: where the interrupts-off span then in
+ * progress began, -1 if none); 2 also "cli WHERE PC START CYCLES" as each span ends. */
+static int trace_irqs;
+static avr_watchdog_t *wdt;
+static void (*core_reset)(avr_t *);
 
 static void die(const char *fmt, ...)
 {
@@ -231,6 +268,9 @@ static void set_sensor(int ch, int active)
 {
     sensor_active[ch] = active;
     drive_sensor_pins();
+    if (lockstep && trace_irqs) /* the edge's truth, and what held interrupts off as it came */
+        printf("sensor %d %d %llu %lu %ld\n", ch, active, (unsigned long long)avr->cycle,
+               (unsigned long)fw_us(avr->cycle), avr->sreg[S_I] ? -1L : (long)span_pc);
     if (!cur.on)
         return;
     int source = cur.direction == 0 ? 0 : 1;
@@ -400,6 +440,30 @@ static void w_gtccr(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
     }
 }
 
+/* Any reset of the chip (the watchdog's, or "replug"): the I/O registers are cleared, so the drive
+ * pin is PORTH's (low); the harness's models of the OC4A latch and of TSM start over, and the clock
+ * has no origin until the firmware zeroes TCNT4 again. RAM is kept, as on the chip. */
+static void on_reset(avr_t *a)
+{
+    if (core_reset)
+        core_reset(a);
+    int by_wdt = wdt && wdt->reset_context.wdrf; /* simavr sets WDRF after this, in its port reset */
+    avr_cycle_count_t c = avr->cycle;
+    if (by_wdt) {
+        resets_wdt++;
+        if (lockstep)
+            printf("reset watchdog %llu %lu\n", (unsigned long long)c, (unsigned long)fw_us(c));
+        else
+            fprintf(stderr, "usmswitch-avrsim: watchdog reset at %.6f s\n", (double)c / f_eff());
+    }
+    oc4a_latch = 0;
+    tsm_on = tcnt_held[0] = tcnt_held[1] = 0;
+    drive_update();
+    origin_set = 0;
+    reset_seen = 1;
+    wdr_last = 0;
+}
+
 /* Correction 1: clear only the TIFR bits written as one. */
 static void clear_if(avr_int_vector_t *vec, avr_io_addr_t addr, uint8_t v)
 {
@@ -434,7 +498,14 @@ static void fix_tifr(avr_timer_t *t)
     avr->io[a].w.c = w_tifr_fixed;
 }
 
-/* ---- ELF symbol lookup (clock_ovf) ---- */
+/* ---- ELF symbols: clock_ovf's address, and the functions (to name interrupts-off spans) ---- */
+#define MAX_FUNCS 512
+static struct func {
+    uint32_t addr, size;
+    char name[48];
+} funcs[MAX_FUNCS];
+static int nfuncs;
+
 static uint16_t elf_symbol(const char *path, const char *name)
 {
     if (elf_version(EV_CURRENT) == EV_NONE)
@@ -454,13 +525,68 @@ static uint16_t elf_symbol(const char *path, const char *name)
         for (size_t i = 0; i < sh.sh_size / sh.sh_entsize; i++) {
             GElf_Sym s;
             gelf_getsym(d, (int)i, &s);
-            if (!strcmp(elf_strptr(e, sh.sh_link, s.st_name), name))
+            const char *sname = elf_strptr(e, sh.sh_link, s.st_name);
+            if (!strcmp(sname, name))
                 addr = (uint16_t)(s.st_value & 0xFFFF); /* data addresses carry 0x800000 */
+            if (GELF_ST_TYPE(s.st_info) == STT_FUNC && s.st_size && nfuncs < MAX_FUNCS) {
+                funcs[nfuncs].addr = (uint32_t)s.st_value;
+                funcs[nfuncs].size = (uint32_t)s.st_size;
+                snprintf(funcs[nfuncs].name, sizeof funcs[nfuncs].name, "%s", sname);
+                nfuncs++;
+            }
         }
     }
     elf_end(e);
     close(fd);
     return addr;
+}
+
+/* "function+0xOFF" for a code byte address (or the vector table, or "reset"). */
+static const char *where(uint32_t pc, char *buf, size_t n)
+{
+    if (pc == 0) {
+        snprintf(buf, n, "reset");
+        return buf;
+    }
+    if (pc < VECTORS_END) {
+        snprintf(buf, n, "vector%u", pc / 4);
+        return buf;
+    }
+    for (int i = 0; i < nfuncs; i++)
+        if (pc >= funcs[i].addr && pc < funcs[i].addr + funcs[i].size) {
+            snprintf(buf, n, "%s+0x%x", funcs[i].name, pc - funcs[i].addr);
+            return buf;
+        }
+    snprintf(buf, n, "0x%x", pc);
+    return buf;
+}
+
+static void span_record(uint32_t pc, avr_cycle_count_t len, avr_cycle_count_t at)
+{
+    int i;
+    for (i = 0; i < nspans && spans[i].pc != pc; i++)
+        ;
+    if (i == nspans) {
+        if (nspans == MAX_SPANS)
+            return;
+        spans[nspans++] = (struct span){.pc = pc};
+    }
+    spans[i].count++;
+    if (len > spans[i].max) {
+        spans[i].max = len;
+        spans[i].max_at = at;
+    }
+}
+
+static void print_stats(FILE *f, const char *prefix)
+{
+    char buf[80];
+    for (int i = 0; i < nspans; i++)
+        fprintf(f, "%sspan %s 0x%x %llu %llu %llu\n", prefix, where(spans[i].pc, buf, sizeof buf), spans[i].pc,
+                spans[i].count, (unsigned long long)spans[i].max, (unsigned long long)spans[i].max_at);
+    fprintf(f, "%swdr %llu %llu %llu\n", prefix, wdr_count, (unsigned long long)wdr_max,
+            (unsigned long long)wdr_max_at);
+    fprintf(f, "%sresets %lu\n", prefix, resets_wdt);
 }
 
 /* ---- UART ---- */
@@ -599,6 +725,50 @@ static void no_sleep(avr_t *a, avr_cycle_count_t how_long)
     (void)how_long;
 }
 
+/* After each avr_run: the interrupts-off spans, the watchdog kicks, and correction 7: simavr
+ * enters an interrupt in no time; the chip takes 5 cycles to push the 3-byte PC and fetch the
+ * vector, 5 more when the interrupt wakes it, and is halted 4 cycles on waking (datasheet 7.8.1
+ * and 11.1): 5 or 14 cycles, added here so that latencies are not flattered. */
+static void after_step(avr_cycle_count_t c0, uint32_t pc0, int was_sleeping)
+{
+    int i_now = avr->sreg[S_I];
+    if (reset_seen) {
+        reset_seen = 0;
+        span_start = avr->cycle;
+        span_pc = 0;
+        i_prev = i_now;
+        return;
+    }
+    if (!was_sleeping && pc0 + 1 < avr->flashend &&
+        (avr->flash[pc0] | (avr->flash[pc0 + 1] << 8)) == OP_WDR) {
+        if (wdr_last && c0 - wdr_last > wdr_max) {
+            wdr_max = c0 - wdr_last;
+            wdr_max_at = c0;
+        }
+        wdr_last = c0;
+        wdr_count++;
+    }
+    if (i_prev && !i_now) {
+        span_start = avr->cycle;
+        int entered = avr->pc < VECTORS_END && avr->pc != pc0 + 2;
+        span_pc = entered ? avr->pc : pc0 + 2;
+        if (entered) {
+            if (trace_irqs)
+                printf("irq %u %llu\n", avr->pc / 4, (unsigned long long)avr->cycle);
+            if (fix_bugs)
+                avr->cycle += was_sleeping ? 14 : 5;
+        }
+    } else if (!i_prev && i_now) {
+        span_record(span_pc, avr->cycle - span_start, span_start);
+        if (trace_irqs > 1) {
+            char buf[80];
+            printf("cli %s %u %llu %llu\n", where(span_pc, buf, sizeof buf), span_pc,
+                   (unsigned long long)span_start, (unsigned long long)(avr->cycle - span_start));
+        }
+    }
+    i_prev = i_now;
+}
+
 static void run_until(avr_cycle_count_t end)
 {
     while (avr->cycle < end) {
@@ -620,12 +790,19 @@ static void run_until(avr_cycle_count_t end)
         /* A sleeping core jumps to its next cycle timer: this one keeps it from passing stop. */
         avr_cycle_timer_register(avr, stop - avr->cycle, stop_timer, NULL);
         while (avr->cycle < stop && !edges_changed) {
+            avr_cycle_count_t c0 = avr->cycle;
+            uint32_t pc0 = avr->pc;
+            int was_sleeping = avr->state == cpu_Sleeping;
             int st = avr_run(avr);
             if (st == cpu_Done || st == cpu_Crashed)
                 die("the AVR stopped (state %d) at pc 0x%x", st, avr->pc);
             /* Correction 2: after SEI/RETI one instruction runs, then interrupts are taken. */
             if (fix_bugs && avr->interrupt_state == -1)
                 avr->interrupt_state = avr_has_pending_interrupts(avr);
+            int was_reset = reset_seen;
+            after_step(c0, pc0, was_sleeping);
+            if (was_reset && avr->cycle < stop) /* a reset cancels every cycle timer */
+                avr_cycle_timer_register(avr, stop - avr->cycle, stop_timer, NULL);
         }
         avr_cycle_timer_cancel(avr, stop_timer, NULL);
     }
@@ -639,9 +816,14 @@ static void hexline(const char *tag, const uint8_t *b, size_t n)
     printf("\n");
 }
 
+/* Correction 8: a power-on sets PORF in MCUSR. simavr sets it once, at avr_init; its avr_reset
+ * (the harness's "replug", a power cycle) clears MCUSR with the other I/O registers. */
+static void power_on_flag(void) { avr->data[A_MCUSR] |= MCUSR_PORF; }
+
 static int stdin_command(char *line)
 {
-    unsigned long long us;
+    unsigned long long us, cyc;
+    int ch, level;
     if (strncmp(line, "send ", 5) == 0) {
         uint8_t b[2048];
         size_t n = 0;
@@ -652,14 +834,23 @@ static int stdin_command(char *line)
             b[n++] = (uint8_t)v;
         }
         queue_to_avr(b, n);
-    } else if (sscanf(line, "run %llu", &us) == 1) {
+    } else if (sscanf(line, "run %llu", &us) == 1 || sscanf(line, "runto %llu", &cyc) == 1) {
         if (lockstep) {
-            run_until(avr->cycle + (avr_cycle_count_t)(us * 16));
+            run_until(line[3] == 't' ? (avr_cycle_count_t)cyc : avr->cycle + (avr_cycle_count_t)(us * 16));
             if (from_avr_len)
                 hexline("uart", from_avr, from_avr_len);
             from_avr_len = 0;
         }
         printf("ran %llu %lu\n", (unsigned long long)avr->cycle, (unsigned long)fw_us(avr->cycle));
+    } else if (sscanf(line, "edge %d %d %llu", &ch, &level, &cyc) == 3 && ch >= 0 && ch <= 1) {
+        add_edge((avr_cycle_count_t)cyc, ch, level != 0); /* a sensor level at an exact cycle */
+    } else if (sscanf(line, "trace %d", &ch) == 1) {
+        trace_irqs = ch;
+    } else if (strncmp(line, "stats", 5) == 0) {
+        print_stats(stdout, "");
+        printf("end\n");
+    } else if (strncmp(line, "info", 4) == 0) {
+        printf("info origin %llu cycle %llu\n", (unsigned long long)origin_cycle, (unsigned long long)avr->cycle);
     } else if (strncmp(line, "stall", 5) == 0) {
         helper_ask("stall");
     } else if (strncmp(line, "bounce", 6) == 0) {
@@ -668,17 +859,14 @@ static int stdin_command(char *line)
         pty_unplug();
         printf("unplugged\n");
     } else if (strncmp(line, "replug", 6) == 0) {
-        avr_reset(avr);
-        tsm_on = tcnt_held[0] = tcnt_held[1] = 0;
+        avr_reset(avr); /* on_reset: the drive pin, the OC4A latch, TSM, the clock's origin */
+        power_on_flag();
         /* The sensors go on pulling their lines through the MCU's reset. simavr's reset cleared
          * PINL but not the pins' IRQ values, and it passes a pin change on only when the value
          * changes: toggle each line to put its level back (capture is off after a reset). */
-        for (int ch = 0; ch < 2; ch++)
-            avr_raise_irq(sensor_irq[ch], sensor_active[ch] ? 1 : 0);
+        for (int c = 0; c < 2; c++)
+            avr_raise_irq(sensor_irq[c], sensor_active[c] ? 1 : 0);
         drive_sensor_pins();
-        oc4a_latch = 0;
-        origin_set = 0;
-        drive_update();
         if (link_path[0])
             pty_plug();
         else
@@ -768,6 +956,12 @@ int main(int argc, char **argv)
     close(saved_stdout);
     clock_ovf_addr = elf_symbol(elf, "clock_ovf");
 
+    for (avr_io_t *io = avr->io_port; io; io = io->next)
+        if (io->kind && !strcmp(io->kind, "watchdog"))
+            wdt = (avr_watchdog_t *)io;
+    core_reset = avr->reset;
+    avr->reset = on_reset;
+    power_on_flag(); /* avr_init set it already; the same for every power-on */
     timer4 = find_timer('4');
     timer5 = find_timer('5');
     if (fix_bugs) {
@@ -887,6 +1081,7 @@ int main(int argc, char **argv)
         fprintf(stderr, "usmswitch-avrsim: max lag %.0f us (at %.3f s of emulated time), %lu bytes dropped\n",
                 (double)max_lag * 1e6 / f_eff(), (double)max_lag_at / f_eff(), dropped_bytes);
     }
+    print_stats(stderr, "usmswitch-avrsim: ");
     if (truth)
         fclose(truth);
     fclose(helper_in);

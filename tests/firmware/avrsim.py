@@ -22,6 +22,15 @@ class Lockstep:
         assert line.startswith("avrsim lockstep"), line + self._stderr()
         #: (level, cycle, firmware us) of every drive pin change.
         self.drive: list[tuple[int, int, int]] = []
+        #: With `trace(1)`: (channel, active, cycle, firmware us, span) of every sensor edge, span
+        #: being where the interrupts-off stretch in progress as it came began (-1: none).
+        self.sensors: list[tuple[int, int, int, int, int]] = []
+        #: With `trace(1)`: (vector, cycle) of every interrupt entered.
+        self.irqs: list[tuple[int, int]] = []
+        #: With `trace(2)`: (where, pc, start cycle, cycles) of every interrupts-off stretch.
+        self.clis: list[tuple[str, int, int, int]] = []
+        #: (cycle, firmware us) of every watchdog reset.
+        self.resets: list[tuple[int, int]] = []
         self.cycle = 0
         self.fw_us = 0
 
@@ -40,8 +49,41 @@ class Lockstep:
 
     def run(self, us: int) -> bytes:
         """Run `us` microseconds of emulated time; returns what the firmware sent meanwhile."""
-        assert self.proc.stdout
         self.command(f"run {us}")
+        return self._ran()
+
+    def run_to(self, cycle: int) -> bytes:
+        """Run to emulator cycle `cycle` (16 a microsecond); returns what the firmware sent."""
+        self.command(f"runto {cycle}")
+        return self._ran()
+
+    def edge(self, channel: int, active: int, cycle: int) -> None:
+        """Set a sensor's line (0 A, 1 B; 1 active) at an exact emulator cycle."""
+        self.command(f"edge {channel} {active} {cycle}")
+
+    def trace(self, level: int) -> None:
+        self.command(f"trace {level}")
+
+    def origin(self) -> int:
+        """The cycle where the firmware's clock counts from zero (timer overflows every 524,288)."""
+        assert self.proc.stdout
+        self.command("info")
+        word, *rest = self.proc.stdout.readline().split()
+        assert word == "info", word
+        return int(rest[1])
+
+    def stats(self) -> list[str]:
+        """The harness's measurements: "span WHERE PC COUNT MAX_CYCLES AT", "wdr ...", "resets N"."""
+        assert self.proc.stdout
+        self.command("stats")
+        out = []
+        while (line := self.proc.stdout.readline().strip()) != "end":
+            assert line, "usmswitch-avrsim exited: " + self._stderr()
+            out.append(line)
+        return out
+
+    def _ran(self) -> bytes:
+        assert self.proc.stdout
         out = b""
         while True:
             line = self.proc.stdout.readline()
@@ -52,6 +94,18 @@ class Lockstep:
             elif word == "drive":
                 level, cycle, fw_us = (int(x) for x in rest.split())
                 self.drive.append((level, cycle, fw_us))
+            elif word == "sensor":
+                ch, active, cycle, fw_us, span = (int(x) for x in rest.split())
+                self.sensors.append((ch, active, cycle, fw_us, span))
+            elif word == "irq":
+                vec, cycle = (int(x) for x in rest.split())
+                self.irqs.append((vec, cycle))
+            elif word == "cli":
+                name, pc, start, length = rest.split()
+                self.clis.append((name, int(pc), int(start), int(length)))
+            elif word == "reset":
+                _, cycle, fw_us = rest.split()
+                self.resets.append((int(cycle), int(fw_us)))
             elif word == "ran":
                 cycle, fw_us = rest.split()
                 self.cycle, self.fw_us = int(cycle), int(fw_us)
