@@ -43,7 +43,18 @@ def find_socket(rig: str | None = None, env: Mapping[str, str] | None = None) ->
     of $USMSWITCH_SOCKET, $USMSWITCH_RIG's instance, this user's daemon, the service's."""
     if rig is not None:
         return rig_socket_path(rig)
-    candidates = client_socket_paths(os.environ if env is None else env)
+    env = os.environ if env is None else env
+    # A socket named on purpose is that daemon or none: never silently another one.
+    for var in ("USMSWITCH_SOCKET", "USMSWITCH_RIG"):
+        if env.get(var):
+            path = Path(env[var]) if var == "USMSWITCH_SOCKET" else rig_socket_path(env[var])
+            if not path.exists():
+                raise FileNotFoundError(
+                    f"${var}={env[var]} names {path}, which does not exist (is that daemon running?); "
+                    f"unset {var} to find the local daemon"
+                )
+            return path
+    candidates = client_socket_paths(env)
     for path in candidates:
         if path.exists():
             return path

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
-from usmswitch.daemon.record import FIELDS, LATER_FIELDS, CycleRecord, RunRecord
+from usmswitch.daemon.record import FIELDS, LATER_FIELDS, CycleRecord, Flag, RunRecord
 
 RECORDS_FILE = "records.sqlite"
 KNOWN_SCHEMAS = ("1", "2", "3")
@@ -109,16 +109,37 @@ class RecordsSource(ABC):
             return np.array([np.nan if v is None else v for v in values], dtype=np.float64)
         return np.array(values, dtype=np.int64)
 
-    def dataframe(self, first: int = 1, last: int | None = None) -> Any:
-        """The records as a pandas DataFrame indexed by cycle (needs pandas: the `analysis` extra)."""
+    def dataframe(
+        self,
+        first: int = 1,
+        last: int | None = None,
+        *,
+        run: int | None = None,
+        index_col: str | None = None,
+    ) -> Any:
+        """The records as a pandas DataFrame, as `pandas.read_sql` gives a table: one column per
+        field, a default RangeIndex unless `index_col` names one (`index_col="cycle"`), `run` for
+        one run's strokes. Needs pandas (the `analysis` extra).
+
+        Two fields would hide DataFrame attributes (`df.flags`, `df.mode()`): they are the columns
+        `flag_bits` and `loop_mode`, and each flag is also a boolean column (`late`, `stall`, ...).
+        """
         try:
             import pandas as pd
         except ImportError:
             raise ImportError(
                 "RecordsFile.dataframe needs pandas: pip install 'usmswitch[analysis]'"
             ) from None
-        frame = pd.DataFrame.from_records(list(self.records(first, last)), columns=list(FIELDS))
-        return frame.set_index("cycle")
+        frame = pd.DataFrame.from_records(list(self.records(first, last, run=run)), columns=list(FIELDS))
+        frame = frame.rename(columns=DATAFRAME_RENAMES)
+        bits = frame["flag_bits"].astype("int64")
+        for flag in Flag:
+            frame[str(flag.name).lower()] = (bits & int(flag)) != 0
+        return frame if index_col is None else frame.set_index(index_col)
+
+
+#: Record fields renamed in a DataFrame, where their own names are DataFrame attributes.
+DATAFRAME_RENAMES = {"flags": "flag_bits", "mode": "loop_mode"}
 
 
 class RecordsFile(RecordsSource):

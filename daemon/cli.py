@@ -40,6 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sim", action="store_true", default=None, help="run on the simulated rig (driver.kind)")
     p.add_argument("--driver", choices=("sim", "serial", "usb"), help="driver.kind")
     p.add_argument("--port", help="driver.serial.port, e.g. /dev/usmswitch")
+    p.add_argument(
+        "--baudrate", type=int, help="driver.serial.baudrate (default 1000000, the reference firmware's)"
+    )
     p.add_argument("--socket", help="socket.path (Unix socket for lab scripts)")
     p.add_argument("--tcp", help="socket.tcp, e.g. 127.0.0.1:7770 (needs socket.tcp_token in the file)")
     p.add_argument("--state-dir", help="daemon.state_dir (records.sqlite lives there)")
@@ -103,6 +106,11 @@ def main(argv: list[str] | None = None) -> int:
     daemon = Daemon(config)
     try:
         daemon.start()
+    except ConfigError as exc:  # found only once the rig is known (a target it cannot reach)
+        daemon.log.error("config error", error=str(exc))
+        daemon.stop()
+        print(f"usmswitchd: config error: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
     except Exception as exc:
         daemon.log.error("start-up failed", error=f"{type(exc).__name__}: {exc}")
         daemon.stop()

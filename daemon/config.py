@@ -21,6 +21,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+from usmswitch.drivers.serial_mcu import DEFAULT_BAUD
 from usmswitch.predictor import DEFAULT_MODEL, MAX_ORDER, MODELS, check_stroke_ns, min_samples
 from usmswitch.predictor.factory import OPTIONS as PREDICTOR_OPTIONS
 from usmswitch.sim import FaultPlan
@@ -38,10 +39,10 @@ from .config_values import (
     duration_in,
     duration_text,
     file_mode_value,
+    listen_value,
     nonempty_text,
     order_value,
     parse_host_port,
-    parse_listen,
     parse_modbus_url,
     path_value,
     per_unit,
@@ -111,7 +112,7 @@ class SerialConfig:
     """[driver.serial]: the microcontroller on a serial port."""
 
     port: str = "/dev/usmswitch"  # the udev rule's stable name; or /dev/serial/by-id/...
-    baudrate: int = 115200  # USB CDC adapters ignore it; a real UART needs the firmware's rate
+    baudrate: int = DEFAULT_BAUD  # the reference firmware's 1,000,000 (one source: drivers/serial_mcu.py)
 
 
 @dataclass(frozen=True)
@@ -340,6 +341,7 @@ OVERRIDE_KEYS: dict[str, str] = {
     "priority": "realtime.sched_fifo_priority",
     "postgres": "records.postgres_url",
     "metrics": "metrics.listen",
+    "baudrate": "driver.serial.baudrate",
 }
 
 
@@ -470,7 +472,7 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     t.done()
     t = top.table("metrics")
     # "" (off), "host:port", or a bare port (on loopback).
-    metrics = MetricsConfig(listen=t.get("listen", checked_text(parse_listen), ""))
+    metrics = MetricsConfig(listen=t.get("listen", listen_value, ""))
     t.done()
     top.done()
     return Config(daemon, driver, sim, control, cycle, realtime, socket, modbus, records, metrics)

@@ -86,6 +86,20 @@ def parse_listen(text: str) -> tuple[str, int]:
     return parse_host_port(text)
 
 
+def listen_value(key: str, v: Any) -> str:
+    """[metrics] listen: "host:port", or a port alone (text or a TOML integer) on loopback; "" off."""
+    if isinstance(v, int) and not isinstance(v, bool):
+        v = str(v)
+    if not isinstance(v, str):
+        raise ConfigError(key, f'expected "host:port" or a port number, got {show(v)}')
+    if v:
+        try:
+            parse_listen(v)
+        except ValueError as exc:
+            raise ConfigError(key, str(exc)) from None
+    return v
+
+
 def parse_modbus_url(url: str) -> tuple[str, str, int]:
     """Split "tcp:host:port" or "rtu:/dev/tty...:baudrate" into (kind, host or device, port or baudrate)."""
     kind, sep, rest = url.partition(":")

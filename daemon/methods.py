@@ -428,6 +428,8 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         log_format=daemon.config.daemon.log_format,
         log_level=daemon.config.daemon.log_level,
     )
+    # Before the socket listens: `stats` answers (count 0) from the first connection on.
+    server.snapshot("stats", daemon.loop.snapshot(raw=True))
     server.start()
     methods.server = server
     assert server.urgent_listener is not None

@@ -27,11 +27,11 @@ from usmswitch.drivers import Daq, DaqError, Direction
 from usmswitch.predictor import AR_MODELS, Predictor, make_predictors
 
 from .board import BoardPoller
-from .config import Config
+from .config import Config, ConfigError
 from .daqfactory import make_daq
 from .fleet import Fleet
 from .logsetup import configure_logging
-from .loop import AUTOSTART_OWNER, ControlLoop, State, direction_from_levels
+from .loop import AUTOSTART_OWNER, ControlLoop, State, TargetUnreachableError, direction_from_levels
 from .methods import start_rpc
 from .realtime import apply_realtime, lift_helpers, resolve_priority, scheduling_text
 from .record import CycleRecord, Flag, RunRecord
@@ -256,6 +256,15 @@ class Daemon:
             conditions=conditions,
             commissioning=commissioning,
         )
+        known = [d for d in (Direction.ON, Direction.OFF) if d not in commissioning]
+        if cfg.control.mode == "closed" and known:
+            # The same refusal as set_target's: every stroke would start at once and arrive late.
+            try:
+                self.loop.check_reach(self.loop.targets)
+            except TargetUnreachableError as exc:
+                raise ConfigError(
+                    "control.target", str(exc).replace(", or allow late strokes (allow_late)", "")
+                ) from None
         self.store.gate = self.loop.wait_turn
         self.loop.slack_hooks.append(self._watch_records)
         self.loop.slack_hooks.append(self._housekeeping)
@@ -324,11 +333,14 @@ class Daemon:
         if cfg.autostart:
             # Queued, so the first tick is laid after run() has set up the collector.
             loop = self.loop
-            loop.call(
-                lambda: loop.start_cycling(
-                    cfg.cycle.period_ns, cfg.cycle.count, settings={"owner": AUTOSTART_OWNER}
-                )
-            )
+
+            def autostart() -> None:
+                if loop.state is State.CYCLING:  # a client's run came first: it stays
+                    self.log.info("start-up run not started: a client's run was first")
+                    return
+                loop.start_cycling(cfg.cycle.period_ns, cfg.cycle.count, settings={"owner": AUTOSTART_OWNER})
+
+            loop.call(autostart)
             self.log.info(
                 "cycling",
                 period_ns=cfg.cycle.period_ns,

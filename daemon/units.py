@@ -34,6 +34,18 @@ _DURATION = re.compile(
 )
 
 
+def _unit_hint(number: Decimal) -> str:
+    """What a bare number most likely meant, written with units: a count of ms when small (a
+    target of "12"), else of ns (a raw "12000000" copied from a record), in its natural unit too."""
+    if abs(number) < 1000:
+        return f"'{number}ms'"
+    if number == number.to_integral_value():
+        for unit, scale in (("s", 1_000_000_000), ("ms", 1_000_000), ("us", 1_000)):
+            if number % scale == 0:
+                return f"'{int(number) // scale}{unit}' ({number} ns; or '{number}ns')"
+    return f"'{number}ns' or '{number}us'"
+
+
 def parse_duration_ns(value: str | int) -> int:
     """Turn a human duration ("12ms", "10500us", "0.012s", "250ns") or integer ns into exact ns."""
     if isinstance(value, bool):
@@ -61,7 +73,7 @@ def parse_duration_ns(value: str | int) -> int:
         # A bare number is ambiguous ("12" meant as ms would be a 12 ns target): only 0 is safe.
         if number == 0:
             return 0
-        raise ValueError(f"duration {value!r}: needs a unit (ns, us, ms, s), e.g. '{m['number']}ms'")
+        raise ValueError(f"duration {value!r}: needs a unit (ns, us, ms, s), e.g. {_unit_hint(number)}")
     scale = UNITS_NS.get(unit)
     if scale is None:
         raise ValueError(f"duration {value!r}: unknown unit {unit!r} (use ns, us, ms or s)")

@@ -80,6 +80,11 @@ def cmd_runs(client: Client, args: argparse.Namespace) -> int:
         print("no run recorded yet (`cycle` starts one)")
     else:
         print(table([run_row(r) for r in runs], RUN_HEADER))
+        if runs[0]["run_id"] > 1:  # older runs exist: say that this is the tail, and how to see more
+            print(
+                f"(the last {len(runs)} runs; runs 1..{runs[0]['run_id'] - 1} are older: `runs -n N` shows"
+                " more)"
+            )
     return EXIT_OK
 
 

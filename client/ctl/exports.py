@@ -41,6 +41,21 @@ def _records_from(
     return rows()
 
 
+def _latest_run(args: argparse.Namespace, connect: Callable[[], Client]) -> int | None:
+    """The newest run's id (None: no run recorded, so every stroke)."""
+    source = _source(args)
+    if source is None:
+        with connect() as client:
+            runs = client.runs(1)
+    else:
+        try:
+            with open_records(source, args.rig if args.source else None) as records:
+                runs = list(records.runs())
+        except RecordsFileError as exc:
+            raise UsageError(f"plot: {exc}") from None
+    return runs[-1]["run_id"] if runs else None
+
+
 def _source(args: argparse.Namespace) -> str | None:
     """Where --from or --state-dir say the records are (None: over the socket)."""
     return args.source if args.source is not None else args.state_dir
@@ -95,6 +110,8 @@ def cmd_plot(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
     """Draw a run (operating time and t_hat, error against T, its histogram) to an image file."""
     from ..plots import plot_run  # matplotlib: only for this command
 
+    if args.run is None and not args.all and args.first == 1 and args.last is None:
+        args.run = _latest_run(args, connect)  # one run, as `stats` shows; --all for every stroke
     if _source(args) is not None:
         rows: Iterable[CycleRecord] = _records_from(
             _source(args), args.first, args.last, args.run, args.rig if args.source else None

@@ -60,8 +60,19 @@ def test_columns_as_arrays_and_a_dataframe(state_dir: Path) -> None:
         with pytest.raises(ValueError, match="numeric record field"):
             f.column("coefficients")
         df = f.dataframe(first=101)
-        assert len(df) == 200 and df.index[0] == 101
+        assert len(df) == 200 and df.index[0] == 0 and df["cycle"].iloc[0] == 101  # as read_sql
         assert df["error_ns"].std() == pytest.approx(np.nanstd(err[100:], ddof=1), rel=1e-9)
+        # No column hides a DataFrame attribute: flags and mode are renamed, each flag a bool column.
+        import pandas as pd
+
+        assert not [c for c in df.columns if hasattr(pd.DataFrame, c)]
+        assert df["stall"].sum() == (df["flag_bits"] & 4 != 0).sum() and df["loop_mode"].iloc[0] == "closed"
+        by_cycle = f.dataframe(index_col="cycle")
+        assert by_cycle.index.name == "cycle" and by_cycle.index[0] == 1
+        runs = f.runs()
+        if runs:
+            one = f.dataframe(run=runs[-1]["run_id"])
+            assert set(one["run_id"]) == {runs[-1]["run_id"]}
 
 
 def test_a_missing_or_foreign_file_is_refused_by_name(tmp_path: Path) -> None:

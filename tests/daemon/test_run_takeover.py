@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -23,6 +24,11 @@ def cycling_daemon(tmp_path: Path) -> Iterator[tuple[Path, subprocess.Popen[byte
     proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, "--period", "20ms"))
     try:
         daemonproc.wait_serving(tmp_path / "d.sock", proc)
+        with Client(str(tmp_path / "d.sock")) as rig:  # the start-up run is queued just after the socket
+            deadline = time.monotonic() + 10
+            while rig.status()["state"] != "cycling":
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
         yield tmp_path / "d.sock", proc
     finally:
         if proc.poll() is None:
