@@ -6,6 +6,11 @@ mapping, detects lost frames by sequence number, rebuilds a stroke from the devi
 when frames went missing, and on a dead link treats the drive as stopped, reports FAULT DISCONNECT
 and reconnects with backoff and a fresh handshake. Callers' arm/command/stop write directly.
 
+A device that restarts (it says BOOT as it starts; or its PONG no longer says SYNCED, or a new
+handshake finds its clock started again) ends the stroke in progress and is handshaken again; a
+restart by its hardware watchdog (the firmware hung) or a brown-out is reported as FAULT DRIVE, any
+other restart (power, the reset pin) as FAULT DISCONNECT, each with the cause in its detail.
+
 The driver's clock is the device's timeline mapped onto the host: device stamps (32-bit us,
 unwrapped) become `base_ns + (us - base_us) * 1000`, where the base is fixed at each handshake so
 the timeline starts near `time.monotonic_ns()` and never goes back across reconnects; `now_ns()` is
@@ -32,6 +37,7 @@ from .mcu_protocol import (
     U32_MOD,
     Ack,
     Arm,
+    Boot,
     Caps,
     Command,
     DeviceFault,
@@ -44,6 +50,7 @@ from .mcu_protocol import (
     MsgType,
     Ping,
     Pong,
+    ResetCause,
     SeqTracker,
     Start,
     StateFlags,
@@ -71,6 +78,9 @@ DEFAULT_RECONNECT_MAX_NS = 2_000_000_000
 REPORT_WAIT_NS = 150_000_000
 _READ_SLICE_NS = 10_000_000
 _OFFSET_WINDOW = 8
+# A device whose clock at a new handshake is this far from where the last session's clock would
+# be now (plus 1000 ppm of the time between) has restarted since.
+_CLOCK_CONTINUITY_NS = 50_000_000
 
 
 @dataclass
@@ -185,6 +195,10 @@ class McuDaq(Daq):
         self._lost_total = 0
         self._resets_total = 0
         self._wraps_total = 0
+        # The device clock as last heard (raw us, host monotonic ns), to tell a restart at handshake.
+        self._dev_heard: tuple[int, int] | None = None
+        self._boot_reported = False  # a BOOT reported the restart the next handshake will meet
+        self._resync_why = ""
 
     # -- lifecycle ---------------------------------------------------------------------------
     def _open(self) -> None:
@@ -433,6 +447,8 @@ class McuDaq(Daq):
             raise DaqError(f"{self.name}: device lacks required capabilities: {missing!r}")
         with self._state:
             self.device = msg
+            self._note_restart(msg, t_recv)
+            self._dev_heard = (msg.t_us, t_recv)
             self._keep_seq_totals()
             self._rx_seq = SeqTracker()
             self._rx_seq.reset((seq + 1) % U16_MOD)
@@ -452,6 +468,40 @@ class McuDaq(Daq):
             msg.fw_version,
             Caps(msg.caps),
         )
+
+    def _note_restart(self, msg: HelloAck, t_recv: int) -> None:
+        """At a handshake: has the device restarted since the last session (or was this the first)?
+        A restart by its watchdog, not already reported by its BOOT, is reported now."""
+        self.stats.reset_cause = msg.reset_cause
+        heard = self._dev_heard
+        if heard is not None:
+            elapsed_ns = t_recv - heard[1]
+            expected = (heard[0] + elapsed_ns // 1000) % U32_MOD
+            off_ns = abs(((msg.t_us - expected + U32_MOD // 2) % U32_MOD - U32_MOD // 2) * 1000)
+            if off_ns <= _CLOCK_CONTINUITY_NS + elapsed_ns // 1000:
+                return  # the same run of the device (a reconnect): its cause is old news
+        if self._boot_reported:
+            self._boot_reported = False  # its BOOT said so already
+            return
+        if heard is not None:
+            self.stats.device_resets += 1
+        self._report_reset(msg.reset_cause, in_session=False)
+
+    def _report_reset(self, cause: int, *, in_session: bool) -> None:
+        """A device restart as an event: FAULT DRIVE for its watchdog or a brown-out; any other
+        (power, the reset pin) FAULT DISCONNECT when it ended a session, else (found at a handshake,
+        after the link's own loss was reported, or the driver's first) only logged."""
+        rc = ResetCause(cause & 0x1F)
+        bad = ResetCause.WATCHDOG in rc or ResetCause.BROWN_OUT in rc
+        if ResetCause.WATCHDOG in rc:
+            self.stats.watchdog_resets += 1
+        what = _reset_text(cause)
+        if not in_session and not bad:
+            log.info("%s: device started by %s", self.name, what)
+            return
+        log.warning("%s: device restarted by %s", self.name, what)
+        code = FaultCode.DRIVE if bad else FaultCode.DISCONNECT
+        self._deliver(Event.fault_event(self._host_stamp(), code, f"device reset by {what}"))
 
     def _keep_decoder_totals(self) -> None:
         d = self._decoder
@@ -499,6 +549,10 @@ class McuDaq(Daq):
             with self._state:
                 for seq, msg in frames:
                     self._handle(seq, msg, now)
+            if self._resync_why:
+                why, self._resync_why = self._resync_why, ""
+                self._resync(why)
+                return
         if now >= self._next_ping_ns:
             self._next_ping_ns = now + self.heartbeat_ns
             self._ping_token = (self._ping_token + 1) % U32_MOD
@@ -514,6 +568,29 @@ class McuDaq(Daq):
         if now - self._last_rx_ns > self.link_timeout_ns:
             self.stats.silences += 1
             self._link_failed(f"device silent for {(now - self._last_rx_ns) // 1_000_000} ms")
+
+    def _resync(self, why: str) -> None:
+        """The device left the session (it restarted, or tripped its watchdog): the stroke in
+        progress is over; handshake again on the open link (TransportLost: the link is dropped)."""
+        with self._state:
+            self._connected = False
+            for w in self._waiters.values():
+                w.lost = f"device lost the session: {why}"
+                w.done.set()
+            self._waiters.clear()
+            ctx = self._ctx
+            if ctx is not None:
+                self._flush(ctx)
+                if ctx.started and not ctx.stopped:
+                    self._deliver(Event.stop(self._host_stamp(), ctx.direction, detail=why))
+            self._ctx = None
+            self._state.notify_all()
+        log.warning("%s: %s: handshaking again", self.name, why)
+        self._handshake()
+        self.stats.resyncs += 1
+        arm = self._armed_msg
+        if arm is not None:
+            self._send(arm)  # the device forgot it
 
     def _reconnect_once(self) -> bool:
         try:
@@ -592,6 +669,9 @@ class McuDaq(Daq):
             # The device counts since the HELLO: add the sessions before this one.
             st = StateFlags(msg.state)
             self._levels = [int(StateFlags.SENSOR_A in st), int(StateFlags.SENSOR_B in st)]
+            self._dev_heard = (msg.t_us, now)
+            if StateFlags.SYNCED not in st and not self._resync_why:
+                self._resync_why = "the device says it is not in a session (PONG)"
             self.stats.device_rx_errors = self._dev_errors_base[0] + msg.rx_errors
             self.stats.device_rx_lost = self._dev_errors_base[1] + msg.rx_lost
         elif isinstance(msg, Edge):
@@ -604,6 +684,8 @@ class McuDaq(Daq):
             self._on_stroke(msg)
         elif isinstance(msg, Fault):
             self._on_fault(msg)
+        elif isinstance(msg, Boot):
+            self._on_boot(msg)
         # HELLO_ACK outside a handshake and host-bound types from a confused peer are ignored.
 
     def _on_edge(self, msg: Edge) -> None:
@@ -703,6 +785,15 @@ class McuDaq(Daq):
         else:
             self._deliver(ev)
 
+    def _on_boot(self, msg: Boot) -> None:
+        """The device has just started (1.1): whatever it was doing is gone. Reported at once
+        (a hung firmware's stroke is then closed with its cause, not as a stall)."""
+        self.stats.device_resets += 1
+        self.stats.reset_cause = msg.reset_cause
+        self._report_reset(msg.reset_cause, in_session=True)
+        self._boot_reported = True
+        self._resync_why = f"it restarted ({_reset_text(msg.reset_cause)})"
+
     # -- stroke bookkeeping (under self._state) ------------------------------------------------
     def _ctx_new(self, stroke: int, direction: Direction) -> None:
         old = self._ctx
@@ -740,6 +831,19 @@ class McuDaq(Daq):
 
 def _status_name(status: int) -> str:
     return Status(status).name if status in Status._value2member_map_ else f"status {status}"
+
+
+def _reset_text(cause: int) -> str:
+    """ "its watchdog (MCUSR 0x08)" and the like, for logs and fault details."""
+    names = {
+        ResetCause.WATCHDOG: "its hardware watchdog",
+        ResetCause.BROWN_OUT: "a brown-out",
+        ResetCause.EXTERNAL: "its reset pin",
+        ResetCause.POWER_ON: "power-on",
+        ResetCause.JTAG: "JTAG",
+    }
+    said = [text for bit, text in names.items() if cause & bit]
+    return f"{' and '.join(said) or 'an unknown cause'} (MCUSR 0x{cause:02X})"
 
 
 def _with_where(where: str, why: str) -> str:

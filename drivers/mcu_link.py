@@ -79,6 +79,13 @@ class LinkStats:
     device_rx_errors: int = 0
     device_rx_lost: int = 0
     wraps: int = 0
+    #: Sessions lost by the device's side (it restarted, or left the session) and handshaken again.
+    resyncs: int = 0
+    #: Device restarts seen (BOOT, or a handshake whose device clock had started again), and of
+    #: those, by its hardware watchdog; the last reset cause it reported (ResetCause bits).
+    device_resets: int = 0
+    watchdog_resets: int = 0
+    reset_cause: int = 0
     max_rtt_ns: int = 0
     last_rtt_ns: int = 0
 

@@ -16,7 +16,7 @@ from enum import IntEnum, IntFlag
 from typing import ClassVar
 
 PROTOCOL_MAJOR = 1
-PROTOCOL_MINOR = 0
+PROTOCOL_MINOR = 1
 
 #: Largest payload (type, seq, body, crc) either side may send; longer input is garbage.
 MAX_PAYLOAD = 64
@@ -101,6 +101,7 @@ class MsgType(IntEnum):
     STOPPED = 0x92
     STROKE = 0x93
     FAULT = 0x94
+    BOOT = 0x95  # 1.1
 
 
 class Caps(IntFlag):
@@ -114,6 +115,19 @@ class Caps(IntFlag):
 
 
 REQUIRED_CAPS = Caps.HW_DELAY | Caps.EDGE_STAMP | Caps.STOP_ON_ARRIVAL | Caps.WATCHDOG
+
+
+class ResetCause(IntFlag):
+    """Why the MCU last started (HELLO_ACK.reset_cause and BOOT, 1.1): the ATmega's MCUSR bits.
+
+    0 means not known (a bootloader cleared MCUSR before the firmware read it). Bits add up when
+    several causes came before the firmware read them (a power-on and then a watchdog reset)."""
+
+    POWER_ON = 0x01
+    EXTERNAL = 0x02  # the RESET pin (an Arduino's auto-reset when its port is opened)
+    BROWN_OUT = 0x04
+    WATCHDOG = 0x08  # the hardware watchdog: the firmware's main loop stopped coming round
+    JTAG = 0x10
 
 
 class Status(IntEnum):
@@ -226,14 +240,26 @@ class Ping(Message):
 
 @dataclass(frozen=True, slots=True)
 class HelloAck(Message):
+    """`minor` is the session's: the lower of the host's and the device's. From 1.1 the body ends
+    with `reset_cause` (ResetCause bits); a 1.0 body has none, and decodes with 0 (not known)."""
+
     major: int
     minor: int
     caps: int
     fw_version: int
     t_us: int
     max_delay_us: int
+    reset_cause: int = 0
     TYPE = MsgType.HELLO_ACK
-    FORMAT = "<BBIHII"
+    FORMAT = "<BBIHIIB"
+    FORMAT_1_0: ClassVar[str] = "<BBIHII"
+
+    def pack_body(self) -> bytes:
+        if self.minor == 0:
+            if self.reset_cause:
+                raise ValueError(f"HelloAck field out of range: a 1.0 body has no reset_cause: {self!r}")
+            return struct.pack(self.FORMAT_1_0, *(getattr(self, f.name) for f in fields(self)[:-1]))
+        return struct.pack(self.FORMAT, *(getattr(self, f.name) for f in fields(self)))
 
 
 @dataclass(frozen=True, slots=True)
@@ -308,11 +334,21 @@ class Fault(Message):
     FORMAT = "<BIH"
 
 
-MESSAGES: dict[int, type[Message]] = {
-    cls.TYPE: cls
-    for cls in (Hello, Arm, Command, Stop, Ping, HelloAck, Ack, Pong, Edge, Start, Stopped, Stroke, Fault)
-}
+@dataclass(frozen=True, slots=True)
+class Boot(Message):
+    """1.1: sent once by the firmware as it starts, unasked (a 1.0 host counts it as a frame of
+    unknown type): a reset the host did not cause is seen at once, with its cause."""
+
+    reset_cause: int
+    fw_version: int
+    TYPE = MsgType.BOOT
+    FORMAT = "<BH"
+
+
+_ALL = (Hello, Arm, Command, Stop, Ping, HelloAck, Ack, Pong, Edge, Start, Stopped, Stroke, Fault, Boot)
+MESSAGES: dict[int, type[Message]] = {cls.TYPE: cls for cls in _ALL}
 _SIZES = {t: struct.calcsize(cls.FORMAT) for t, cls in MESSAGES.items()}
+_SIZE_1_0 = {MsgType.HELLO_ACK: struct.calcsize(HelloAck.FORMAT_1_0)}  # the body of a 1.0 session
 _HEADER = struct.Struct("<BH")
 
 
@@ -348,6 +384,8 @@ def decode_payload(payload: bytes) -> tuple[int, Message]:
     if cls is None:
         raise ProtocolError(f"unknown message type 0x{mtype:02X}")
     body = payload[3:-2]
+    if mtype in _SIZE_1_0 and len(body) == _SIZE_1_0[mtype] and body[1] == 0:
+        return seq, cls(*struct.unpack(HelloAck.FORMAT_1_0, body))
     if len(body) != _SIZES[mtype]:
         raise ProtocolError(f"{cls.__name__} body is {len(body)} bytes, expected {_SIZES[mtype]}")
     return seq, cls(*struct.unpack(cls.FORMAT, body))

@@ -10,7 +10,7 @@ bootloader that loses the host's bytes for a while (`bootloader_ms`), as an Ardu
 It talks bytes through whatever link `attach`es it (`mcu_pty.PtyLink`, `mcu_usb.UsbDevice`).
 Wire faults are injected on the device's transmit side: corrupt bytes, dropped frames, delayed
 frames, silence, garbage; and on its receive side, lost frames; rig faults: a stall and a sensor
-bounce.
+bounce; and a firmware hang, which its hardware watchdog ends with a reset (`inject_hang`).
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from usmswitch.drivers.mcu_protocol import (
     U32_MOD,
     Ack,
     Arm,
+    Boot,
     Caps,
     Command,
     DeviceFault,
@@ -48,6 +49,7 @@ from usmswitch.drivers.mcu_protocol import (
     Ping,
     Pong,
     ProtocolError,
+    ResetCause,
     SeqTracker,
     Start,
     StateFlags,
@@ -68,7 +70,10 @@ from .model import UsmSwitchModel
 log = logging.getLogger(__name__)
 
 ALL_CAPS = Caps.HW_DELAY | Caps.EDGE_STAMP | Caps.STROKE_REPORT | Caps.STOP_ON_ARRIVAL | Caps.WATCHDOG
-FW_VERSION = 0x0100
+FW_VERSION = 0x0101
+# The firmware's hardware watchdog (WDTO_30MS: 32 ms at 5 V): a hung main loop resets the chip
+# this long after its last pass.
+WATCHDOG_RESET_NS = 32_000_000
 MAX_DELAY_US = 1_000_000
 # COMMAND's t_cmd_us must be within this of the device clock (else BAD_TIME).
 MAX_COMMAND_SKEW_US = 1_000_000
@@ -86,6 +91,7 @@ class InjectedFaults:
     garbage: int = 0
     stalls: int = 0
     bounces: int = 0
+    hangs: int = 0
 
 
 @dataclass
@@ -222,13 +228,20 @@ class McuEmulator:
         self.strokes_arrived = 0
         self.watchdog_trips = 0
         self.boots = 0
-        self._boot()
+        #: Resets by the hardware watchdog (after an injected hang).
+        self.watchdog_resets = 0
+        self._hang_next = False
+        self._hung = False
+        self._boot(ResetCause.POWER_ON)
 
     # -- power and clock -----------------------------------------------------------------------
-    def _boot(self) -> None:
-        """Power-on reset: clock restarts at clock_start_us, no session, drive off."""
+    def _boot(self, cause: ResetCause) -> None:
+        """A reset (`cause`): clock restarts at clock_start_us, no session, drive off; once out
+        of the bootloader the firmware says BOOT with the cause, as it reports it in HELLO_ACK."""
         with self._lock:
             self.boots += 1
+            self.reset_cause = cause
+            self._hung = False
             self._t_boot_ns = time.monotonic_ns()
             self._bootloader_until_ns = self._t_boot_ns + self.bootloader_ns
             self.bootloader_bytes = 0
@@ -244,6 +257,14 @@ class McuEmulator:
             self._gen = 0  # bumps to cancel a stroke's pending timers
             self.rx_errors = 0
             self._timers.clear()
+            self._at(self._bootloader_until_ns, self._announce)
+
+    def _announce(self) -> None:
+        now = time.monotonic_ns()
+        if now < self._bootloader_until_ns:  # bytes kept the bootloader waiting
+            self._at(self._bootloader_until_ns, self._announce)
+            return
+        self._send(Boot(int(self.reset_cause), FW_VERSION))
 
     def device_us(self, t_ns: int | None = None) -> int:
         """The raw 32-bit device clock at host monotonic instant `t_ns` (now if None)."""
@@ -300,7 +321,16 @@ class McuEmulator:
         """Cut and restore power: everything the firmware knew is gone, the clock restarts."""
         with self._lock:
             self.rig.stop(time.monotonic_ns())
-            self._boot()
+            self._boot(ResetCause.POWER_ON)
+        self._rx.put(b"")  # wake the firmware thread: its BOOT is due now
+
+    def inject_hang(self) -> None:
+        """The next stroke hangs the firmware's main loop as it starts (a firmware bug): its START
+        still goes out (the UART drains by interrupt) and its arrival still cuts the drive (the
+        capture interrupt), but nothing else is sent or answered, and no timeout is checked, until
+        the hardware watchdog resets the chip WATCHDOG_RESET_NS after the start."""
+        with self._lock:
+            self._hang_next = True
 
     # -- fault injection -----------------------------------------------------------------------
     def inject_corrupt(self, frames: int = 1, only: MsgType | None = None) -> None:
@@ -412,6 +442,8 @@ class McuEmulator:
                 continue
             with self._lock:
                 now = time.monotonic_ns()
+                if self._hung:
+                    continue  # a hung main loop reads nothing: the receive ring overflows
                 if now < self._bootloader_until_ns:  # in the bootloader: lost, and it stays longer
                     self.bootloader_bytes += len(data)
                     self._bootloader_until_ns = now + self.bootloader_ns
@@ -427,7 +459,7 @@ class McuEmulator:
                     self._on_frame(seq, msg, now)
 
     def _check_watchdog(self, now: int) -> None:
-        if not self._synced or now - self._last_host_ns <= self._watchdog_ns:
+        if self._hung or not self._synced or now - self._last_host_ns <= self._watchdog_ns:
             return
         self._synced = False
         self._armed = None
@@ -506,10 +538,13 @@ class McuEmulator:
         self._rx_err_base = self._decoder.errors
         self._watchdog_ns = max(10, msg.watchdog_ms) * 1_000_000
         self._last_host_ns = now
-        # A host of another major version gets the device's version and no session.
+        # A host of another major version gets the device's version and no session; the session
+        # speaks the lower minor version (1.0: no reset cause).
         self._synced = msg.major == self.major
+        minor = min(self.minor, msg.minor) if self._synced else self.minor
+        cause = int(self.reset_cause) if minor >= 1 else 0
         self._send(
-            HelloAck(self.major, self.minor, int(self.caps), FW_VERSION, self.device_us(now), MAX_DELAY_US)
+            HelloAck(self.major, minor, int(self.caps), FW_VERSION, self.device_us(now), MAX_DELAY_US, cause)
         )
 
     def _on_arm(self, seq: int, msg: Arm, now: int) -> None:
@@ -575,12 +610,26 @@ class McuEmulator:
             return
         if plan.jammed:
             self.injected.stalls += 1
+        if self._hang_next:
+            self._hang_next = False
+            self._hung = True
+            self.injected.hangs += 1
+            t_reset = t0 + WATCHDOG_RESET_NS
+            if (t_arr := plan.arrive_ns) is not None and t_arr < t_reset:
+                self._at(t_arr, lambda: self.rig.stop(t_arr))  # the capture stub's cut
+            self._at(t_reset, lambda: self._watchdog_reset(t_reset))
+            return
         if (t_dep := plan.depart_ns) is not None:
             self._at(t_dep, lambda: self._depart(st, gen, t_dep))
         if (t_arr := plan.arrive_ns) is not None:
             self._at(t_arr, lambda: self._arrive(st, gen, t_arr))
         t_to = t0 + self._host_dur(st.timeout_us * 1000)
         self._at(t_to, lambda: self._stall(st, gen, t_to))
+
+    def _watchdog_reset(self, t_ns: int) -> None:
+        self.watchdog_resets += 1
+        self.rig.stop(t_ns)
+        self._boot(ResetCause.WATCHDOG)
 
     def _depart(self, st: _Stroke, gen: int, t_ns: int) -> None:
         if gen != self._gen or st.done:

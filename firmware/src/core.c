@@ -26,6 +26,7 @@ static struct {
     /* transmit */
     uint16_t tx_seq;
     /* session */
+    uint8_t reset_cause;
     uint8_t synced;
     uint32_t watchdog_us;
     uint32_t last_host_us;
@@ -96,6 +97,15 @@ static void send_edge(uint8_t channel, uint8_t level, uint32_t t_us)
     *p++ = level;
     put_u32(p, t_us);
     send(MT_EDGE, 6);
+}
+
+void core_boot(uint8_t reset_cause)
+{
+    S.reset_cause = reset_cause;
+    uint8_t *p = body();
+    *p++ = reset_cause;
+    put_u16(p, FW_VERSION);
+    send(MT_BOOT, 3);
 }
 
 /* ---- strokes ---- */
@@ -216,14 +226,22 @@ static void on_hello(uint16_t seq, const uint8_t *b, uint32_t now)
     S.watchdog_us = (uint32_t)(wd_ms < 10 ? 10 : wd_ms) * 1000UL;
     S.last_host_us = now;
     S.synced = b[0] == PROTO_MAJOR;
+    /* The session speaks the lower of the two minor versions, and says which: a 1.0 host gets the
+     * 1.0 layout, a 1.1 host the reset cause after it. */
+    uint8_t minor = b[0] == PROTO_MAJOR && b[1] < PROTO_MINOR ? b[1] : PROTO_MINOR;
     uint8_t *p = body();
     *p++ = PROTO_MAJOR;
-    *p++ = PROTO_MINOR;
+    *p++ = minor;
     p = put_u32(p, ALL_CAPS);
     p = put_u16(p, FW_VERSION);
     p = put_u32(p, now);
-    put_u32(p, MAX_DELAY_US);
-    send(MT_HELLO_ACK, 16);
+    p = put_u32(p, MAX_DELAY_US);
+    if (minor >= 1) {
+        *p = S.reset_cause;
+        send(MT_HELLO_ACK, 17);
+    } else {
+        send(MT_HELLO_ACK, 16);
+    }
 }
 
 static void on_ping(const uint8_t *b, uint32_t now)

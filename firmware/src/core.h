@@ -28,6 +28,9 @@ uint8_t hal_sensors(void);
 
 /* ---- called by the hardware layer's main loop ---- */
 void core_init(void);
+/* Once after core_init, interrupts on: remember the reset cause (MCUSR's bits) for HELLO_ACK and
+ * announce the start-up to whoever listens (BOOT). */
+void core_boot(uint8_t reset_cause);
 /* One received UART byte. */
 void core_rx_byte(uint8_t b);
 /* The drive went on at t_us (compare match, or at once for a late start). */

@@ -68,7 +68,7 @@ int8_t msg_body_size(uint8_t type)
     case MT_COMMAND: return 7;
     case MT_STOP: return 1;
     case MT_PING: return 4;
-    case MT_HELLO_ACK: return 16;
+    case MT_HELLO_ACK: return 17; /* a 1.0 session's: 16 */
     case MT_ACK: return 10;
     case MT_PONG: return 13;
     case MT_EDGE: return 6;
@@ -76,6 +76,7 @@ int8_t msg_body_size(uint8_t type)
     case MT_STOPPED: return 7;
     case MT_STROKE: return 20;
     case MT_FAULT: return 7;
+    case MT_BOOT: return 3;
     default: return -1;
     }
 }

@@ -6,8 +6,8 @@
 #include <stdint.h>
 
 #define PROTO_MAJOR 1
-#define PROTO_MINOR 0
-#define FW_VERSION 0x0100u
+#define PROTO_MINOR 1
+#define FW_VERSION 0x0101u
 #define MAX_DELAY_US 1000000UL
 #define MAX_COMMAND_SKEW_US 1000000UL
 #define MAX_PAYLOAD 64
@@ -16,7 +16,8 @@
 enum msg_type {
     MT_HELLO = 0x01, MT_ARM = 0x02, MT_COMMAND = 0x03, MT_STOP = 0x04, MT_PING = 0x05,
     MT_HELLO_ACK = 0x81, MT_ACK = 0x82, MT_PONG = 0x83,
-    MT_EDGE = 0x90, MT_START = 0x91, MT_STOPPED = 0x92, MT_STROKE = 0x93, MT_FAULT = 0x94
+    MT_EDGE = 0x90, MT_START = 0x91, MT_STOPPED = 0x92, MT_STROKE = 0x93, MT_FAULT = 0x94,
+    MT_BOOT = 0x95 /* 1.1 */
 };
 
 enum caps {
@@ -32,6 +33,11 @@ enum status {
 
 enum stop_reason {
     SR_ARRIVED = 0, SR_HOST = 1, SR_STALL = 2, SR_WATCHDOG = 3, SR_RESET = 4, SR_FAULT = 5
+};
+
+/* HELLO_ACK.reset_cause (1.1) and BOOT: MCUSR's bits as the chip sets them; 0 = not known. */
+enum reset_cause {
+    RC_POWER_ON = 0x01, RC_EXTERNAL = 0x02, RC_BROWN_OUT = 0x04, RC_WATCHDOG = 0x08, RC_JTAG = 0x10
 };
 
 enum fault_code { FC_STALL = 1, FC_HOST_SILENT = 2, FC_SENSORS = 3, FC_DRIVE = 4 };
@@ -54,7 +60,8 @@ uint16_t crc16(const uint8_t *data, uint8_t len);
 uint8_t cobs_encode(const uint8_t *in, uint8_t len, uint8_t *out);
 int16_t cobs_decode(const uint8_t *in, uint8_t len, uint8_t *out);
 
-/* Body size of a message type (host or device direction), -1 for a type protocol 1.0 lacks. */
+/* Body size of a message type (host or device direction; HELLO_ACK: this version's layout), -1
+ * for a type this version lacks. */
 int8_t msg_body_size(uint8_t type);
 
 /* Little-endian field access. */

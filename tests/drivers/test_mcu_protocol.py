@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import re
-from dataclasses import fields
+from dataclasses import fields, replace
 
 import pytest
 from hypothesis import given
@@ -62,7 +62,10 @@ def test_cobs_rejects_bad_input() -> None:
 def _sample(cls: type[mp.Message], draw: st.DrawFn) -> mp.Message:
     widths = {"B": 0xFF, "H": 0xFFFF, "I": 0xFFFFFFFF}
     codes = cls.FORMAT[1:]
-    return cls(*(draw(st.integers(0, widths[c])) for c in codes))
+    msg = cls(*(draw(st.integers(0, widths[c])) for c in codes))
+    if isinstance(msg, mp.HelloAck) and msg.minor == 0:
+        msg = replace(msg, reset_cause=0)  # a 1.0 session's HELLO_ACK has no reset cause
+    return msg
 
 
 @given(st.data())
@@ -73,6 +76,22 @@ def test_every_message_round_trips(data: st.DataObject) -> None:
     frame = encode_frame(msg, seq)
     assert frame.endswith(b"\x00") and 0 not in frame[:-1]
     assert FrameDecoder().feed(frame) == [(seq, msg)]
+
+
+def test_hello_ack_of_a_1_0_session_has_no_reset_cause() -> None:
+    """1.1 adds reset_cause at the end of HELLO_ACK; a session at 1.0 (a 1.0 host or device) keeps
+    the 16-byte body, which decodes with reset_cause 0 (not known)."""
+    old = mp.HelloAck(1, 0, 31, 0x0100, 5, 1_000_000)
+    assert len(old.pack_body()) == 16 and FrameDecoder().feed(encode_frame(old, 0)) == [(0, old)]
+    new = mp.HelloAck(1, 1, 31, 0x0101, 5, 1_000_000, int(mp.ResetCause.WATCHDOG))
+    assert len(new.pack_body()) == 17 and FrameDecoder().feed(encode_frame(new, 0)) == [(0, new)]
+    with pytest.raises(ValueError, match="no reset_cause"):
+        encode_frame(replace(old, reset_cause=8), 0)
+    body = bytearray(old.pack_body())
+    body[1] = 1  # a 16-byte body that says 1.1
+    raw = bytes([mp.MsgType.HELLO_ACK, 0, 0]) + bytes(body)
+    with pytest.raises(ProtocolError, match="expected 17"):
+        decode_payload(raw + crc16(raw).to_bytes(2, "little"))
 
 
 def test_field_out_of_range_names_the_message() -> None:

@@ -249,7 +249,7 @@ def test_version_and_capability_checks(tmp_path) -> None:
     from usmswitch.drivers.mcu_protocol import Caps
 
     for kwargs, match in [
-        ({"major": 2}, "protocol 2.0"),
+        ({"major": 2}, "protocol 2.1"),
         ({"caps": Caps.HW_DELAY | Caps.EDGE_STAMP}, "capabilit"),
     ]:
         emu = McuEmulator(seed=1, **kwargs).start()

@@ -106,6 +106,8 @@ int main(void)
             size_t n = parse_hex(line + 3, buf, sizeof buf);
             for (size_t i = 0; i < n; i++)
                 core_rx_byte(buf[i]);
+        } else if (sscanf(line, "boot %lu", &a) == 1) {
+            core_boot((uint8_t)a);
         } else if (sscanf(line, "start %lu", &a) == 1) {
             core_start((uint32_t)a);
         } else if (sscanf(line, "edge %lu %lu %lu", &a, &b, &c) == 3) {

@@ -54,8 +54,9 @@ class PythonDevice:
     def bounce(self) -> None:
         self.emu.inject_bounce()
 
-    def power_cycle(self) -> None:
+    def power_cycle(self) -> list[tuple[int, Message]]:
         self.emu.power_cycle()
+        return self.run(2000)
 
 
 class Firmware(FirmwareDevice):
@@ -68,9 +69,9 @@ class Firmware(FirmwareDevice):
     def bounce(self) -> None:
         self.sim.command("bounce")
 
-    def power_cycle(self) -> None:
+    def power_cycle(self) -> list[tuple[int, Message]]:
         self.sim.command("replug")  # a power-on reset (lockstep has no pty to unplug)
-        self.sim.run(2000)  # the firmware's start-up: bytes before its UART is on are lost
+        return self.run(2000)  # the firmware's start-up: bytes before its UART is on are lost
 
 
 Device = Firmware | PythonDevice
@@ -103,10 +104,10 @@ def device(make_device: Callable[..., Device]) -> Device:
     return make_device()
 
 
-def _hello(dev: Device, major: int = 1, watchdog_ms: int = 500) -> mp.HelloAck:
+def _hello(dev: Device, major: int = 1, watchdog_ms: int = 500, minor: int = 0) -> mp.HelloAck:
     dev.write(b"\x00")
-    dev.send(mp.Hello(major, 0, watchdog_ms), 0)
-    got = dev.run(5000)
+    dev.send(mp.Hello(major, minor, watchdog_ms), 0)
+    got = [(seq, m) for seq, m in dev.run(5000) if not isinstance(m, mp.Boot)]  # BOOT: at start-up
     assert len(got) == 1 and got[0][0] == 0 and isinstance(got[0][1], mp.HelloAck), got
     return got[0][1]
 
@@ -116,8 +117,9 @@ def _msgs(got: list[tuple[int, Message]]) -> list[Message]:
 
 
 def test_handshake_and_versions(device: Device) -> None:
-    ack = _hello(device)
-    assert (ack.major, ack.minor, ack.caps, ack.fw_version, ack.max_delay_us) == (1, 0, 31, 0x0100, 1_000_000)
+    ack = _hello(device)  # a 1.0 host: the 1.0 layout, no reset cause
+    assert (ack.major, ack.minor, ack.caps, ack.fw_version, ack.max_delay_us) == (1, 0, 31, 0x0101, 1_000_000)
+    assert ack.reset_cause == 0
     device.send(mp.Ping(7), 1)
     (pong,) = _msgs(device.run(3000))
     assert isinstance(pong, mp.Pong) and pong.token == 7 and pong.state & mp.StateFlags.SYNCED
@@ -127,6 +129,18 @@ def test_handshake_and_versions(device: Device) -> None:
     device.send(mp.Arm(1, 0, 1000, 100_000), 1)
     (ack2,) = _msgs(device.run(3000))
     assert isinstance(ack2, mp.Ack) and ack2.status == mp.Status.NOT_SYNCED and ack2.stroke == 0
+
+
+def test_boot_and_the_reset_cause(device: Device) -> None:
+    """1.1: BOOT as it starts, unasked, and HELLO_ACK's reset cause: power-on, also after a
+    power cycle."""
+    (boot,) = _msgs(device.run(3000))
+    assert boot == mp.Boot(int(mp.ResetCause.POWER_ON), 0x0101)
+    ack = _hello(device, minor=1)
+    assert (ack.minor, ack.reset_cause) == (1, mp.ResetCause.POWER_ON)
+    assert _msgs(device.power_cycle()) == [mp.Boot(int(mp.ResetCause.POWER_ON), 0x0101)]
+    ack = _hello(device, minor=1)
+    assert (ack.minor, ack.reset_cause) == (1, mp.ResetCause.POWER_ON)
 
 
 def test_arm_checks_and_command_refusals(device: Device) -> None:

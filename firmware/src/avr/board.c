@@ -7,9 +7,10 @@
  *
  * Timers (docs/firmware.md): timers 4 and 5 run in normal mode from the same prescaler at clk/8,
  * 0.5 us a tick, started together (GTCCR TSM), so TCNT4 == TCNT5 always and one extension
- * counter serves both capture units. clock_ovf counts timer 4 overflows; the 32-bit protocol
- * clock is (clock_ovf << 15) + (TCNT >> 1) microseconds, which wraps at 2^32 us as the protocol
- * wants. The drive start is a hardware compare: OC4A set on match at command + delay. A delay
+ * counter serves both capture units. clock_ovf counts timer 5 overflows (vector 50, below both
+ * capture vectors); the 32-bit protocol clock is (clock_ovf << 15) + (TCNT >> 1) microseconds,
+ * which wraps at 2^32 us as the protocol wants. A capture is stamped from ICR and the counter read
+ * in its handler (the period it belongs to follows from the two), whatever ran first. The drive start is a hardware compare: OC4A set on match at command + delay. A delay
  * longer than one timer period (32.768 ms) first matches half a period before the due instant
  * (compare A pre-arm, with the pin action "clear", a no-op as the pin is low) and the interrupt of
  * that exact match moves OCR4A to the due instant with the action "set".
@@ -24,25 +25,51 @@
 
 #define COM4A_CLEAR _BV(COM4A1)
 #define COM4A_SET (_BV(COM4A1) | _BV(COM4A0))
-/* A compare is armed only this many ticks (20 us) ahead; closer, the start is forced at once. */
-#define MARGIN_TICKS 40
+/* A compare is armed when its match is at least this many ticks (2 us) ahead when the arming
+ * section starts (which writes OCR4A within 12 cycles); closer or past, the start is forced by
+ * FOC4A at its instant. */
+#define ARM_MIN_TICKS 4
 /* The main loop sleeps only when the next timeout is further than this, and sets its alarm at
- * most half a timer period ahead. */
+ * most WAKE_MAX_TICKS (8.2 ms) ahead: every main-loop pass, and with it every watchdog kick,
+ * then comes within that plus the longest pass. */
 #define WAKE_MIN_US 20
-#define WAKE_MAX_TICKS 0x8000u
+#define WAKE_MAX_TICKS 0x4000u
 
-/* Timer 4 overflows: the high part of the clock. Named and kept so an emulator can preset it. */
+/* The clock's overflow interrupt. Timer 5's (vector 50) is outranked by both capture vectors
+ * (41, 46), so a capture pending beside it runs first. USMSWITCH_PLANT_STAMP_ERROR builds the test
+ * image with the code before issue 23 (timer 4's, vector 45, above sensor B's 46, and the stamp's
+ * period taken from ICR alone): its one-period error on sensor B is what the overflow sweep and
+ * the soak must find. Never defined for the image that is flashed. */
+#ifdef USMSWITCH_PLANT_STAMP_ERROR
+#define CLOCK_OVF_vect TIMER4_OVF_vect
+#define CLOCK_TIFR TIFR4
+#define CLOCK_TOV TOV4
+#else
+#define CLOCK_OVF_vect TIMER5_OVF_vect
+#define CLOCK_TIFR TIFR5
+#define CLOCK_TOV TOV5
+#endif
+
+/* MCUSR as the chip left it at this reset (power-on, external, brown-out, watchdog, JTAG bits),
+ * saved by early_init (vectors.S) before anything else runs: .noinit, so the C start-up's clearing
+ * of .bss spares it. */
+uint8_t reset_cause __attribute__((section(".noinit"), used, externally_visible));
+
+/* Clock overflows: the high part of the clock. Named and kept so an emulator can preset it. */
 volatile uint32_t clock_ovf __attribute__((used, externally_visible));
 
-/* ---- events from interrupts to the main loop ---- */
+/* ---- events from interrupts to the main loop ----
+ * An event's instant is kept as the timer gave it (the period count and the 16-bit tick); the main
+ * loop makes microseconds of it, so the handlers stay short. */
 enum { EV_START = 0, EV_EDGE_A0, EV_EDGE_A1, EV_EDGE_B0, EV_EDGE_B1 };
 #define EVQ 16
 static volatile uint8_t ev_kind[EVQ];
-static volatile uint32_t ev_t[EVQ];
+static volatile uint32_t ev_hi[EVQ];
+static volatile uint16_t ev_lo[EVQ];
 static volatile uint8_t ev_head, ev_tail;
 static volatile uint8_t ev_dropped;
 
-static inline void ev_push(uint8_t kind, uint32_t t) /* interrupts off */
+static inline void ev_push(uint8_t kind, uint32_t hi, uint16_t ticks) /* interrupts off */
 {
     uint8_t h = ev_head, n = (uint8_t)((h + 1) % EVQ);
     if (n == ev_tail) {
@@ -50,8 +77,14 @@ static inline void ev_push(uint8_t kind, uint32_t t) /* interrupts off */
         return;
     }
     ev_kind[h] = kind;
-    ev_t[h] = t;
+    ev_hi[h] = hi;
+    ev_lo[h] = ticks;
     ev_head = n;
+}
+
+static inline void ev_push_us(uint8_t kind, uint32_t us) /* interrupts off */
+{
+    ev_push(kind, us >> 15, (uint16_t)(us << 1));
 }
 
 /* ---- the clock ---- */
@@ -61,43 +94,32 @@ static inline uint32_t us_of(uint32_t hi, uint16_t t) { return (hi << 15) + (t >
 static inline uint32_t hi_for(uint16_t t)
 {
     uint32_t hi = clock_ovf;
-    if ((TIFR4 & _BV(TOV4)) && t < 0x8000u)
+    if ((CLOCK_TIFR & _BV(CLOCK_TOV)) && t < 0x8000u)
         hi++; /* the overflow happened but its interrupt has not run yet */
     return hi;
 }
 
-/* clock_ovf++, naked: 30 cycles with interrupts off, from the interrupt to the end of RETI (gcc's
- * prologue and epilogue around the 32-bit increment made it 64). An arrival edge that comes as it
- * starts waits that long, and one instruction more, before its capture stub, which cuts the drive
- * 21 cycles on: about 3.4 us at worst, where it was 5.6 us, over the 5 us allowed. */
-ISR(TIMER4_OVF_vect, ISR_NAKED)
+/* The period of a capture: icr is the counter at the edge, t the counter read after it in the
+ * handler (interrupts off). The edge came less than a period before t, so it is in t's period
+ * when icr <= t and in the one before otherwise, whether or not the overflow's interrupt has run
+ * (issue 23: sensor B's handler, outranked by timer 4's overflow, took icr's period from the
+ * flag the overflow handler had already cleared, one period late). */
+static inline uint32_t capture_hi(uint16_t icr, uint16_t t)
 {
-    __asm__ __volatile__("push r24\n\t"
-                         "in r24, __SREG__\n\t"
-                         "push r24\n\t"
-                         "lds r24, clock_ovf\n\t"
-                         "inc r24\n\t"
-                         "sts clock_ovf, r24\n\t"
-                         "brne 1f\n\t" /* no carry: the common case */
-                         "lds r24, clock_ovf+1\n\t"
-                         "inc r24\n\t"
-                         "sts clock_ovf+1, r24\n\t"
-                         "brne 1f\n\t"
-                         "lds r24, clock_ovf+2\n\t"
-                         "inc r24\n\t"
-                         "sts clock_ovf+2, r24\n\t"
-                         "brne 1f\n\t"
-                         "lds r24, clock_ovf+3\n\t"
-                         "inc r24\n\t"
-                         "sts clock_ovf+3, r24\n\t"
-                         "1: pop r24\n\t"
-                         "out __SREG__, r24\n\t"
-                         "pop r24\n\t"
-                         "reti\n\t");
+#ifdef USMSWITCH_PLANT_STAMP_ERROR
+    (void)t;
+    return hi_for(icr);
+#else
+    uint32_t hi = hi_for(t);
+    return icr <= t ? hi : hi - 1;
+#endif
 }
 
-/* The main loop's alarm (a timeout falls due): waking is all it does. */
-EMPTY_INTERRUPT(TIMER5_COMPA_vect);
+/* The clock's overflow interrupt (clock_ovf++, 30 cycles) is in vectors.S, below both capture
+ * vectors: a capture pending beside it always runs first. */
+
+/* The main loop's alarm (a timeout falls due, timer 5's compare A) is a bare RETI in vectors.S:
+ * waking is all it does. */
 
 uint32_t hal_now_us(void)
 {
@@ -146,7 +168,7 @@ ISR(TIMER4_COMPA_vect)
         drive_on = 1;
         cmp_phase = CMP_IDLE;
         TIMSK4 &= (uint8_t)~_BV(OCIE4A);
-        ev_push(EV_START, cmp_due_us);
+        ev_push_us(EV_START, cmp_due_us);
     }
 }
 
@@ -156,45 +178,65 @@ void hal_drive_schedule(uint32_t due_us, uint8_t direction, uint8_t dest)
         PORTH |= _BV(PH4);
     else
         PORTH &= (uint8_t)~_BV(PH4);
+    /* No stroke runs and no compare is armed here (the core schedules only when idle), so the
+     * arithmetic runs with interrupts on; only the clock read and the arming are atomic. */
+    dest_mask = (uint8_t)(1u << dest);
+    cmp_due_us = due_us;
     uint8_t sreg = SREG;
     cli();
-    dest_mask = (uint8_t)(1u << dest);
-    uint16_t t = TCNT4;
-    uint32_t hi = hi_for(t);
-    uint32_t now_ticks = (hi << 16) | t;
-    int32_t dus = (int32_t)(due_us - us_of(hi, t));
+    uint16_t t0 = TCNT4;
+    uint32_t hi = hi_for(t0);
+    SREG = sreg;
+    uint32_t now_ticks = (hi << 16) | t0;
+    int32_t dus = (int32_t)(due_us - us_of(hi, t0));
     uint32_t due_ticks = (now_ticks & ~1UL) + 2UL * (uint32_t)dus;
-    int32_t dt = (int32_t)(due_ticks - now_ticks);
-    if (dt < MARGIN_TICKS) {
-        /* Too close to arm a compare, or already past: spin to the instant, then force it. */
-        while (dt > 0) {
-            t = TCNT4;
-            dt = (int32_t)(due_ticks - ((hi_for(t) << 16) | t));
-        }
-        TCCR4A = COM4A_SET;
-        TCCR4C = _BV(FOC4A);
-        t = TCNT4;
-        uint32_t now_us = us_of(hi_for(t), t);
-        stop_mask = dest_mask;
-        drive_on = 1;
-        ev_push(EV_START, (int32_t)(now_us - due_us) > 0 ? now_us : due_us);
-    } else if (dt <= 0xFFFF) {
-        OCR4A = (uint16_t)due_ticks;
-        TIFR4 = _BV(OCF4A);
-        TCCR4A = COM4A_SET;
-        cmp_due_us = due_us;
-        cmp_phase = CMP_FINAL;
-        TIMSK4 |= _BV(OCIE4A);
-    } else {
+    int32_t dt = (int32_t)(due_ticks - now_ticks); /* from t0 */
+    if (dt > 0xFFFF) {
+        /* Further than a period: the pre-arm match half a period before, hours of margin. */
         cmp_pre_ticks = due_ticks - 0x8000UL;
         cmp_due_low = (uint16_t)due_ticks;
+        cli();
         OCR4A = (uint16_t)cmp_pre_ticks;
         TIFR4 = _BV(OCF4A);
         TCCR4A = COM4A_CLEAR; /* the pin is low: "clear on match" does nothing */
-        cmp_due_us = due_us;
         cmp_phase = CMP_PRE;
         TIMSK4 |= _BV(OCIE4A);
+        SREG = sreg;
+        return;
     }
+    cli();
+    if (dt - (int32_t)(uint16_t)(TCNT4 - t0) >= ARM_MIN_TICKS) {
+        /* The match is still ahead by the margin: the hardware sets OC4A at the exact tick. */
+        OCR4A = (uint16_t)due_ticks;
+        TIFR4 = _BV(OCF4A);
+        TCCR4A = COM4A_SET;
+        cmp_phase = CMP_FINAL;
+        TIMSK4 |= _BV(OCIE4A);
+        SREG = sreg;
+        return;
+    }
+    SREG = sreg;
+    /* Due within the margin, or past: wait for the instant with interrupts on (at most
+     * ARM_MIN_TICKS; each read of the counter atomic), then force OC4A high; START says how late. */
+    for (;;) {
+        cli();
+        uint16_t e = (uint16_t)(TCNT4 - t0);
+        SREG = sreg;
+        if (dt - (int32_t)e <= 0)
+            break;
+    }
+    cli();
+    TCCR4A = COM4A_SET;
+    TCCR4C = _BV(FOC4A);
+    uint16_t t = TCNT4;
+    uint32_t hi_now = hi_for(t);
+    stop_mask = dest_mask;
+    drive_on = 1;
+    uint32_t now_us = us_of(hi_now, t);
+    if ((int32_t)(now_us - due_us) > 0)
+        ev_push(EV_START, hi_now, t);
+    else
+        ev_push_us(EV_START, due_us);
     SREG = sreg;
 }
 
@@ -215,59 +257,34 @@ uint8_t hal_sensors(void)
 }
 
 /* ---- input capture: sensor A on ICP4, sensor B on ICP5 ----
- * Each vector is a naked stub that cuts the drive in its first instructions when the edge is
- * the armed arrival (about 25 cycles, 1.6 us, from the edge), then jumps to the full handler,
- * which stamps and queues the edge (and finishes the cut's bookkeeping). */
-#define CAPTURE_STUB(vec, tccrb, ices, maskbit, tail)                                            \
-    ISR(vec, ISR_NAKED)                                                                         \
-    {                                                                                            \
-        __asm__ __volatile__("push r24\n\t"                                                      \
-                             "in r24, __SREG__\n\t"                                             \
-                             "push r24\n\t"                                                      \
-                             "lds r24, %[tb]\n\t"                                                \
-                             "sbrc r24, %[ic]\n\t"                                               \
-                             "rjmp 1f\n\t" /* rising: released, not an arrival */               \
-                             "lds r24, stop_mask\n\t"                                            \
-                             "sbrs r24, %[mb]\n\t"                                               \
-                             "rjmp 1f\n\t"                                                       \
-                             "ldi r24, %[clr]\n\t"                                               \
-                             "sts %[ta], r24\n\t"                                                \
-                             "ldi r24, %[foc]\n\t"                                               \
-                             "sts %[tc], r24\n\t" /* OC4A low now */                           \
-                             "1: pop r24\n\t"                                                    \
-                             "out __SREG__, r24\n\t"                                             \
-                             "pop r24\n\t"                                                       \
-                             "jmp " #tail "\n\t" ::[tb] "n"(_SFR_MEM_ADDR(tccrb)),               \
-                             [ic] "n"(ices), [mb] "n"(maskbit), [clr] "n"(COM4A_CLEAR),          \
-                             [ta] "n"(_SFR_MEM_ADDR(TCCR4A)), [foc] "n"(_BV(FOC4A)),             \
-                             [tc] "n"(_SFR_MEM_ADDR(TCCR4C)));                                  \
-    }
-
+ * Each vector is a naked stub (vectors.S) that cuts the drive in its first instructions when the
+ * edge is the armed arrival (21 cycles from the vector), then jumps to its tail here, which
+ * stamps and queues the edge (and finishes the cut's bookkeeping). */
 void __vector_capt4_tail(void) __attribute__((signal, used, externally_visible));
 void __vector_capt5_tail(void) __attribute__((signal, used, externally_visible));
-CAPTURE_STUB(TIMER4_CAPT_vect, TCCR4B, ICES4, 0, __vector_capt4_tail)
-CAPTURE_STUB(TIMER5_CAPT_vect, TCCR5B, ICES5, 1, __vector_capt5_tail)
 
 void __vector_capt4_tail(void)
 {
+    uint16_t icr = ICR4;
+    uint16_t t = TCNT4;
     uint8_t active = !(TCCR4B & _BV(ICES4)); /* falling edge captured: the sensor went active */
     if (active && (stop_mask & 1))
         drive_cut(); /* STOP_ON_ARRIVAL: the stub has cut the pin, this the state */
-    uint16_t icr = ICR4;
     TCCR4B ^= _BV(ICES4);
     TIFR4 = _BV(ICF4); /* required after changing the edge (datasheet 17.6.3) */
-    ev_push(active ? EV_EDGE_A1 : EV_EDGE_A0, us_of(hi_for(icr), icr));
+    ev_push(active ? EV_EDGE_A1 : EV_EDGE_A0, capture_hi(icr, t), icr);
 }
 
 void __vector_capt5_tail(void)
 {
+    uint16_t icr = ICR5;
+    uint16_t t = TCNT5; /* == TCNT4 */
     uint8_t active = !(TCCR5B & _BV(ICES5));
     if (active && (stop_mask & 2))
         drive_cut();
-    uint16_t icr = ICR5;
     TCCR5B ^= _BV(ICES5);
     TIFR5 = _BV(ICF5);
-    ev_push(active ? EV_EDGE_B1 : EV_EDGE_B0, us_of(hi_for(icr), icr)); /* TCNT5 == TCNT4 */
+    ev_push(active ? EV_EDGE_B1 : EV_EDGE_B0, capture_hi(icr, t), icr);
 }
 
 /* ---- USART0 ---- */
@@ -341,8 +358,13 @@ static void hw_init(void)
     TCNT5 = 0;
     TIFR4 = 0xFF;
     TIFR5 = 0xFF;
+#ifdef USMSWITCH_PLANT_STAMP_ERROR
     TIMSK4 = _BV(TOIE4) | _BV(ICIE4);
     TIMSK5 = _BV(ICIE5);
+#else
+    TIMSK4 = _BV(ICIE4);
+    TIMSK5 = _BV(TOIE5) | _BV(ICIE5);
+#endif
     GTCCR = 0;
 
     /* USART0: 1,000,000 baud = 16 MHz / (16 * (UBRR + 1)) with UBRR = 0, exact. */
@@ -356,35 +378,46 @@ static void hw_init(void)
 
 int main(void)
 {
-    MCUSR = 0;
-    wdt_disable();
     hw_init();
     core_init();
     sei();
+    core_boot(reset_cause);
     for (;;) {
+        /* The watchdog's only kick: a pass of this loop that does not come round within the
+         * watchdog's period (32 ms; the longest pass is the 8.2 ms alarm plus a few ms of work)
+         * resets the chip, and the reset takes the drive pin low. */
+        wdt_reset();
         /* Interrupt facts first, in the order they happened, then the host's bytes. */
         while (ev_tail != ev_head) {
             cli();
             uint8_t k = ev_kind[ev_tail];
-            uint32_t t = ev_t[ev_tail];
+            uint32_t hi = ev_hi[ev_tail];
+            uint16_t lo = ev_lo[ev_tail];
             ev_tail = (uint8_t)((ev_tail + 1) % EVQ);
             sei();
-            if (k == EV_START)
+            uint32_t t = us_of(hi, lo);
+            if (k == EV_START) {
                 core_start(t);
-            else
+#ifdef USMSWITCH_TEST_HANG_ON_START
+                for (;;)
+                    ; /* test image only: the main loop hangs mid-stroke, the drive on */
+#endif
+            } else {
                 core_edge(k >= EV_EDGE_B0, (uint8_t)((k - EV_EDGE_A0) & 1), t);
+            }
         }
+        /* At most one frame a pass, so a pass stays short under a flood of requests. */
         while (rx_tail != rx_head) {
             uint8_t b = rx_buf[rx_tail];
             rx_tail = (uint8_t)((rx_tail + 1) % RXQ);
             core_rx_byte(b);
-            if (ev_tail != ev_head)
-                break; /* keep edges ahead of later requests */
+            if (b == 0 || ev_tail != ev_head)
+                break; /* a frame done, or edges to send ahead of later requests */
         }
         uint32_t left_us = core_poll();
         /* Sleep (idle mode: timers, capture and the UART run) until an interrupt or the next
          * timeout. Timer 5 counts with timer 4, so its compare A is the alarm; it is set at most
-         * half a period ahead, where a match cannot be taken for one a period later. An alarm
+         * WAKE_MAX_TICKS ahead, where a match cannot be taken for one a period later. An alarm
          * that comes early only runs the loop once more. */
         cli();
         if (ev_tail == ev_head && rx_tail == rx_head && left_us > WAKE_MIN_US) {

@@ -1,0 +1,94 @@
+/* usmswitch firmware: the code that is counted in cycles, written out (avr-gcc cannot give a
+ * naked function a stack usage, and these are assembly in all but name): the first code after
+ * reset, the clock's overflow interrupt and the two capture stubs. docs/firmware.md lists their
+ * cycles with interrupts off. */
+#include <avr/io.h>
+
+/* .init3, before .data and .bss are set up, interrupts off since the reset: keep MCUSR (the
+ * reset's cause) in reset_cause (.noinit), clear it (a watchdog reset leaves WDRF set, and WDRF
+ * forces the watchdog on at its shortest period, 16 ms, until it is cleared), then run the
+ * watchdog at 32 ms (WDP0, the datasheet's "32 ms" at 5 V; WDCE+WDE, then the new value within
+ * four cycles). From here on only the main loop kicks it. */
+    .section .init3,"ax",@progbits
+    .global early_init
+early_init:
+    in r24, _SFR_IO_ADDR(MCUSR)
+    sts reset_cause, r24
+    out _SFR_IO_ADDR(MCUSR), r1 /* r1 is zero from .init2 */
+    ldi r24, _BV(WDCE) | _BV(WDE)
+    ldi r25, _BV(WDE) | _BV(WDP0)
+    wdr
+    sts _SFR_MEM_ADDR(WDTCSR), r24
+    sts _SFR_MEM_ADDR(WDTCSR), r25
+
+    .text
+
+/* clock_ovf++: 30 cycles with interrupts off, from the interrupt to the end of RETI. Timer 5's
+ * overflow (vector 50), below both capture vectors; USMSWITCH_PLANT_STAMP_ERROR (a test image)
+ * puts it back on timer 4's (vector 45, above sensor B's 46), as it was before issue 23. */
+#ifdef USMSWITCH_PLANT_STAMP_ERROR
+    .global TIMER4_OVF_vect
+TIMER4_OVF_vect:
+#else
+    .global TIMER5_OVF_vect
+TIMER5_OVF_vect:
+#endif
+    push r24
+    in r24, _SFR_IO_ADDR(SREG)
+    push r24
+    lds r24, clock_ovf
+    inc r24
+    sts clock_ovf, r24
+    brne 1f /* no carry: the common case */
+    lds r24, clock_ovf+1
+    inc r24
+    sts clock_ovf+1, r24
+    brne 1f
+    lds r24, clock_ovf+2
+    inc r24
+    sts clock_ovf+2, r24
+    brne 1f
+    lds r24, clock_ovf+3
+    inc r24
+    sts clock_ovf+3, r24
+1:  pop r24
+    out _SFR_IO_ADDR(SREG), r24
+    pop r24
+    reti
+
+/* The main loop's alarm (timer 5's compare A): waking the CPU is all it does. */
+    .global TIMER5_COMPA_vect
+TIMER5_COMPA_vect:
+    reti
+
+/* A capture vector's first instructions cut the drive when the edge is the armed arrival (the
+ * falling edge, active low, of the sensor in stop_mask): COM4A "clear" and a strobe of FOC4A
+ * force OC4A low at once, 21 cycles after the vector is entered. The tail (board.c) stamps and
+ * queues the edge. */
+.macro CAPTURE_STUB tccrb, ices, maskbit, tail
+    push r24
+    in r24, _SFR_IO_ADDR(SREG)
+    push r24
+    lds r24, \tccrb
+    sbrc r24, \ices
+    rjmp 1f /* rising: released, not an arrival */
+    lds r24, stop_mask
+    sbrs r24, \maskbit
+    rjmp 1f
+    ldi r24, _BV(COM4A1)
+    sts _SFR_MEM_ADDR(TCCR4A), r24
+    ldi r24, _BV(FOC4A)
+    sts _SFR_MEM_ADDR(TCCR4C), r24 /* OC4A low now */
+1:  pop r24
+    out _SFR_IO_ADDR(SREG), r24
+    pop r24
+    jmp \tail
+.endm
+
+    .global TIMER4_CAPT_vect
+TIMER4_CAPT_vect:
+    CAPTURE_STUB _SFR_MEM_ADDR(TCCR4B), ICES4, 0, __vector_capt4_tail
+
+    .global TIMER5_CAPT_vect
+TIMER5_CAPT_vect:
+    CAPTURE_STUB _SFR_MEM_ADDR(TCCR5B), ICES5, 1, __vector_capt5_tail
