@@ -21,6 +21,8 @@ HAND_WRITTEN = {
     "__vector_45": (5, None),  # TIMER4_OVF (the plant image's clock)
     "__vector_50": (5, None),  # TIMER5_OVF (the clock)
     "__vector_47": (3, None),  # TIMER5_COMPA: reti
+    "__vector_25": (8, None),  # USART0_RX: r24, SREG, r25, r30, r31 (interrupts on again: nests)
+    "__vector_26": (8, None),  # USART0_UDRE: the same
 }
 FUNC = re.compile(r"^[0-9a-f]+ <(?P<name>[^>]+)>:$")
 CALL = re.compile(r"\s(?:call|rcall|jmp|rjmp)\s.*<(?P<name>[^>+]+)>")

@@ -92,3 +92,76 @@ TIMER4_CAPT_vect:
     .global TIMER5_CAPT_vect
 TIMER5_CAPT_vect:
     CAPTURE_STUB _SFR_MEM_ADDR(TCCR5B), ICES5, 1, __vector_capt5_tail
+
+/* USART0 receive: the byte is read (which clears RXC0) and interrupts are on again 16 cycles
+ * after the vector (5 to enter, 3 for its jmp, 8 here), before the ring is touched: a capture stub
+ * is held back no longer. The byte goes into rx_buf at rx_head (128 bytes); a full ring loses it
+ * (its frame then fails COBS or CRC and is counted). */
+    .global USART0_RX_vect
+USART0_RX_vect:
+    push r24
+    in r24, _SFR_IO_ADDR(SREG)
+    push r24
+    lds r24, _SFR_MEM_ADDR(UDR0)
+    sei
+    push r25
+    push r30
+    push r31
+    lds r30, rx_head
+    mov r25, r30
+    inc r25
+    andi r25, 0x7F /* RXQ = 128 */
+    lds r31, rx_tail
+    cp r25, r31
+    breq 1f /* full */
+    ldi r31, 0
+    subi r30, lo8(-(rx_buf))
+    sbci r31, hi8(-(rx_buf))
+    st Z, r24
+    sts rx_head, r25
+1:  pop r31
+    pop r30
+    pop r25
+    pop r24
+    out _SFR_IO_ADDR(SREG), r24
+    pop r24
+    reti
+
+/* USART0 data register empty: masks its own interrupt (UDRIE0) and re-enables interrupts 19
+ * cycles after the vector, then sends tx_buf[tx_tail] (256 bytes, the index wraps as a byte) and
+ * unmasks itself if there was one; an empty ring leaves it masked until hal_tx adds a byte. */
+    .global USART0_UDRE_vect
+USART0_UDRE_vect:
+    push r24
+    in r24, _SFR_IO_ADDR(SREG)
+    push r24
+    lds r24, _SFR_MEM_ADDR(UCSR0B)
+    andi r24, ~_BV(UDRIE0)
+    sts _SFR_MEM_ADDR(UCSR0B), r24
+    sei
+    push r25
+    push r30
+    push r31
+    lds r30, tx_tail
+    lds r25, tx_head
+    cp r30, r25
+    breq 1f /* empty: stays masked */
+    mov r25, r30
+    inc r25
+    ldi r31, 0
+    subi r30, lo8(-(tx_buf))
+    sbci r31, hi8(-(tx_buf))
+    ld r24, Z
+    sts _SFR_MEM_ADDR(UDR0), r24
+    sts tx_tail, r25
+    cli
+    lds r24, _SFR_MEM_ADDR(UCSR0B)
+    ori r24, _BV(UDRIE0)
+    sts _SFR_MEM_ADDR(UCSR0B), r24
+1:  pop r31
+    pop r30
+    pop r25
+    pop r24
+    out _SFR_IO_ADDR(SREG), r24
+    pop r24
+    reti
