@@ -28,6 +28,9 @@ class Status(TypedDict):
     target_off_ns: int
     driver_counters: dict[str, int]  # what the driver dropped or repaired (bounces, link errors, ...)
     records: dict[str, Any]  # the record writer: path, backlog, dropped, rejected, writer_error, ...
+    metrics_url: str | None  # the Prometheus page, None when not served
+    scheduling: str  # the loop thread's: "SCHED_FIFO 50", "SCHED_OTHER (... not permitted: ...)"
+    ready: bool  # every part runs (the socket answers a moment before, while the rest starts)
 
 
 class DirectionStats(TypedDict, total=False):

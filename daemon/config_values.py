@@ -90,14 +90,7 @@ def listen_value(key: str, v: Any) -> str:
     """[metrics] listen: "host:port", or a port alone (text or a TOML integer) on loopback; "" off."""
     if isinstance(v, int) and not isinstance(v, bool):
         v = str(v)
-    if not isinstance(v, str):
-        raise ConfigError(key, f'expected "host:port" or a port number, got {show(v)}')
-    if v:
-        try:
-            parse_listen(v)
-        except ValueError as exc:
-            raise ConfigError(key, str(exc)) from None
-    return v
+    return checked_text(parse_listen)(key, v)
 
 
 def parse_modbus_url(url: str) -> tuple[str, str, int]:

@@ -94,7 +94,7 @@ class ControlLoop:
         self.late_margin_ns = check_ns("late_margin_ns", late_margin_ns)
         self.sink = sink
         #: How the loop thread is scheduled, in words (the daemon sets it once it has asked).
-        self.scheduling = "SCHED_OTHER"
+        self.scheduling = "not yet set (starting)"
         #: Directions whose next completed stroke commissions them (nothing known before it).
         self.commissioning = set(commissioning)
         self.cycle = first_cycle

@@ -15,6 +15,7 @@ import os
 import signal
 import stat
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future
@@ -166,6 +167,9 @@ class Daemon:
         self.board: BoardPoller | None = None
         self.fleet: Fleet | None = None
         self._stop_asked_ns: int | None = None  # when the first stop signal came
+        self._old_handlers: dict[int, Any] = {}  # the stop signals' handlers before start()
+        #: True once every part runs (READY=1 sent): the socket answers a moment before.
+        self.ready = False
         self._next_summary_ns = 0
         self._last_summary: tuple[Any, ...] | None = None  # what the last summary line said
         self._next_live_ns = 0
@@ -177,6 +181,7 @@ class Daemon:
     def start(self) -> None:
         """Open everything in dependency order; raises with a clear message if a part cannot start."""
         cfg = self.config
+        self._catch_stop_signals()
         group = cfg.socket.group or None
         state_dir = prepare_state_dir(Path(cfg.daemon.state_dir), group)
         self._lock_fd = lock_state_dir(state_dir)
@@ -256,6 +261,8 @@ class Daemon:
             conditions=conditions,
             commissioning=commissioning,
         )
+        if self._stop_asked_ns is not None:  # a stop signal came while starting
+            self.loop.shutdown()
         known = [d for d in (Direction.ON, Direction.OFF) if d not in commissioning]
         if cfg.control.mode == "closed" and known:
             # The same refusal as set_target's: every stroke would start at once and arrive late.
@@ -325,8 +332,7 @@ class Daemon:
                 "idle, 19 % with /metrics scraped hard; 0.5 % at SCHED_FIFO); `stats` shows the late "
                 "rate; run as the shipped unit (LimitRTPRIO) or grant CAP_SYS_NICE",
             )
-        for sig in STOP_SIGNALS:
-            signal.signal(sig, self._on_signal)
+        self._catch_stop_signals()
         # Other threads (record writer, socket bridge) give the GIL back within this bound when
         # the loop wants it; at the default 5 ms a busy thread would land in the start lateness.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
@@ -348,6 +354,7 @@ class Daemon:
                 note="a client's run takes this start-up run over",
             )
         self._next_summary_ns = time.monotonic_ns() + cfg.daemon.summary_interval_ns
+        self.ready = True
         self.notifier.ready(status=self._status_line())
         status = 0
         try:
@@ -358,10 +365,24 @@ class Daemon:
 
     def _on_signal(self, signum: int, frame: object) -> None:
         # Drive off at once; the loop returns at its next check and stop() flushes the records.
+        # During start() there may be no loop yet: it is shut down as soon as it exists.
         if self._stop_asked_ns is None:
             self._stop_asked_ns = time.monotonic_ns()
-        assert self.loop is not None
-        self.loop.shutdown()
+        if self.loop is not None:
+            self.loop.shutdown()
+
+    def _catch_stop_signals(self) -> None:
+        """From the first instant of start(): a SIGTERM while starting ends the daemon as cleanly as
+        one while running (the socket answers before run() begins). Only the main thread may."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for sig in STOP_SIGNALS:
+            self._old_handlers.setdefault(sig, signal.signal(sig, self._on_signal))
+
+    def _restore_signals(self) -> None:
+        for sig, handler in self._old_handlers.items():
+            signal.signal(sig, handler)
+        self._old_handlers.clear()
 
     def stop(self) -> int:
         """Drive off, socket closed, every record flushed, the driver released. Safe to call twice.
@@ -428,6 +449,7 @@ class Daemon:
             os.close(self._lock_fd)  # the lock goes with it
             self._lock_fd = None
         self._summary(final=True)
+        self._restore_signals()
         return status
 
     def records_status(self) -> dict[str, Any]:

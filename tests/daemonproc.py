@@ -34,7 +34,8 @@ def spawn(args: list[str], **popen: object) -> subprocess.Popen[bytes]:
 
 
 def wait_serving(sock: Path, proc: subprocess.Popen[bytes], timeout_s: float = 20.0) -> None:
-    """Return once `stats` answers (the first snapshot arrives a moment after the socket binds)."""
+    """Return once the daemon is ready (`status.ready`: every part runs; the socket answers a moment
+    before, while the rest starts)."""
     end = time.monotonic() + timeout_s
     while True:
         if proc.poll() is not None:
@@ -43,7 +44,9 @@ def wait_serving(sock: Path, proc: subprocess.Popen[bytes], timeout_s: float = 2
         try:
             with Client(str(sock), timeout=5) as c:
                 c.stats()
-            return
+                if c.status()["ready"]:
+                    return
+            time.sleep(0.02)
         except (OSError, RpcError):
             if time.monotonic() > end:
                 raise

@@ -57,7 +57,8 @@ def test_stats_before_the_first_stroke_are_empty_not_an_error(tmp_path: Path) ->
             stats = rig.stats()
         assert stats["all"]["count"] == 0 and stats["all"]["strokes"] == 0 and stats["run"] is None
     finally:
-        daemonproc.stop(proc)
+        log = daemonproc.stop(proc)  # a SIGTERM while the rest may still be starting: a clean exit
+    assert proc.returncode == 0, log.decode()[-2000:]
 
 
 def test_a_bare_number_of_nanoseconds_gets_the_hint_of_its_unit() -> None:

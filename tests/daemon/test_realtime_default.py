@@ -33,8 +33,8 @@ def run_daemon(tmp: Path, prefix: list[str]) -> tuple[dict, str, list[dict]]:
     try:
         daemonproc.wait_serving(tmp / "d.sock", proc)
         with Client(str(tmp / "d.sock")) as rig:
-            status = rig.status()
             rig.run(count=20, period="20ms").wait()
+            status = rig.status()
         ctl = subprocess.run(
             [sys.executable, "-m", "usmswitch.client.ctl", "--socket", str(tmp / "d.sock"), "stats"],
             capture_output=True,
