@@ -34,9 +34,14 @@ clean:
 	rm -rf $(VENV) build *.egg-info
 
 # The MCU firmware (firmware/): avr-gcc image + simavr harness; `make flash PORT=/dev/ttyACM0`.
-.PHONY: firmware flash
+.PHONY: firmware flash soak
 firmware:
 	$(MAKE) -C firmware firmware
+
+# The firmware soak (tests/firmware/soak.py): 100,000 strokes in simavr, every stamp and drive-off
+# against the harness's truth, then the soak must catch a planted one-period stamp error (~2 min).
+soak: $(STAMP)
+	USMSWITCH_SOAK_STROKES=100000 USMSWITCH_SOAK_PLANT=1 $(PY) -m pytest tests/firmware/test_soak.py -q -s -rs
 
 flash:
 	$(MAKE) -C firmware flash PORT=$(PORT)

@@ -642,6 +642,20 @@ static void on_xoff(avr_irq_t *irq, uint32_t value, void *param)
         xon = 0;
 }
 
+/* Lockstep "trace 3": every byte the firmware reads from UDR0, as it reads it. */
+#define A_UDR0 0xC6
+static avr_io_read_t udr0_read;
+static void *udr0_read_param;
+
+static uint8_t r_udr0(avr_t *a, avr_io_addr_t addr, void *param)
+{
+    (void)param;
+    uint8_t v = udr0_read(a, addr, udr0_read_param);
+    if (lockstep && trace_irqs > 2)
+        printf("rx %02x %llu\n", v, (unsigned long long)avr->cycle);
+    return v;
+}
+
 /* ---- pty ---- */
 static int pty_master = -1, pty_slave = -1;
 static unsigned long dropped_bytes; /* the firmware's bytes the pty would not take */
@@ -980,6 +994,15 @@ int main(int argc, char **argv)
     avr_ioctl(avr, AVR_IOCTL_UART_SET_FLAGS('0'), &flags);
     uart_irq = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), 0);
     avr_irq_register_notify(uart_irq + UART_IRQ_OUTPUT, on_uart_out, NULL);
+    {
+        avr_io_addr_t io = AVR_DATA_TO_IO(A_UDR0);
+        udr0_read = avr->io[io].r.c;
+        udr0_read_param = avr->io[io].r.param;
+        if (udr0_read) {
+            avr->io[io].r.c = r_udr0;
+            avr->io[io].r.param = NULL;
+        }
+    }
     avr_irq_register_notify(uart_irq + UART_IRQ_OUT_XON, on_xon, NULL);
     avr_irq_register_notify(uart_irq + UART_IRQ_OUT_XOFF, on_xoff, NULL);
     sensor_irq[0] = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('L'), 0);

@@ -294,9 +294,9 @@ void __vector_capt5_tail(void)
 /* ---- USART0 ----
  * The rings are filled and drained by the two USART handlers in vectors.S. The USART vectors (25,
  * 26) outrank the capture vectors (41, 46), so each handler clears its own source (reads UDR0;
- * masks UDRIE0) and re-enables interrupts within 16 cycles of its vector, before it touches the
- * rings: an arrival edge's stub is held back that little by them. Neither can nest in itself: a
- * byte takes 10 us to arrive, and the UDRE handler keeps its interrupt masked until it is done. */
+ * masks UDRIE0) and re-enables interrupts early (31 and 19 cycles after its vector): an arrival
+ * edge's stub is held back that little by them. The receive handler may nest in itself (two bytes
+ * in the USART's buffer) and claims its ring slot before it re-enables interrupts. */
 #define RXQ 128 /* vectors.S wraps rx_head with & 0x7F */
 #define TXQ 256 /* and tx_tail as a byte */
 volatile uint8_t rx_buf[RXQ] __attribute__((used, externally_visible));

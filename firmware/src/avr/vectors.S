@@ -93,43 +93,52 @@ TIMER4_CAPT_vect:
 TIMER5_CAPT_vect:
     CAPTURE_STUB _SFR_MEM_ADDR(TCCR5B), ICES5, 1, __vector_capt5_tail
 
-/* USART0 receive: the byte is read (which clears RXC0) and interrupts are on again 16 cycles
- * after the vector (5 to enter, 3 for its jmp, 8 here), before the ring is touched: a capture stub
- * is held back no longer. The byte goes into rx_buf at rx_head (128 bytes); a full ring loses it
- * (its frame then fails COBS or CRC and is counted). */
+/* USART0 receive. With interrupts off it claims the ring's next slot (rx_head moves on) and reads
+ * the byte (which clears RXC0 for it); then interrupts are on again, 31 cycles after the vector,
+ * and the byte goes into its slot. A second byte already in the USART's two-byte buffer (this
+ * handler was held back more than a byte time) sets RXC0 again at once and enters this handler
+ * again, nested: it claims the slot after, so the ring keeps the bytes in order (the handler before
+ * issue 23 moved rx_head after its sei, and a nested byte overwrote the one before it: a frame lost
+ * after each long interrupts-off stretch). The main loop, the ring's reader, runs only when every
+ * handler has returned, so a claimed slot is always filled when it reads it. A full ring (128
+ * bytes) loses the byte; its frame then fails COBS or CRC and is counted. */
     .global USART0_RX_vect
 USART0_RX_vect:
     push r24
     in r24, _SFR_IO_ADDR(SREG)
     push r24
-    lds r24, _SFR_MEM_ADDR(UDR0)
-    sei
     push r25
     push r30
-    push r31
     lds r30, rx_head
     mov r25, r30
     inc r25
     andi r25, 0x7F /* RXQ = 128 */
-    lds r31, rx_tail
-    cp r25, r31
-    breq 1f /* full */
+    lds r24, rx_tail
+    cp r25, r24
+    breq 2f /* full */
+    sts rx_head, r25
+    lds r24, _SFR_MEM_ADDR(UDR0)
+    sei
+    push r31
     ldi r31, 0
     subi r30, lo8(-(rx_buf))
     sbci r31, hi8(-(rx_buf))
     st Z, r24
-    sts rx_head, r25
-1:  pop r31
-    pop r30
+    pop r31
+1:  pop r30
     pop r25
     pop r24
     out _SFR_IO_ADDR(SREG), r24
     pop r24
     reti
+2:  lds r24, _SFR_MEM_ADDR(UDR0) /* full: read it all the same (clears RXC0), lose it */
+    rjmp 1b
 
-/* USART0 data register empty: masks its own interrupt (UDRIE0) and re-enables interrupts 19
- * cycles after the vector, then sends tx_buf[tx_tail] (256 bytes, the index wraps as a byte) and
- * unmasks itself if there was one; an empty ring leaves it masked until hal_tx adds a byte. */
+/* USART0 data register empty: masks its own interrupt (UDRIE0: it cannot nest in itself) and
+ * re-enables interrupts 19 cycles after the vector, then sends tx_buf[tx_tail] (256 bytes, the
+ * index wraps as a byte) and unmasks itself if there was one; an empty ring leaves it masked until
+ * hal_tx adds a byte. UCSR0B is written by no other handler (hal_tx's read-modify-write in the main
+ * loop cannot come between this one's), so the unmasking needs no cli. */
     .global USART0_UDRE_vect
 USART0_UDRE_vect:
     push r24
@@ -154,7 +163,6 @@ USART0_UDRE_vect:
     ld r24, Z
     sts _SFR_MEM_ADDR(UDR0), r24
     sts tx_tail, r25
-    cli
     lds r24, _SFR_MEM_ADDR(UCSR0B)
     ori r24, _BV(UDRIE0)
     sts _SFR_MEM_ADDR(UCSR0B), r24
