@@ -16,8 +16,10 @@ from pathlib import Path
 
 # vectors.S: (bytes pushed, including the 3-byte return address; the function it jumps to).
 HAND_WRITTEN = {
-    "__vector_41": (5, "__vector_capt4_tail"),  # TIMER4_CAPT stub: r24, SREG, popped before its jmp
-    "__vector_46": (5, "__vector_capt5_tail"),  # TIMER5_CAPT stub
+    "__vector_5": (4, None),  # INT4: the arrival cut, r24
+    "__vector_6": (4, None),  # INT5
+    "__vector_41": (4, "__vector_capt4_tail"),  # TIMER4_CAPT stub: r24, popped before its jmp
+    "__vector_46": (4, "__vector_capt5_tail"),  # TIMER5_CAPT stub
     "__vector_45": (5, None),  # TIMER4_OVF (the plant image's clock)
     "__vector_50": (5, None),  # TIMER5_OVF (the clock)
     "__vector_47": (3, None),  # TIMER5_COMPA: reti
@@ -75,8 +77,12 @@ def main(argv: list[str]) -> int:
 
     main_d, main_chain = depth("main")
     isrs = sorted({f for f in calls if re.fullmatch(r"__vector_\d+", f)} | set(HAND_WRITTEN) & set(calls))
-    nesting = [f for f in isrs if f in seis]
-    others = [f for f in isrs if f not in seis]
+
+    def nests(f: str) -> bool:  # it, or the tail it jumps to, turns interrupts on again
+        return f in seis or HAND_WRITTEN.get(f, (0, None))[1] in seis
+
+    nesting = [f for f in isrs if nests(f)]
+    others = [f for f in isrs if not nests(f)]
     nest_d = sum(depth(f)[0] for f in nesting)
     other_d, other_chain = max((depth(f) for f in others), default=(0, []))
     total = main_d + nest_d + other_d

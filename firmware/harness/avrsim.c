@@ -163,7 +163,7 @@ struct edge {
 static struct edge pending[MAX_EDGES];
 static int npending;
 static int sensor_active[2];
-static avr_irq_t *sensor_irq[2];
+static avr_irq_t *sensor_irq[2], *sensor_int_irq[2];
 
 static void helper_start(const char *python, const char *script, int seed, char start_at)
 {
@@ -260,8 +260,14 @@ static void drive_sensor_pins(void)
     avr_ioport_external_t ext = {.name = 'L', .mask = 3, .value = 0};
     ext.value = (unsigned)((sensor_active[0] ? 0 : 1) | (sensor_active[1] ? 0 : 2));
     avr_ioctl(avr, AVR_IOCTL_IOPORT_SET_EXTERNAL('L'), &ext);
-    for (int ch = 0; ch < 2; ch++)
+    /* Each sensor's line is wired to a second pin too (docs/firmware.md): A to PE4 (INT4), B to PE5. */
+    avr_ioport_external_t ext_e = {.name = 'E', .mask = 0x30, .value = 0};
+    ext_e.value = (unsigned)((sensor_active[0] ? 0 : 0x10) | (sensor_active[1] ? 0 : 0x20));
+    avr_ioctl(avr, AVR_IOCTL_IOPORT_SET_EXTERNAL('E'), &ext_e);
+    for (int ch = 0; ch < 2; ch++) {
         avr_raise_irq(sensor_irq[ch], sensor_active[ch] ? 0 : 1);
+        avr_raise_irq(sensor_int_irq[ch], sensor_active[ch] ? 0 : 1);
+    }
 }
 
 static void set_sensor(int ch, int active)
@@ -878,8 +884,10 @@ static int stdin_command(char *line)
         /* The sensors go on pulling their lines through the MCU's reset. simavr's reset cleared
          * PINL but not the pins' IRQ values, and it passes a pin change on only when the value
          * changes: toggle each line to put its level back (capture is off after a reset). */
-        for (int c = 0; c < 2; c++)
+        for (int c = 0; c < 2; c++) {
             avr_raise_irq(sensor_irq[c], sensor_active[c] ? 1 : 0);
+            avr_raise_irq(sensor_int_irq[c], sensor_active[c] ? 1 : 0);
+        }
         drive_sensor_pins();
         if (link_path[0])
             pty_plug();
@@ -1007,6 +1015,8 @@ int main(int argc, char **argv)
     avr_irq_register_notify(uart_irq + UART_IRQ_OUT_XOFF, on_xoff, NULL);
     sensor_irq[0] = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('L'), 0);
     sensor_irq[1] = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('L'), 1);
+    sensor_int_irq[0] = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('E'), 4);
+    sensor_int_irq[1] = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('E'), 5);
 
     if (!helper) {
         static char path[2048];

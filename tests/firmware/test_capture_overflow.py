@@ -254,8 +254,8 @@ def planted_elf(avrsim: Path) -> Path:
 
 def test_the_sweep_finds_the_old_one_period_error(avrsim: Path, planted_elf: Path) -> None:
     wrong, _ = _report(_run_sweep(avrsim, planted_elf))
-    assert wrong, "the sweep passed the firmware with the old stamp computation"
-    assert all(t.channel == 1 for t in wrong), [(t.group, t.channel, t.offset) for t in wrong]
+    assert any(t.channel == 1 for t in wrong), "the sweep passed the firmware with the old stamp computation"
+    # one period late, each (sensor A's too here: its handler now lets the overflow's run first)
     assert all(s - t.truth_us == 32768 for t in wrong for s in t.stamps), [
         (t.stamps, t.truth_us) for t in wrong
     ]

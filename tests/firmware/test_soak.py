@@ -40,5 +40,4 @@ def test_soak_finds_a_planted_one_period_stamp_error(avrsim: Path, tmp_path: Pat
     res = run_soak(avrsim, BUILD / "usmswitch-plant.elf", 100_000, tmp_path, max_wrong=2)
     print(res.summary())
     assert res.wrong, "the soak passed the firmware with the old stamp computation"
-    assert {name for _, name, _, _ in res.wrong} <= {"arrive", "stop"}
     assert all((fw - tr) % (1 << 32) == 32768 for _, _, fw, tr in res.wrong), res.wrong

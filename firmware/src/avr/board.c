@@ -75,7 +75,7 @@ static volatile uint8_t ev_dropped;
 
 static inline __attribute__((always_inline)) void ev_push(uint8_t kind, uint32_t hi, uint16_t ticks) /* interrupts off */
 {
-    uint8_t h = ev_head, n = (uint8_t)((h + 1) % EVQ);
+    uint8_t h = ev_head, n = (uint8_t)(h + 1) & (EVQ - 1);
     if (n == ev_tail) {
         ev_dropped++;
         return;
@@ -103,18 +103,20 @@ static inline __attribute__((always_inline)) uint32_t hi_for(uint16_t t)
     return hi;
 }
 
-/* The period of a capture: icr is the counter at the edge, t the counter read after it in the
- * handler (interrupts off). The edge came less than a period before t, so it is in t's period
- * when icr <= t and in the one before otherwise, whether or not the overflow's interrupt has run
- * (issue 23: sensor B's handler, outranked by timer 4's overflow, took icr's period from the
- * flag the overflow handler had already cleared, one period late). */
-static inline __attribute__((always_inline)) uint32_t capture_hi(uint16_t icr, uint16_t t)
+/* The period of a capture: icr is the counter at the edge; t the counter, ovf the overflow count
+ * and tov the clock's overflow flag, read together after it in the handler (interrupts off). The
+ * edge came less than a period before t, so it is in t's period when icr <= t and in the one
+ * before otherwise, whether or not the overflow's interrupt has run (issue 23: sensor B's handler,
+ * outranked by timer 4's overflow, took icr's period from the flag the overflow handler had
+ * already cleared, one period late). */
+static inline __attribute__((always_inline)) uint32_t capture_period(uint16_t icr, uint16_t t, uint32_t ovf,
+                                                                      uint8_t tov)
 {
 #ifdef USMSWITCH_PLANT_STAMP_ERROR
     (void)t;
-    return hi_for(icr);
+    return ovf + (tov && icr < 0x8000u);
 #else
-    uint32_t hi = hi_for(t);
+    uint32_t hi = ovf + (tov && t < 0x8000u);
     return icr <= t ? hi : hi - 1;
 #endif
 }
@@ -261,35 +263,42 @@ uint8_t hal_sensors(void)
 }
 
 /* ---- input capture: sensor A on ICP4, sensor B on ICP5 ----
- * Each vector is a naked stub (vectors.S) that cuts the drive in its first instructions when the
- * edge is the armed arrival (21 cycles from the vector), then jumps to its tail here, which
- * stamps and queues the edge (and finishes the cut's bookkeeping). */
-void __vector_capt4_tail(void) __attribute__((signal, used, externally_visible));
-void __vector_capt5_tail(void) __attribute__((signal, used, externally_visible));
+ * The arrival's cut comes first from INT4/INT5 (vectors.S; the same sensor lines on PE4/PE5), and
+ * again from each capture vector's stub, which then jumps to its tail here. A tail runs with
+ * interrupts on (the `interrupt` attribute: SEI first), so it holds back neither the other
+ * sensor's cut nor the UART: it reads the capture, the counter and the clock in one short cli
+ * section (ICESn not yet flipped, so no capture of this unit can come meanwhile), and does the
+ * cut's bookkeeping and queues the edge in another. An edge of the other sensor nested in it may
+ * be queued first; the main loop puts the two back in the order of their stamps. */
+void __vector_capt4_tail(void) __attribute__((interrupt, used, externally_visible));
+void __vector_capt5_tail(void) __attribute__((interrupt, used, externally_visible));
 
-void __vector_capt4_tail(void)
-{
-    uint16_t icr = ICR4;
-    uint16_t t = TCNT4;
-    uint8_t active = !(TCCR4B & _BV(ICES4)); /* falling edge captured: the sensor went active */
-    if (active && (stop_mask & 1))
-        drive_cut(); /* STOP_ON_ARRIVAL: the stub has cut the pin, this the state */
-    TCCR4B ^= _BV(ICES4);
-    TIFR4 = _BV(ICF4); /* required after changing the edge (datasheet 17.6.3) */
-    ev_push(active ? EV_EDGE_A1 : EV_EDGE_A0, capture_hi(icr, t), icr);
-}
+#define CAPTURE_TAIL(name, icr_reg, tcnt_reg, tccrb, ices, tifr, icf, bit, kind0)                  \
+    void name(void)                                                                                \
+    {                                                                                              \
+        cli();                                                                                     \
+        uint16_t icr = icr_reg;                                                                    \
+        uint16_t t = tcnt_reg;                                                                     \
+        uint32_t ovf = clock_ovf;                                                                  \
+        uint8_t tov = CLOCK_TIFR & _BV(CLOCK_TOV);                                                 \
+        uint8_t active = !(tccrb & _BV(ices)); /* falling edge captured: the sensor went active */ \
+        tccrb ^= _BV(ices);                                                                        \
+        tifr = _BV(icf); /* required after changing the edge (datasheet 17.6.3) */                 \
+        sei();                                                                                     \
+        uint32_t hi = capture_period(icr, t, ovf, tov);                                            \
+        if (active) {                                                                              \
+            cli();                                                                                 \
+            if (stop_mask & (bit))                                                                 \
+                drive_cut(); /* STOP_ON_ARRIVAL: the stubs have cut the pin, this is the state */  \
+            sei();                                                                                 \
+        }                                                                                          \
+        cli();                                                                                     \
+        ev_push((uint8_t)((kind0) + active), hi, icr);                                             \
+        sei();                                                                                     \
+    }
 
-void __vector_capt5_tail(void)
-{
-    uint16_t icr = ICR5;
-    uint16_t t = TCNT5; /* == TCNT4 */
-    uint8_t active = !(TCCR5B & _BV(ICES5));
-    if (active && (stop_mask & 2))
-        drive_cut();
-    TCCR5B ^= _BV(ICES5);
-    TIFR5 = _BV(ICF5);
-    ev_push(active ? EV_EDGE_B1 : EV_EDGE_B0, capture_hi(icr, t), icr);
-}
+CAPTURE_TAIL(__vector_capt4_tail, ICR4, TCNT4, TCCR4B, ICES4, TIFR4, ICF4, 1, EV_EDGE_A0)
+CAPTURE_TAIL(__vector_capt5_tail, ICR5, TCNT5, TCCR5B, ICES5, TIFR5, ICF5, 2, EV_EDGE_B0)
 
 /* ---- USART0 ----
  * The rings are filled and drained by the two USART handlers in vectors.S. The USART vectors (25,
@@ -322,9 +331,15 @@ static void hw_init(void)
     /* Drive and direction outputs low before the timer owns the pin. */
     PORTH &= (uint8_t)~(_BV(PH3) | _BV(PH4));
     DDRH |= _BV(PH3) | _BV(PH4);
-    /* Sensors: inputs with pull-ups. */
+    /* Sensors: inputs with pull-ups; each line also on an external interrupt pin (A: PE4/INT4, D2;
+     * B: PE5/INT5, D3), falling edge (the sensor goes active): the arrival's cut. */
     DDRL &= (uint8_t)~(_BV(PL0) | _BV(PL1));
     PORTL |= _BV(PL0) | _BV(PL1);
+    DDRE &= (uint8_t)~(_BV(PE4) | _BV(PE5));
+    PORTE |= _BV(PE4) | _BV(PE5);
+    EICRB = _BV(ISC41) | _BV(ISC51);
+    EIFR = _BV(INTF4) | _BV(INTF5);
+    EIMSK = _BV(INT4) | _BV(INT5);
 
     /* Timers 4 and 5: halt the shared prescaler, configure, zero both counters, release. */
     GTCCR = _BV(TSM) | _BV(PSRSYNC);
@@ -372,10 +387,23 @@ int main(void)
          * ev_tail was written whole before its producer (interrupts off) moved ev_head past it,
          * and no producer writes it again before ev_tail moves on: no cli needed to read it. */
         while (ev_tail != ev_head) {
-            uint8_t i = ev_tail;
+            uint8_t i = ev_tail, j = (uint8_t)(i + 1) & (EVQ - 1);
+            if (j != ev_head && (int32_t)(us_of(ev_hi[j], ev_lo[j]) - us_of(ev_hi[i], ev_lo[i])) < 0) {
+                /* an edge queued from inside the other sensor's handler, before that one's: swap
+                 * (both slots are published; no producer touches them) */
+                uint8_t k2 = ev_kind[j];
+                uint32_t h2 = ev_hi[j];
+                uint16_t l2 = ev_lo[j];
+                ev_kind[j] = ev_kind[i];
+                ev_hi[j] = ev_hi[i];
+                ev_lo[j] = ev_lo[i];
+                ev_kind[i] = k2;
+                ev_hi[i] = h2;
+                ev_lo[i] = l2;
+            }
             uint8_t k = ev_kind[i];
             uint32_t t = us_of(ev_hi[i], ev_lo[i]);
-            ev_tail = (uint8_t)((i + 1) % EVQ);
+            ev_tail = j;
             if (k == EV_START) {
                 core_start(t);
 #ifdef USMSWITCH_TEST_HANG_ON_START
