@@ -245,6 +245,29 @@ def test_stall_and_bounce(rig) -> None:
     assert not emu.drive_on
 
 
+def test_a_hung_firmware_reset_by_its_watchdog_is_a_drive_fault(rig) -> None:
+    """Protocol 1.1: the firmware hangs as a stroke starts, its hardware watchdog resets it, and
+    its BOOT says so: the driver reports FAULT DRIVE at once (not a stall a heartbeat later), ends
+    the stroke, handshakes again, and the next stroke runs."""
+    emu, _, daq = rig
+    daq.stroke_timeout_ns = 2_000_000_000
+    emu.inject_hang()
+    seen = run_stroke(daq, Direction.ON)
+    fault = seen.events[-1]
+    assert fault.kind is EventKind.FAULT and fault.fault is FaultCode.DRIVE, seen.events
+    assert "hardware watchdog (MCUSR 0x08)" in fault.detail
+    assert 30_000_000 < fault.t_ns - seen.start.t_ns < 80_000_000  # ~32 ms: the watchdog's period
+    assert not emu.drive_on and emu.watchdog_resets == 1
+    stop = daq.recv(1_000_000_000)
+    assert stop is not None and stop.kind is EventKind.STOP and stop.direction is Direction.ON, stop
+    assert wait_for(lambda: daq.connected and daq.link_stats()["resyncs"] == 1)
+    st = daq.link_stats()
+    assert (st["watchdog_resets"], st["device_resets"], st["reset_cause"]) == (1, 1, 8), st
+    daq.stroke_timeout_ns = 100_000_000
+    assert run_stroke(daq, Direction.OFF).events[-1].detail == "arrived"  # from wherever it stopped
+    assert daq.link_stats()["watchdog_resets"] == 1  # the new session's HELLO_ACK is not news
+
+
 def test_version_and_capability_checks(tmp_path) -> None:
     from usmswitch.drivers.mcu_protocol import Caps
 

@@ -8,7 +8,8 @@ it restarted (BOOT, and HELLO_ACK's reset cause in a 1.1 session). Through the s
 pty in real time, the same hang must come out as a FAULT DRIVE event naming the watchdog, and the
 driver must handshake the restarted board again on its own. The production image must meanwhile
 never be reset by it: its longest main-loop pass, as the harness measures between two kicks, stays
-far inside the period.
+far inside the period. And usmswitchd on the hang image latches the reset as its FAULT, which
+`status` shows: "drive: device reset by its hardware watchdog (MCUSR 0x08)".
 """
 
 from __future__ import annotations
@@ -18,10 +19,12 @@ import sys
 import time
 from pathlib import Path
 
+import daemonproc
 import pytest
 from avrsim import FirmwareDevice, Lockstep, since_us
 from conftest import BUILD, make
 
+from usmswitch.client import Client
 from usmswitch.drivers import Direction, EventKind, FaultCode
 from usmswitch.drivers import mcu_protocol as mp
 from usmswitch.drivers.serial_mcu import SerialMcuDaq
@@ -154,3 +157,43 @@ def test_the_serial_driver_reports_the_watchdog_reset(avrsim: Path, hang_elf: Pa
         sim.terminate()
         _, err = sim.communicate(timeout=10)
         print(err[-1500:])
+
+
+@pytest.mark.realtime
+def test_the_daemon_latches_the_watchdog_reset(avrsim: Path, hang_elf: Path, tmp_path: Path) -> None:
+    """usmswitchd --driver serial on the hang image: the first stroke's firmware hangs, the board's
+    watchdog resets it, and the daemon latches that as its FAULT, shown by `status`."""
+    import daemonproc
+
+    from usmswitch.client import Client
+
+    link = tmp_path / "usmswitch"
+    sim = subprocess.Popen(
+        [str(avrsim), "--elf", str(hang_elf), "--link", str(link), "--python", sys.executable, "--seed", "3"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, bufsize=1,
+    )  # fmt: skip
+    daemon = None
+    try:
+        assert sim.stdout is not None and sim.stdout.readline().startswith("avrsim on")
+        sock = tmp_path / "d.sock"
+        args = ["--driver", "serial", "--port", str(link), "--target", "12ms"]
+        daemon = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False))
+        daemonproc.wait_serving(sock, daemon)
+        with Client(str(sock), timeout=10) as c:
+            assert c.status()["state"] == "idle"
+            try:
+                c.switch()
+            except Exception as exc:  # the stroke fails; how it says so is the daemon's business
+                print(f"switch: {exc!r}")
+            assert wait_for(lambda: c.status()["state"] == "fault", 5.0)
+            st = c.status()
+            assert "watchdog" in st["fault"] and "MCUSR 0x08" in st["fault"], st["fault"]
+            assert st["driver_counters"]["watchdog_resets"] == 1, st["driver_counters"]
+            print(f"status fault: {st['fault']}")
+    finally:
+        try:
+            if daemon is not None:
+                daemonproc.stop(daemon)
+        finally:
+            sim.terminate()
+            sim.communicate(timeout=10)
