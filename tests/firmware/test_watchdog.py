@@ -163,10 +163,6 @@ def test_the_serial_driver_reports_the_watchdog_reset(avrsim: Path, hang_elf: Pa
 def test_the_daemon_latches_the_watchdog_reset(avrsim: Path, hang_elf: Path, tmp_path: Path) -> None:
     """usmswitchd --driver serial on the hang image: the first stroke's firmware hangs, the board's
     watchdog resets it, and the daemon latches that as its FAULT, shown by `status`."""
-    import daemonproc
-
-    from usmswitch.client import Client
-
     link = tmp_path / "usmswitch"
     sim = subprocess.Popen(
         [str(avrsim), "--elf", str(hang_elf), "--link", str(link), "--python", sys.executable, "--seed", "3"],
