@@ -86,10 +86,7 @@ static inline __attribute__((always_inline)) void ev_push(uint8_t kind, uint32_t
     ev_head = n;
 }
 
-static inline __attribute__((always_inline)) void ev_push_us(uint8_t kind, uint32_t us) /* interrupts off */
-{
-    ev_push(kind, us >> 15, (uint16_t)(us << 1));
-}
+
 
 /* ---- the clock ---- */
 static inline uint32_t us_of(uint32_t hi, uint16_t t) { return (hi << 15) + (t >> 1); }
@@ -142,7 +139,8 @@ enum { CMP_IDLE = 0, CMP_PRE, CMP_FINAL };
 static volatile uint8_t cmp_phase;
 static volatile uint32_t cmp_pre_ticks; /* 32-bit tick instant of the pre-arm match */
 static volatile uint16_t cmp_due_low;
-static volatile uint32_t cmp_due_us;
+static volatile uint32_t cmp_due_hi; /* the due instant as an event stamp (period, tick) */
+static volatile uint16_t cmp_due_tick;
 volatile uint8_t stop_mask __attribute__((used, externally_visible)); /* read by the capture stubs */
 static volatile uint8_t dest_mask; /* bit 0 sensor A, bit 1 sensor B */
 static volatile uint8_t drive_on;
@@ -157,24 +155,35 @@ static inline __attribute__((always_inline)) void drive_cut(void) /* interrupts 
     drive_on = 0;
 }
 
-ISR(TIMER4_COMPA_vect)
+/* The start's compare. It runs with interrupts on (ISR_NOBLOCK: SEI first; its match cannot come
+ * again for a period) and keeps them off only where it shares hardware or the event queue: the
+ * 16-bit timer 4 registers (their TEMP byte is shared with the capture tails' reads) and the
+ * queue. The pin itself is set by the hardware at the match. */
+ISR(TIMER4_COMPA_vect, ISR_NOBLOCK)
 {
     if (cmp_phase == CMP_PRE) {
+        cli();
         uint16_t t = TCNT4;
-        uint32_t now = (hi_for(t) << 16) | t;
-        uint32_t match = now - (uint16_t)(t - OCR4A);
+        uint16_t ocr = OCR4A;
+        uint32_t hi = hi_for(t);
+        sei();
+        uint32_t match = ((hi << 16) | t) - (uint16_t)(t - ocr);
         if (match == cmp_pre_ticks) {
+            cli();
             OCR4A = cmp_due_low; /* half a period ahead: the next match is the due instant */
             TCCR4A = COM4A_SET;
             cmp_phase = CMP_FINAL;
+            sei();
         }
     } else if (cmp_phase == CMP_FINAL) {
         /* The hardware set OC4A at the match: the drive is on. */
+        cli();
         stop_mask = dest_mask;
         drive_on = 1;
         cmp_phase = CMP_IDLE;
         TIMSK4 &= (uint8_t)~_BV(OCIE4A);
-        ev_push_us(EV_START, cmp_due_us);
+        ev_push(EV_START, cmp_due_hi, cmp_due_tick);
+        sei();
     }
 }
 
@@ -187,7 +196,8 @@ void hal_drive_schedule(uint32_t due_us, uint8_t direction, uint8_t dest)
     /* No stroke runs and no compare is armed here (the core schedules only when idle), so the
      * arithmetic runs with interrupts on; only the clock read and the arming are atomic. */
     dest_mask = (uint8_t)(1u << dest);
-    cmp_due_us = due_us;
+    cmp_due_hi = due_us >> 15; /* the START stamp, made here rather than in the handler */
+    cmp_due_tick = (uint16_t)(due_us << 1);
     uint8_t sreg = SREG;
     cli();
     uint16_t t0 = TCNT4;
@@ -238,11 +248,16 @@ void hal_drive_schedule(uint32_t due_us, uint8_t direction, uint8_t dest)
     uint32_t hi_now = hi_for(t);
     stop_mask = dest_mask;
     drive_on = 1;
-    uint32_t now_us = us_of(hi_now, t);
-    if ((int32_t)(now_us - due_us) > 0)
-        ev_push(EV_START, hi_now, t);
-    else
-        ev_push_us(EV_START, due_us);
+    SREG = sreg;
+    /* START: the instant it went on when that was after the due one (late), else the due one */
+    uint32_t start_hi = cmp_due_hi;
+    uint16_t start_tick = cmp_due_tick;
+    if ((int32_t)(us_of(hi_now, t) - due_us) > 0) {
+        start_hi = hi_now;
+        start_tick = t;
+    }
+    cli();
+    ev_push(EV_START, start_hi, start_tick);
     SREG = sreg;
 }
 
