@@ -15,6 +15,8 @@
  * exchanged on stdin/stdout. Commands on stdin (both modes, one a line):
  *   send HEX     bytes to the firmware's UART (lockstep)
  *   run US       run US microseconds of emulated time, print "uart HEX" (lockstep) and "ran CYCLE"
+ *   runto CYCLE  the same, to an emulator cycle     edge CH LEVEL CYCLE  a sensor line at a cycle
+ *   trace N      what to print as it happens (1-3)  stats   the measurements   info   the origin
  *   stall        the next stroke jams half way       bounce   the next arrival bounces
  *   unplug       close the pty, remove the symlink   replug   new pty (and a power-on reset)
  *   quit
@@ -33,7 +35,13 @@
  *     (1 us off in one edge of six); when the firmware releases TSM the harness restarts timers 4
  *     and 5 from the values written to them meanwhile, as the chip starts them together;
  *  (and the sensor pins are driven as the port's external state: simavr let the internal pull-up
- *  override a line the sensor pulls low).
+ *  override a line the sensor pulls low; each sensor line drives its capture pin on port L and
+ *  its external interrupt pin on port E, as docs/firmware.md wires it);
+ *  7. an interrupt was entered in no cycles (the chip: 5, and 14 from sleep), added here;
+ *  8. a power-on ("replug") left MCUSR clear (the chip sets PORF).
+ * It also follows the chip's resets (the watchdog's: the drive pin, the clock's origin) and
+ * measures what the firmware does with interrupts off and how often the main loop kicks the
+ * watchdog ("stats"; lockstep "trace N" for the details, docs/firmware.md).
  */
 #define _GNU_SOURCE
 #include <errno.h>
