@@ -26,7 +26,16 @@ from pathlib import Path
 
 from benchmarks.table import print_table
 from usmswitch.drivers import Direction, EventKind
-from usmswitch.drivers.mcu_protocol import Arm, Command, Edge, FrameDecoder, Hello, Start, encode_frame
+from usmswitch.drivers.mcu_protocol import (
+    Arm,
+    Command,
+    Edge,
+    FrameDecoder,
+    Hello,
+    HelloAck,
+    Start,
+    encode_frame,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 BUILD = ROOT / "firmware" / "build"
@@ -89,7 +98,7 @@ def _lockstep(truth: Path) -> dict[str, list[int] | float]:
     dec = FrameDecoder()
     t0 = time.perf_counter()
     sim.send(b"\x00" + encode_frame(Hello(1, 0, 60_000), 0))
-    now = next(m for _, m in dec.feed(sim.run(2000))).t_us
+    now = next(m for _, m in dec.feed(sim.run(2000)) if isinstance(m, HelloAck)).t_us  # after its BOOT
     seq = 1
     starts: list[tuple[int, int]] = []  # (commanded instant + delay, START stamp)
     edges: list[Edge] = []
