@@ -165,9 +165,9 @@ class SimDaq(Daq):
             return Conditions(m.temperature_c(self.clock.now_ns()), m.frequency_hz, m.voltage_vpp)
 
     def expected_stroke_ns(self, direction: Direction) -> int:
-        """The model's stroke at the drive and temperature now, friction at its mean."""
+        """The model's expected next stroke (drive, temperature and friction as they are now)."""
         with self._lock:
-            return self.model.nominal_operating_ns(direction)
+            return self.model.expected_operating_ns(direction)
 
     def set_drive(self, *, frequency_hz: float | None = None, voltage_vpp: float | None = None) -> None:
         """Set excitation frequency and/or voltage, as the daemon would over Modbus; next stroke on."""

@@ -475,6 +475,14 @@ class UsmSwitchModel:
         self.last_stroke = st
         return st
 
+    def expected_operating_ns(self, direction: Direction) -> int:
+        """The next stroke's operating time as the model expects it now: the drive and temperature
+        now, friction where its AR(1) goes next from its current level, no noise. What the simulated
+        rig tells the daemon for a direction's first stroke (a real rig has nothing like it)."""
+        i = int(Direction(direction))
+        scale = 1.0 + self.params.friction_phi * self._friction[i]
+        return self.dead_time_ns(direction) + round(self.motion_ns(direction) * scale)
+
     def friction(self, direction: Direction) -> float:
         """The friction state of a direction (relative motion-time offset), for diagnostics."""
         return self._friction[int(Direction(direction))]
