@@ -846,7 +846,11 @@ static void hexline(const char *tag, const uint8_t *b, size_t n)
 
 /* Correction 8: a power-on sets PORF in MCUSR. simavr sets it once, at avr_init; its avr_reset
  * (the harness's "replug", a power cycle) clears MCUSR with the other I/O registers. */
-static void power_on_flag(void) { avr->data[A_MCUSR] |= MCUSR_PORF; }
+static void power_on_flag(void)
+{
+    if (fix_bugs)
+        avr->data[A_MCUSR] |= MCUSR_PORF;
+}
 
 static int stdin_command(char *line)
 {

@@ -6,7 +6,11 @@
  *   "foc done" after FOC4A with COM4A = set, which must drive OC4A high (the harness reports
  *   the drive pin: "drive 1");
  *   "tsm ok" if timers 4 and 5, zeroed 5 ticks apart while GTCCR.TSM halts the prescaler, count
- *   in lockstep once it is released, "tsm bug" if timer 5 lags.
+ *   in lockstep once it is released, "tsm bug" if timer 5 lags;
+ *   "irq N": N = CPU cycles (timer 1 at clk/1) from a read of TCNT1 to the same read first thing in
+ *   INT0's handler, the interrupt raised by the instruction after the first read (the chip's
+ *   interrupt response counts 5 of them; simavr 1.6 counted none);
+ *   "porf N": MCUSR's PORF as the image starts (1 after a power-on; simavr's reset cleared it).
  */
 #include <avr/interrupt.h>
 #include <avr/io.h>
@@ -14,6 +18,17 @@
 #include <stdint.h>
 
 static volatile uint8_t seen;
+volatile uint8_t t_isr __attribute__((used, externally_visible));
+
+/* First thing in the handler: timer 1's low byte (lds, push and sts leave SREG alone). */
+ISR(INT0_vect, ISR_NAKED)
+{
+    __asm__ __volatile__("push r24\n\t"
+                         "lds r24, %[t]\n\t"
+                         "sts t_isr, r24\n\t"
+                         "pop r24\n\t"
+                         "reti\n\t" ::[t] "n"(_SFR_MEM_ADDR(TCNT1L)));
+}
 
 ISR(TIMER4_OVF_vect)
 {
@@ -32,6 +47,8 @@ static void put(const char *s)
 
 int main(void)
 {
+    uint8_t porf = MCUSR & _BV(PORF);
+    MCUSR = 0;
     UBRR0 = 0;
     UCSR0C = _BV(UCSZ01) | _BV(UCSZ00);
     UCSR0B = _BV(TXEN0);
@@ -83,6 +100,34 @@ int main(void)
     uint8_t t4 = TCNT4L;
     uint8_t t5 = TCNT5L;
     put((uint8_t)(t5 - t4) <= 1 ? "tsm ok\n" : "tsm bug\n");
+
+    /* 5. Interrupt response: INT0 on falling edge, its pin an output driven low by the instruction
+     * after the first read of TCNT1. */
+    TCCR1A = 0;
+    TCCR1B = _BV(CS10);
+    PORTD |= _BV(PD0);
+    DDRD |= _BV(PD0);
+    EICRA = _BV(ISC01);
+    EIFR = _BV(INTF0);
+    EIMSK = _BV(INT0);
+    uint8_t t0;
+    __asm__ __volatile__("sei\n\t"
+                         "lds %0, %[t]\n\t"
+                         "cbi %[port], 0\n\t"
+                         "nop\n\t"
+                         "nop\n\t"
+                         "nop\n\t"
+                         "nop\n\t"
+                         "cli\n\t"
+                         : "=r"(t0)
+                         : [t] "n"(_SFR_MEM_ADDR(TCNT1L)), [port] "I"(_SFR_IO_ADDR(PORTD)));
+    EIMSK = 0;
+    uint8_t d = (uint8_t)(t_isr - t0);
+    char irq[] = "irq 00\n";
+    irq[4] = (char)('0' + d / 10 % 10);
+    irq[5] = (char)('0' + d % 10);
+    put(irq);
+    put(porf ? "porf 1\n" : "porf 0\n");
 
     while (!(UCSR0A & _BV(TXC0)))
         ;
