@@ -169,6 +169,9 @@ class ControlConfig:
     sensitivity_temperature: float | None = field(default=None, metadata={"unit": "/C"})
     stroke_timeout_ns: int = 50_000_000  # no arrival by then: stall, drive off, FAULT
     late_margin_ns: int = 50_000  # a start later than this past command + delay is flagged LATE
+    # The plausible band's floor: a shorter operating time is not a stroke (flag IMPLAUSIBLE).
+    # 0: 0.3 x the direction's known stroke (the median of its last strokes, else its first guess).
+    min_stroke_ns: int = 0
 
     def target_ns(self, direction: int) -> int:
         """T for a direction (0 on, 1 off)."""
@@ -551,6 +554,7 @@ def _control(t: Table) -> ControlConfig:
         **sensitivity,
         stroke_timeout_ns=timeout,
         late_margin_ns=t.get("late_margin", duration, d.late_margin_ns),
+        min_stroke_ns=t.get("min_stroke", duration, d.min_stroke_ns),
     )
     t.done()
     return cfg

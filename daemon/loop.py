@@ -51,6 +51,15 @@ class State(StrEnum):
 AUTOSTART_OWNER = "autostart"
 
 
+#: Driver faults that end the stroke in progress, with the name its FAULT is latched under.
+STROKE_FAULTS = {
+    FaultCode.DISCONNECT: "disconnect",
+    FaultCode.STALL: "stall",
+    FaultCode.DRIVE: "drive",
+    FaultCode.SEQUENCE: "edge order",
+}
+
+
 class LoopError(Exception):
     """A request the loop refuses in its present state; the message says why."""
 
@@ -80,6 +89,7 @@ class ControlLoop:
         first_run_id: int = 1,
         run_sink: Callable[[RunRecord], None] | None = None,
         commissioning: Sequence[Direction] = (),
+        min_stroke_ns: Sequence[int] = (0, 0),
     ) -> None:
         if len(predictors) != 2:
             raise ValueError(f"one predictor per direction (on, off) is needed, got {len(predictors)}")
@@ -113,6 +123,10 @@ class ControlLoop:
         self._run_ending: str | None = None  # why the open run ends, once its last stroke is recorded
         self._in_stroke = False
         self.spurious_edges = 0
+        #: Per direction, the shortest operating time believed (the plausible band's floor).
+        self.min_stroke_ns = [check_ns("min_stroke_ns", m) for m in min_stroke_ns]
+        #: Strokes the hardware side reported that were not physically strokes (flag IMPLAUSIBLE).
+        self.implausible = 0
         self.overruns = 0
         self.stale_events = 0  # driver events dropped at a fault reset
         self.listeners: list[Callable[[CycleRecord], None]] = []
@@ -440,6 +454,7 @@ class ControlLoop:
             "target_on_ns": self.targets[Direction.ON],
             "target_off_ns": self.targets[Direction.OFF],
             "spurious_edges": self.spurious_edges,
+            "implausible": self.implausible,
             "overruns": self.overruns,
             "driver_bounces": self.daq.bounces,
             "driver": self.daq.counters(),
@@ -613,7 +628,7 @@ class ControlLoop:
         t_start = cmd.t_start_ns
         lateness = cmd.lateness_ns
         deadline = (cmd.t_cmd_ns + cmd.delay_ns if t_start is None else t_start) + self.stroke_timeout_ns
-        t_depart = t_arrive = None
+        t_depart = t_arrive = early_arrive = None
         fault = ""
         flags = plan.flags
         src, dst = direction.source, direction.dest
@@ -635,6 +650,12 @@ class ControlLoop:
                 if t_start is None or ev.t_ns <= t_start:
                     self.spurious_edges += 1
                 elif ev.channel is dst and ev.level == 1:
+                    if t_depart is None and not partial:
+                        # Not yet left: a glitch, or a sensor that lies. The stroke goes on; if
+                        # nothing better comes, it ends IMPLAUSIBLE with this stamp.
+                        self.spurious_edges += 1
+                        early_arrive = early_arrive or ev.t_ns
+                        continue
                     t_arrive = ev.t_ns
                     break
                 elif ev.channel is src and ev.level == 0 and t_depart is None:
@@ -648,14 +669,30 @@ class ControlLoop:
                     deadline = t_start + self.stroke_timeout_ns
             elif (
                 kind is EventKind.FAULT
-                and ev.fault in (FaultCode.DISCONNECT, FaultCode.STALL, FaultCode.DRIVE)
+                and ev.fault in STROKE_FAULTS
                 and ev.t_ns >= cmd.t_cmd_ns  # not one left over from before this command
             ):
-                fault = f"{ev.fault.name.lower()}: {ev.detail}" if ev.detail else ev.fault.name.lower()
+                name = STROKE_FAULTS[ev.fault]
+                fault = f"{name}: {ev.detail}" if ev.detail else name
                 break
             elif kind is EventKind.STOP and (self._estop.is_set() or self._shutdown.is_set()):
                 break  # the halt's own stop: nothing will arrive
+        implausible = ""
+        halted = self._estop.is_set() or self._shutdown.is_set()
+        if t_arrive is None and early_arrive is not None and t_start is not None and not fault and not halted:
+            t_arrive = early_arrive  # the only arrival there was: kept, and said what it was
         if t_arrive is not None and t_start is not None:
+            implausible = self._implausible(direction, t_start, t_depart, t_arrive, partial)
+        if implausible:
+            # Not a stroke: kept with its stamps, not learned from, the drive off and a FAULT that says
+            # what the hardware side reported.
+            operating = t_arrive - t_start if t_arrive is not None and t_start is not None else None
+            self.implausible += 1
+            self._plan = None
+            self._safe_stop("implausible stroke")
+            flags |= Flag.IMPLAUSIBLE | Flag.FAULT
+            self._latch_fault(f"implausible stroke: {implausible}")
+        elif t_arrive is not None and t_start is not None:
             operating = t_arrive - t_start
             told = self._told(direction, cmd.t_cmd_ns)  # idle since this direction's previous command
             self._last_command[direction] = cmd.t_cmd_ns
@@ -690,6 +727,30 @@ class ControlLoop:
         if lateness is not None and lateness > self.late_margin_ns:
             flags |= Flag.LATE  # started past its instant: the stroke cannot meet T
         return self._finish(plan, cmd.t_cmd_ns, t_start, t_depart, t_arrive, operating, lateness, flags)
+
+    def _implausible(
+        self, direction: Direction, t_start: int, t_depart: int | None, t_arrive: int, partial: bool
+    ) -> str:
+        """Why a reported stroke is not physically one ("" when it is): the mover must leave the
+        source after the start and reach the destination after leaving, in no less than the band's
+        floor. A mover that started midway (PARTIAL) has no source to leave."""
+        operating = t_arrive - t_start
+        src, dst = direction.source.name, direction.dest.name
+        if not partial:
+            if t_depart is None:
+                return (
+                    f"sensor {dst} reported the arrival {format_ns(operating)} after the start, with no"
+                    f" departure from sensor {src}"
+                )
+            if not t_start < t_depart < t_arrive:
+                return (
+                    f"sensor {dst} reported the arrival at +{format_ns(operating)}, before the departure"
+                    f" from sensor {src} at +{format_ns(t_depart - t_start)}"
+                )
+        floor = self.min_stroke_ns[direction]
+        if operating < floor:
+            return f"operating time {format_ns(operating)} is below the plausible floor {format_ns(floor)}"
+        return ""
 
     def _finish(
         self,

@@ -111,6 +111,7 @@ class Methods:
             "target_off_ns": loop.targets[Direction.OFF],
             "metrics_url": self._metrics_url(),
             "scheduling": loop.scheduling,
+            "implausible_strokes": loop.implausible,
             "ready": self.daemon.ready,
         }
 

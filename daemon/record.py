@@ -42,10 +42,14 @@ class Flag(IntFlag):
     # A direction's first stroke on a rig nothing was known of (no records, no configured nominal,
     # no model of the rig): t_hat was a guess. Its error is shown apart in the statistics.
     COMMISSIONING = 1 << 9
+    # The hardware side reported something that is not physically a stroke: an arrival with no
+    # departure before it, a departure after the arrival, an operating time below the plausible
+    # band. Kept with its stamps, never fed to the predictor; the fault it latches says which.
+    IMPLAUSIBLE = 1 << 10
 
 
 #: Flags after which `operating_ns` is not a real stroke time (the predictor must not learn it).
-UNUSABLE = Flag.STALL | Flag.FAULT | Flag.ESTOP | Flag.ABORTED | Flag.PARTIAL
+UNUSABLE = Flag.STALL | Flag.FAULT | Flag.ESTOP | Flag.ABORTED | Flag.PARTIAL | Flag.IMPLAUSIBLE
 
 MODES = ("closed", "open")
 

@@ -14,6 +14,7 @@ import fcntl
 import os
 import signal
 import stat
+import statistics
 import sys
 import threading
 import time
@@ -54,6 +55,9 @@ STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 CLOSE_TIMEOUT_NS = 10_000_000_000
 CLOSE_TIMEOUT_FAILING_NS = 3_000_000_000
 SWITCH_INTERVAL_S = 0.0002
+#: The plausible band's floor as a fraction of a direction's known stroke (`[control] min_stroke`).
+#: A USM cannot cross 5 mm three times faster than it usually does; a sensor or a stamp can lie.
+MIN_STROKE_FRACTION = 0.3
 #: From the stop signal to the end of stop(): what is left of it after the drive is off, the
 #: server process gone and the records committed is what PostgreSQL shipping may still take;
 #: the rest ships at the next start. Keeps SIGTERM-to-exit within 100 ms with a database (the
@@ -203,6 +207,7 @@ class Daemon:
         nominals, sources = first_guesses(cfg, daq)
         predictors = direction_predictors(cfg, memory.load(), nominals)
         commissioning = []
+        min_stroke: list[int] = []
         memory.watch(predictors[0])
         for d in (Direction.ON, Direction.OFF):
             # Only this driver's strokes on this rig: never a real rig from simulated strokes.
@@ -210,6 +215,8 @@ class Daemon:
                 int(d), cfg.control.warm_start, driver=daq.name, rig=cfg.daemon.rig
             )
             predictors[d].extend(samples)
+            known = statistics.median(samples) if samples else nominals[d]
+            min_stroke.append(cfg.control.min_stroke_ns or round(MIN_STROKE_FRACTION * known))
             first = "records" if samples else sources[d]
             if first == "guess":
                 commissioning.append(d)
@@ -260,6 +267,7 @@ class Daemon:
             next_direction=first_direction(self.daq, last_rec),
             conditions=conditions,
             commissioning=commissioning,
+            min_stroke_ns=min_stroke,
         )
         if self._stop_asked_ns is not None:  # a stop signal came while starting
             self.loop.shutdown()

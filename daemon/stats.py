@@ -131,6 +131,7 @@ class DirectionStats:
         # Commissioning strokes (a first stroke predicted from nothing known): apart, never in
         # the error figures. At most two a rig's life, so a short list is fixed memory enough.
         self.commissioning: list[dict[str, int | None]] = []
+        self.implausible = 0  # strokes the hardware side reported that were not strokes
 
     def add(
         self,
@@ -168,6 +169,10 @@ class DirectionStats:
 
         A commissioning stroke feeds the operating time and the counters; its error is kept apart."""
         flags = rec.flags
+        if flags & Flag.IMPLAUSIBLE:  # not a stroke: counted apart, none of its times believed
+            self.implausible += 1
+            self.faults += bool(flags & Flag.FAULT)
+            return
         if flags & Flag.COMMISSIONING and rec.error_ns is not None:
             if len(self.commissioning) < COMMISSIONING_KEPT:
                 self.commissioning.append(
@@ -207,7 +212,7 @@ class DirectionStats:
 
         `raw=True` leaves the percentiles to `finish_direction`: the windows travel as bytes.
         """
-        strokes = self.error.count + self.stalls + len(self.commissioning)
+        strokes = self.error.count + self.stalls + len(self.commissioning) + self.implausible
         out: dict[str, object] = {"count": self.operating.count, "strokes": strokes}
         out.update(self.operating.as_dict("operating"))
         out.update(self.total.as_dict("total"))
@@ -217,6 +222,7 @@ class DirectionStats:
         out["abs_lateness_raw"] = self.abs_lateness.raw()
         out.update(late=self.late, stalls=self.stalls, bounces=self.bounces, faults=self.faults)
         out["commissioning"] = list(self.commissioning)
+        out["implausible"] = self.implausible
         return out if raw else finish_direction(out)
 
 

@@ -233,6 +233,7 @@ def stats_table(stats: dict[str, Any]) -> str:
         row("stalls", lambda d: _count(d, "stalls")),
         row("bounces", lambda d: _count(d, "bounces")),
         row("faults", lambda d: _count(d, "faults")),
+        row("implausible (not strokes)", lambda d: _count(d, "implausible")),
         row("model order", lambda d: _count(d, "order")),
         row(
             "coefficients",

@@ -160,8 +160,11 @@ def test_spurious_and_missed_edges_are_counted_not_strokes() -> None:
     loop, daq, recs = make_loop(faults={"schedule": {3: "missed"}})
     daq.inject("missed", edge="depart")
     loop.run_cycles(40 * MS, 10)
+    # An arrival with no departure is not believed (issue 29): kept, flagged, not learned, FAULT.
     assert recs[0].t_depart_ns is None and recs[0].t_arrive_ns is not None
-    assert all(r.t_depart_ns is not None for r in recs[1:3])
+    assert recs[0].flags & Flag.IMPLAUSIBLE and recs[0].flags & Flag.FAULT
+    assert loop.state is State.FAULT and "no departure from sensor A" in loop.fault_reason
+    assert loop.implausible == 1 and len(recs) == 1
 
 
 def test_disconnect_latches_fault_and_keeps_the_record() -> None:
