@@ -473,6 +473,9 @@ class McuDaq(Daq):
         """At a handshake: has the device restarted since the last session (or was this the first)?
         A restart by its watchdog, not already reported by its BOOT, is reported now."""
         self.stats.reset_cause = msg.reset_cause
+        if self._boot_reported:
+            self._boot_reported = False  # its BOOT said so already
+            return
         heard = self._dev_heard
         if heard is not None:
             elapsed_ns = t_recv - heard[1]
@@ -480,9 +483,6 @@ class McuDaq(Daq):
             off_ns = abs(((msg.t_us - expected + U32_MOD // 2) % U32_MOD - U32_MOD // 2) * 1000)
             if off_ns <= _CLOCK_CONTINUITY_NS + elapsed_ns // 1000:
                 return  # the same run of the device (a reconnect): its cause is old news
-        if self._boot_reported:
-            self._boot_reported = False  # its BOOT said so already
-            return
         if heard is not None:
             self.stats.device_resets += 1
         self._report_reset(msg.reset_cause, in_session=False)
