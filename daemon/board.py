@@ -35,11 +35,14 @@ class BoardPoller:
         cfg: ModbusConfig,
         *,
         on_event: Callable[[str, dict[str, Any]], None] | None = None,
+        on_fault: Callable[[str], None] | None = None,
         board: ModbusBoard | None = None,
     ) -> None:
         self.cfg = cfg
         self.board = board or ModbusBoard(board_spec(cfg), registers=RegisterMap.from_dict(cfg.registers))
         self.on_event = on_event
+        #: Called (from the poller thread) when the board reports a fault bit: drive off, FAULT.
+        self.on_fault = on_fault
         self.log = structlog.get_logger("usmswitch.board").bind(board=self.board.describe())
         #: The last conditions read (None until the first good poll, and after a failed one).
         self.latest: Conditions | None = None
@@ -123,6 +126,9 @@ class BoardPoller:
         self.latest = self.board.conditions()
         for ev in self.board.take_events():
             self._fault(ev.detail)
+        for why in self.board.take_status_faults():
+            if self.on_fault is not None:
+                self.on_fault(why)
         if self.latest is not None and not self._was_ok:
             self._was_ok = True
             self.log.info("drive board answers again")

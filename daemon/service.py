@@ -245,7 +245,9 @@ class Daemon:
         if cfg.modbus.enabled:
             store = self.store
             self.board = BoardPoller(
-                cfg.modbus, on_event=lambda kind, fields: store.record_event(kind, **fields)
+                cfg.modbus,
+                on_event=lambda kind, fields: store.record_event(kind, **fields),
+                on_fault=self._board_fault,
             )
             self.board.start()
             board = self.board
@@ -378,6 +380,11 @@ class Daemon:
             self._stop_asked_ns = time.monotonic_ns()
         if self.loop is not None:
             self.loop.shutdown()
+
+    def _board_fault(self, why: str) -> None:
+        """The drive board set a fault bit (poller thread): drive off now and FAULT, as an estop."""
+        if self.loop is not None:
+            self.loop.estop(f"drive board fault: {why}")
 
     def _catch_stop_signals(self) -> None:
         """From the first instant of start(): a SIGTERM while starting ends the daemon as cleanly as

@@ -46,6 +46,13 @@ class BoardStatus(IntFlag):
     FAULT = 0x10
 
 
+#: Status bits that mean the board has stopped being a safe drive: each latches a FAULT.
+FAULT_BITS = BoardStatus.OVERTEMP | BoardStatus.OVERCURRENT | BoardStatus.FAULT
+#: The motor temperature a reading may plausibly have (the sensor's range; outside: a broken
+#: sensor or register, never a temperature to record).
+TEMPERATURE_RANGE_C = (-40.0, 150.0)
+
+
 @dataclass(frozen=True)
 class Reg:
     """One register: its table, address, the engineering units per count, and signedness."""
@@ -123,9 +130,9 @@ class RegisterMap:
 class BoardReading:
     """One poll of the board's measured values."""
 
-    temperature_c: float
-    frequency_hz: float
-    voltage_vpp: float
+    temperature_c: float | None  # None: the register held a value outside its documented range
+    frequency_hz: float | None
+    voltage_vpp: float | None
     status: BoardStatus
 
 
@@ -228,6 +235,11 @@ class ModbusBoard:
         self.ok = True
         #: Requests that failed (no answer, exception response, connection refused).
         self.failures = 0
+        #: Readings outside their documented range (rejected: recorded as unknown).
+        self.rejected_readings = 0
+        self._out_of_range: set[str] = set()
+        self._fault_bits = BoardStatus(0)
+        self._status_faults: deque[str] = deque(maxlen=16)
         #: Replies that answered another request (late ones, after a timeout): dropped with the link.
         self.stale_replies = 0
         self.last_error = ""
@@ -333,14 +345,59 @@ class ModbusBoard:
                 else:
                     for k, v in mine.items():
                         raw[k] = self._read_block(table, v.address, 1)[0]
+        lo_f, hi_f = self.frequency_range_hz
+        status = BoardStatus(raw["status"] & 0x1F)
+        if not status & BoardStatus.ENABLED and raw["frequency"] == raw["voltage"] == 0:
+            # Output off: nothing to measure. Unknown, not a bad reading.
+            lo_f = 0.0
         reading = BoardReading(
-            temperature_c=r.temperature.to_value(raw["temperature"]),
-            frequency_hz=r.frequency.to_value(raw["frequency"]),
-            voltage_vpp=r.voltage.to_value(raw["voltage"]),
-            status=BoardStatus(raw["status"] & 0x1F),
+            temperature_c=self._in_range(
+                "temperature", r.temperature.to_value(raw["temperature"]), *TEMPERATURE_RANGE_C
+            ),
+            frequency_hz=self._in_range("frequency", r.frequency.to_value(raw["frequency"]), lo_f, hi_f),
+            voltage_vpp=self._in_range(
+                "voltage", r.voltage.to_value(raw["voltage"]), 0.0, self.voltage_max_vpp
+            ),
+            status=status,
         )
+        self._check_status(reading.status)
         self.last_reading = reading
         return reading
+
+    def _in_range(self, name: str, value: float, lo: float, hi: float) -> float | None:
+        """The value, or None (counted, logged once per spell) when outside the board's documented range."""
+        if lo <= value <= hi:
+            self._out_of_range.discard(name)
+            return value
+        self.rejected_readings += 1
+        if name not in self._out_of_range:
+            self._out_of_range.add(name)
+            log.warning(
+                "%s: %s reads %g, outside %g..%g: rejected (recorded as unknown)",
+                self.describe(),
+                name,
+                value,
+                lo,
+                hi,
+            )
+        return None
+
+    def _check_status(self, status: BoardStatus) -> None:
+        """A fault bit newly set is a DRIVE fault event (the daemon latches FAULT, drive off)."""
+        bits = status & FAULT_BITS
+        if bits and bits != self._fault_bits:
+            names = "|".join(b.name or "" for b in BoardStatus if b & bits)
+            why = f"{self.describe()}: the board reports {names} (status 0x{int(status):02x})"
+            log.error("%s", why)
+            self._status_faults.append(why)
+            self._events.append(Event.fault_event(self.clock.now_ns(), FaultCode.DRIVE, why))
+        self._fault_bits = bits
+
+    def take_status_faults(self) -> list[str]:
+        """Fault bits newly set since the last call, described (what latches the daemon's FAULT)."""
+        out = list(self._status_faults)
+        self._status_faults.clear()
+        return out
 
     def _read_block(self, table: Table, address: int, count: int) -> list[int]:
         c = self._client

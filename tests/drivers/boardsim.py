@@ -26,6 +26,8 @@ class BoardState:
     hang: bool = False
     delay_next_s: float = 0.0  # the next request is answered this late (once)
     clamp_frequency_hz: int | None = None  # a board that takes only up to this frequency
+    status_bits: int = 0  # OR-ed into the status register (0x04 OVERTEMP, 0x08 OVERCURRENT, 0x10 FAULT)
+    raw_inputs: list[int] | None = None  # a broken board: these four input registers, as they are
     writes: int = 0
     reads: int = 0
 
@@ -55,6 +57,9 @@ def _device(state: BoardState, unit: int) -> SimDevice:
             regs[1] = 0x01 if state.enabled else 0
             regs[2] = state.frequency_hz if state.enabled else 0
             regs[3] = state.voltage_vpp if state.enabled else 0
+            regs[1] |= state.status_bits
+            if state.raw_inputs is not None:
+                regs[: len(state.raw_inputs)] = state.raw_inputs
         return None
 
     bits = [SimData(0, count=16, values=False, datatype=DataType.BITS)]
