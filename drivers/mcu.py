@@ -79,8 +79,9 @@ REPORT_WAIT_NS = 150_000_000
 _READ_SLICE_NS = 10_000_000
 _OFFSET_WINDOW = 8
 # A device whose clock at a new handshake is this far from where the last session's clock would
-# be now (plus 1000 ppm of the time between) has restarted since.
-_CLOCK_CONTINUITY_NS = 50_000_000
+# be now (plus twice the worst round trip seen, and 1000 ppm of the time between) has restarted
+# since: a restart less than this after the one before is told by its BOOT alone.
+_CLOCK_CONTINUITY_NS = 10_000_000
 
 
 @dataclass
@@ -481,7 +482,8 @@ class McuDaq(Daq):
             elapsed_ns = t_recv - heard[1]
             expected = (heard[0] + elapsed_ns // 1000) % U32_MOD
             off_ns = abs(((msg.t_us - expected + U32_MOD // 2) % U32_MOD - U32_MOD // 2) * 1000)
-            if off_ns <= _CLOCK_CONTINUITY_NS + elapsed_ns // 1000:
+            slack_ns = _CLOCK_CONTINUITY_NS + 2 * self.stats.max_rtt_ns + elapsed_ns // 1000
+            if off_ns <= slack_ns:
                 return  # the same run of the device (a reconnect): its cause is old news
         if heard is not None:
             self.stats.device_resets += 1
@@ -669,8 +671,9 @@ class McuDaq(Daq):
             # The device counts since the HELLO: add the sessions before this one.
             st = StateFlags(msg.state)
             self._levels = [int(StateFlags.SENSOR_A in st), int(StateFlags.SENSOR_B in st)]
-            self._dev_heard = (msg.t_us, now)
-            if StateFlags.SYNCED not in st and not self._resync_why:
+            if StateFlags.SYNCED in st:
+                self._dev_heard = (msg.t_us, now)  # this session's device clock, for the next handshake
+            elif not self._resync_why:
                 self._resync_why = "the device says it is not in a session (PONG)"
             self.stats.device_rx_errors = self._dev_errors_base[0] + msg.rx_errors
             self.stats.device_rx_lost = self._dev_errors_base[1] + msg.rx_lost

@@ -268,6 +268,24 @@ def test_a_hung_firmware_reset_by_its_watchdog_is_a_drive_fault(rig) -> None:
     assert daq.link_stats()["watchdog_resets"] == 1  # the new session's HELLO_ACK is not news
 
 
+def test_a_watchdog_reset_whose_boot_was_lost_is_found_by_the_heartbeat(rig) -> None:
+    """The BOOT frame lost: the next PONG says the device is out of its session, the driver
+    handshakes again, finds the device clock started again and the cause WATCHDOG, and reports it
+    then (once)."""
+    emu, _, daq = rig
+    daq.stroke_timeout_ns = 2_000_000_000
+    emu.inject_drop(1, only=MsgType.BOOT)
+    emu.inject_hang()
+    seen = run_stroke(daq, Direction.ON)
+    assert seen.events[-1].kind is EventKind.STOP and seen.events[-1].detail.startswith("the device says")
+    fault = daq.recv(1_000_000_000)
+    assert fault is not None and fault.fault is FaultCode.DRIVE and "MCUSR 0x08" in fault.detail, fault
+    assert fault.t_ns - seen.start.t_ns < 32_000_000 + 3 * daq.heartbeat_ns
+    st = daq.link_stats()
+    assert (st["watchdog_resets"], st["device_resets"], st["resyncs"]) == (1, 1, 1), st
+    assert emu.injected.dropped == 1 and daq.recv(200_000_000) is None
+
+
 def test_version_and_capability_checks(tmp_path) -> None:
     from usmswitch.drivers.mcu_protocol import Caps
 
