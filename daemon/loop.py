@@ -60,6 +60,13 @@ STROKE_FAULTS = {
 }
 
 
+#: Idle: how long the loop waits for a request before it reads the driver's events again.
+IDLE_POLL_NS = 50_000_000
+#: At most this many events read per idle pass (a flood waits for the next pass, requests first).
+IDLE_READ_MAX = 10_000
+IDLE_EDGES_LOG_EVERY_NS = 10_000_000_000
+
+
 class LoopError(Exception):
     """A request the loop refuses in its present state; the message says why."""
 
@@ -128,7 +135,10 @@ class ControlLoop:
         #: Strokes the hardware side reported that were not physically strokes (flag IMPLAUSIBLE).
         self.implausible = 0
         self.overruns = 0
-        self.stale_events = 0  # driver events dropped at a fault reset
+        self.stale_events = 0  # driver events read and dropped outside a stroke (idle, a fault reset)
+        #: Sensor edges reported while no stroke was going (the mover moved by hand, a sensor chatters).
+        self.idle_edges = 0
+        self._idle_edges_said_ns = -IDLE_EDGES_LOG_EVERY_NS
         self.listeners: list[Callable[[CycleRecord], None]] = []
         self.slack_hooks: list[Callable[[], None]] = []
         self._conditions_every = max(1, conditions_every)
@@ -407,7 +417,8 @@ class ControlLoop:
                         self._latch_fault(f"internal error: {type(exc).__name__}: {exc}")
                         log.exception("stroke failed; drive off, FAULT latched")
                 else:
-                    self._serve_requests(block_ns=50_000_000)
+                    self._serve_requests(block_ns=IDLE_POLL_NS)
+                    self._read_idle_events()
                     self._slack()
         finally:
             self._safe_stop("shutdown")
@@ -811,6 +822,35 @@ class ControlLoop:
         for listener in self.listeners:
             listener(rec)
         return rec
+
+    def _read_idle_events(self) -> None:
+        """While no stroke is going, read what the driver reports, so nothing piles up between a
+        device and the loop; edges are counted (and said, at most every 10 s)."""
+        edges: list[Any] = []
+        try:
+            for _ in range(IDLE_READ_MAX):
+                ev = self.daq.recv(0)
+                if ev is None:
+                    break
+                if ev.kind is EventKind.EDGE:
+                    edges.append(ev)
+                else:  # a link's own faults reach status through the driver (driver_ok, counters)
+                    self.stale_events += 1
+        except DaqError:
+            return
+        if not edges:
+            return
+        self.idle_edges += len(edges)
+        now = time.monotonic_ns()
+        if now - self._idle_edges_said_ns >= IDLE_EDGES_LOG_EVERY_NS:
+            self._idle_edges_said_ns = now
+            last = edges[-1]
+            log.warning(
+                "sensor edges while idle: the mover was moved by hand, or a sensor chatters",
+                edges=len(edges),
+                total=self.idle_edges,
+                last=f"sensor {last.channel.name} {'active' if last.level else 'released'}",
+            )
 
     def _drain_stale_events(self) -> None:
         """Drop what the driver queued while faulted (the disconnect itself, late edges)."""

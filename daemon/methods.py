@@ -112,6 +112,7 @@ class Methods:
             "metrics_url": self._metrics_url(),
             "scheduling": loop.scheduling,
             "implausible_strokes": loop.implausible,
+            "idle_edges": loop.idle_edges,
             "ready": self.daemon.ready,
         }
 

@@ -253,3 +253,24 @@ def test_a_period_shorter_than_a_stroke_is_refused() -> None:
     with pytest.raises(ValueError, match="commands would overlap"):
         loop.start_cycling(25 * MS, 10)
     assert loop.state is State.IDLE and not recs
+
+
+def test_edges_while_idle_are_read_counted_and_never_pile_up() -> None:
+    """Issue 29 item 4: nothing read the driver while idle, so a chattering line or a mover moved by
+    hand queued events without bound. The idle loop reads them (at most IDLE_READ_MAX a pass)."""
+    from usmswitch.daemon.loop import IDLE_READ_MAX
+    from usmswitch.drivers import Channel, Event
+
+    loop, daq, recs = make_loop()
+    daq.debounce_ns = 0  # every edge delivered as it comes, as a line at full speed would
+    n = 25_000
+    t = daq.now_ns()
+    for i in range(n):
+        daq._push(Event.edge(t + i, Channel.A if i % 2 else Channel.B, i % 2))
+    loop._read_idle_events()
+    assert loop.idle_edges == IDLE_READ_MAX  # bounded per pass: requests come first
+    while loop.idle_edges < n:
+        loop._read_idle_events()
+    assert loop.idle_edges == n and not daq._pending and recs == []
+    loop.run_cycles(40 * MS, 4)  # the strokes after it are clean
+    assert len(recs) == 4 and not any(r.flags & Flag.FAULT for r in recs)
