@@ -115,6 +115,7 @@ def test_the_production_image_kicks_it_well_inside_its_period(avrsim: Path, firm
     assert kicks > 100 and longest_us < WDT_PERIOD_US / 2
 
 
+@pytest.mark.realtime
 def test_the_serial_driver_reports_the_watchdog_reset(avrsim: Path, hang_elf: Path, tmp_path: Path) -> None:
     link = tmp_path / "usmswitch"
     sim = subprocess.Popen(
