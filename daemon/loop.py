@@ -320,7 +320,9 @@ class ControlLoop:
         self._check_period(period_ns, self.targets, self.mode, self.open_delay_ns)
         self._period_ns = period_ns
         self._cycling_left = count if count else -1
-        self._next_tick_ns = self.clock.now_ns() + COMMAND_LEAD_NS
+        # The first command as far ahead as every later one: a hardware-timed device is told
+        # command_lead_ns before the instant (it was laid 2 ms ahead, inside the MCU's 4 ms lead).
+        self._next_tick_ns = self.clock.now_ns() + self.daq.command_lead_ns + COMMAND_LEAD_NS
         self.state = State.CYCLING
         return self._open_run(kind, {"period_ns": period_ns, "count": count, **(settings or {})})
 
@@ -581,6 +583,10 @@ class ControlLoop:
         t_cmd = self._next_tick_ns
         if self.cycle % self._conditions_every == 0:
             self.refresh_conditions()  # before the wait for the command: off the timing path
+        if self._plan is None or self._plan.direction is not self._next_dir:
+            # A run's first stroke (or one after a fault): armed here, in the slack, as every other
+            # stroke is armed after the previous arrival; never a round trip inside the command's lead.
+            self._arm_or_defer(self._next_dir)
         # A hardware-timed device is told ahead and waits for the instant itself.
         self._slack_until(t_cmd - self.daq.command_lead_ns)
         if self.state is not State.CYCLING or self._shutdown.is_set():
@@ -825,7 +831,8 @@ class ControlLoop:
 
     def _read_idle_events(self) -> None:
         """While no stroke is going, read what the driver reports, so nothing piles up between a
-        device and the loop; edges are counted (and said, at most every 10 s)."""
+        device and the loop; edges are counted (and said, at most every 10 s), a DRIVE fault (the
+        device reset by its watchdog, say) latched as it would be during a stroke."""
         edges: list[Any] = []
         try:
             for _ in range(IDLE_READ_MAX):
@@ -834,6 +841,10 @@ class ControlLoop:
                     break
                 if ev.kind is EventKind.EDGE:
                     edges.append(ev)
+                elif ev.kind is EventKind.FAULT and ev.fault is FaultCode.DRIVE and self.state is State.IDLE:
+                    # The device restarted (its watchdog, a brown-out) or the drive failed between
+                    # strokes: a person looks before the next stroke, as after one mid-stroke.
+                    self._latch_fault(f"drive: {ev.detail}" if ev.detail else "drive")
                 else:  # a link's own faults reach status through the driver (driver_ok, counters)
                     self.stale_events += 1
         except DaqError:

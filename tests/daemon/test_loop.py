@@ -274,3 +274,42 @@ def test_edges_while_idle_are_read_counted_and_never_pile_up() -> None:
     assert loop.idle_edges == n and not daq._pending and recs == []
     loop.run_cycles(40 * MS, 4)  # the strokes after it are clean
     assert len(recs) == 4 and not any(r.flags & Flag.FAULT for r in recs)
+
+
+def test_a_runs_first_stroke_is_armed_and_commanded_as_far_ahead_as_the_rest() -> None:
+    """Issue 29 item 7: the first command of a run was laid 2 ms ahead, inside a hardware-timed
+    device's 4 ms command lead, and armed on the timing path; the rest are armed after the previous
+    arrival. Now the first is laid lead + 2 ms ahead and armed in the slack before its lead."""
+    from usmswitch.daemon.loop import COMMAND_LEAD_NS
+
+    loop, daq, recs = make_loop()
+    daq.command_lead_ns = 4 * MS  # as the MCU driver's
+    seen: list[tuple[str, int]] = []
+    arm, command = daq.arm, daq.command
+    daq.arm = lambda d, delay: (seen.append(("arm", daq.now_ns())), arm(d, delay))[1]  # type: ignore[method-assign]
+    daq.command = lambda t=None: (seen.append(("command", t)), command(t))[1]  # type: ignore[method-assign]
+    t0 = daq.now_ns()
+    loop.start_cycling(40 * MS, 2)
+    assert loop._next_tick_ns - t0 >= daq.command_lead_ns + COMMAND_LEAD_NS
+    loop.run_cycles(40 * MS, 2) if loop.state is not State.CYCLING else None
+    while loop.state is State.CYCLING:
+        loop._cycle_once()
+    first_arm = next(t for kind, t in seen if kind == "arm")
+    first_cmd = next(t for kind, t in seen if kind == "command")
+    assert first_arm <= first_cmd - daq.command_lead_ns, seen
+    assert len(recs) == 2
+
+
+def test_a_drive_fault_between_strokes_is_latched_by_the_idle_loop() -> None:
+    """A device reset by its watchdog while idle (issue 23's daemon side) latches FAULT as one during
+    a stroke does; other events read while idle are counted, not latched."""
+    from usmswitch.drivers import Event, FaultCode
+
+    loop, daq, recs = make_loop()
+    loop.run_cycles(40 * MS, 2)
+    daq._push(Event.fault_event(daq.now_ns(), FaultCode.WIRE, "a corrupt frame"))
+    loop._read_idle_events()
+    assert loop.state is State.IDLE and loop.stale_events == 1
+    daq._push(Event.fault_event(daq.now_ns(), FaultCode.DRIVE, "device reset by its hardware watchdog"))
+    loop._read_idle_events()
+    assert loop.state is State.FAULT and loop.fault_reason == "drive: device reset by its hardware watchdog"
