@@ -14,6 +14,9 @@ from collections import deque
 from .clock import Clock
 from .events import Commanded, Conditions, Direction, Event, EventKind, FaultCode
 
+#: How far past the driver's clock (plus its delivery latency) a stamp may be and still be believed.
+MAX_STAMP_AHEAD_NS = 5_000_000
+
 DEFAULT_DEBOUNCE_NS = 100_000
 
 
@@ -90,6 +93,8 @@ class Daq(ABC):
         self.glitches = 0
         #: Events whose stamp went backwards (dropped, reported as a SEQUENCE fault).
         self.out_of_order = 0
+        #: Events stamped ahead of the driver's clock by more than a link can explain (dropped).
+        self.future_stamps = 0
 
     # -- lifecycle ---------------------------------------------------------------------------
     def open(self) -> None:
@@ -123,7 +128,12 @@ class Daq(ABC):
 
     def counters(self) -> dict[str, int]:
         """What the driver dropped or repaired so far, for status and stats (drivers add their own)."""
-        return {"bounces": self.bounces, "glitches": self.glitches, "out_of_order": self.out_of_order}
+        return {
+            "bounces": self.bounces,
+            "glitches": self.glitches,
+            "out_of_order": self.out_of_order,
+            "future_stamps": self.future_stamps,
+        }
 
     # -- timing ------------------------------------------------------------------------------
     def now_ns(self) -> int:
@@ -264,6 +274,12 @@ class Daq(ABC):
                         self._settle()
                         continue
                     return None
+            if ev.t_ns > self.clock.now_ns() + self.delivery_latency_ns + MAX_STAMP_AHEAD_NS:
+                # From the future: a corrupt or confused stamp. Held, it would hold every event
+                # behind it (the debouncer waits for its sensor to settle) and set the order check
+                # against all that follow: it is dropped and counted, and outlives nothing.
+                self.future_stamps += 1
+                continue
             if self._last_t_ns is not None and ev.t_ns < self._last_t_ns:
                 self.out_of_order += 1
                 return Event.fault_event(

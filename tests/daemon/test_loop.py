@@ -313,3 +313,18 @@ def test_a_drive_fault_between_strokes_is_latched_by_the_idle_loop() -> None:
     daq._push(Event.fault_event(daq.now_ns(), FaultCode.DRIVE, "device reset by its hardware watchdog"))
     loop._read_idle_events()
     assert loop.state is State.FAULT and loop.fault_reason == "drive: device reset by its hardware watchdog"
+
+
+def test_an_edge_stamped_in_the_future_is_dropped_and_holds_nothing() -> None:
+    """Issue 29 item 1: one edge stamped 10 s ahead of the driver's clock wedged every stroke after
+    it (the debouncer held it, and every later stamp was 'out of order'). Now it is dropped and
+    counted, and the next strokes are clean."""
+    from usmswitch.drivers import Channel, Event
+
+    loop, daq, recs = make_loop()
+    loop.run_cycles(40 * MS, 2)
+    daq._push(Event.edge(daq.now_ns() + 10_000 * MS, Channel.B, 1))
+    loop._read_idle_events()
+    loop.run_cycles(40 * MS, 20)
+    assert daq.future_stamps == 1 and daq.out_of_order == 0 and daq.counters()["future_stamps"] == 1
+    assert len(recs) == 22 and not any(r.flags & (Flag.STALL | Flag.FAULT) for r in recs)
