@@ -60,7 +60,6 @@ from .mcu_protocol import (
     StopReason,
     Stroke,
     StrokeFlags,
-    Unwrapper,
     encode_frame,
 )
 
@@ -82,6 +81,19 @@ _OFFSET_WINDOW = 8
 # be now (plus twice the worst round trip seen, and 1000 ppm of the time between) has restarted
 # since: a restart less than this after the one before is told by its BOOT alone.
 _CLOCK_CONTINUITY_NS = 10_000_000
+#: A device stamp is believed only inside this band around the device clock as the heartbeat tracks
+#: it (plus the clock's uncertainty, half the round trip of its best sample): a frame is stamped
+#: before it is sent, so never much ahead; and it arrives within the link timeout, so never much
+#: behind (a STROKE report's stamps may be as old as the stroke timeout besides).
+STAMP_AHEAD_NS = 5_000_000
+#: Events queued between the link thread and the loop: beyond it the oldest are dropped, counted
+#: (`events_dropped`), and a stroke in progress ends with a FAULT SEQUENCE saying so.
+MAX_QUEUED_EVENTS = 8192
+#: How far the device's clock may run from 1 us per us (a crystal is within 0.01 %, a ceramic
+#: resonator 0.5 %); judged over heartbeats, past their round trips.
+MAX_CLOCK_RATE_ERROR_PPM = 5_000
+#: A sample whose round trip is longer than this is too coarse to judge the clock rate against.
+_RATE_REF_RTT_NS = 10_000_000
 
 
 @dataclass
@@ -106,6 +118,8 @@ class _StrokeCtx:
     arrived: bool = False
     stopped: bool = False
     reported: bool = False
+    #: Why a START for this stroke was rejected (another stroke's id, its stamp), "" if none was.
+    start_rejected: str = ""
     gap: bool = False
     hold_until_ns: int = 0
     held: list[Event] = field(default_factory=list)
@@ -135,7 +149,11 @@ class McuDaq(Daq):
         retries: int = DEFAULT_RETRIES,
         reconnect_min_ns: int = DEFAULT_RECONNECT_MIN_NS,
         reconnect_max_ns: int = DEFAULT_RECONNECT_MAX_NS,
+        max_delay_ns: int = 0,
+        max_queued_events: int = MAX_QUEUED_EVENTS,
     ) -> None:
+        """`max_delay_ns`: the longest start delay the host may ask for (its longest target); a
+        device whose longest (HELLO_ACK max_delay_us) is shorter is refused at the handshake."""
         super().__init__(clock=DeviceClock(), debounce_ns=debounce_ns)
         self.clock: DeviceClock
         self.transport = transport
@@ -160,6 +178,14 @@ class McuDaq(Daq):
         self.reconnect_min_ns = check_ns("reconnect_min_ns", reconnect_min_ns, minimum=1_000_000)
         self.reconnect_max_ns = check_ns("reconnect_max_ns", reconnect_max_ns, minimum=self.reconnect_min_ns)
 
+        self.max_delay_ns = check_ns("max_delay_ns", max_delay_ns)
+        if (
+            isinstance(max_queued_events, bool)
+            or not isinstance(max_queued_events, int)
+            or max_queued_events < 16
+        ):
+            raise ValueError(f"max_queued_events must be an integer >= 16, got {max_queued_events!r}")
+        self.max_queued_events = max_queued_events
         self.stats = LinkStats()
         #: What the device announced at the last handshake.
         self.device: HelloAck | None = None
@@ -178,7 +204,15 @@ class McuDaq(Daq):
         self._tx_seq = 0
         self._rx_seq = SeqTracker()
         self._decoder = FrameDecoder()
-        self._unwrap = Unwrapper()
+        self._session_wraps = 0
+        self._clock_basis = (0, 0)  # (round trip, host instant) of the sample the clock stands on
+        self._clock_jumps = 0
+        self._rate_ref: tuple[int, int, int] | None = None
+        self._rate_off = 0
+        self._rate_refusal = ""  # the device's clock rate was refused: its next handshakes are too
+        self._refuse_why = ""  # set by the link thread: drop the link, saying why
+        self._bad_stamp_said_ns = -1_000_000_000
+        self._overflow_said = False
         self._base_us = 0
         self._base_ns = 0
         self._last_stamp_ns = 0
@@ -187,7 +221,7 @@ class McuDaq(Daq):
         self._ctx: _StrokeCtx | None = None
         self._pings: dict[int, int] = {}
         self._ping_token = 0
-        self._offsets: deque[tuple[int, int]] = deque(maxlen=_OFFSET_WINDOW)
+        self._offsets: deque[tuple[int, int, int]] = deque(maxlen=_OFFSET_WINDOW)
         self._last_rx_ns = 0
         self._next_ping_ns = 0
         self._dev_errors_base = (0, 0)
@@ -256,31 +290,125 @@ class McuDaq(Daq):
             s.format_errors = self._decoder_totals[2] + self._decoder.format_errors
             s.lost_frames = self._lost_total + self._rx_seq.lost
             s.seq_resets = self._resets_total + self._rx_seq.resets
-            s.wraps = self._unwrap.wraps + self._wraps_total
+            s.wraps = self._session_wraps + self._wraps_total
             return s.as_dict()
 
     # -- the clock ---------------------------------------------------------------------------
+    def _dev_us(self, raw_us: int) -> int:
+        """The unwrapped count of a raw 32-bit stamp: the one nearest the device clock now, as the
+        heartbeat tracks it. Stateless: no frame moves a reference that later frames are read by."""
+        now_us = self._base_us + (self.clock.now_ns() - self._base_ns) // 1000
+        d = (raw_us - now_us) % U32_MOD
+        if d >= U32_MOD // 2:
+            d -= U32_MOD
+        return now_us + d
+
     def _dev_ns(self, raw_us: int) -> int:
-        return self._base_ns + (self._unwrap.unwrap(raw_us) - self._base_us) * 1000
+        return self._base_ns + (self._dev_us(raw_us) - self._base_us) * 1000
 
     def _to_raw_us(self, t_ns: int) -> int:
         return (self._base_us + (t_ns - self._base_ns) // 1000) % U32_MOD
 
-    def _anchor(self, raw_us: int, host_mid_ns: int) -> None:
+    def _clock_err_ns(self, now_ns: int) -> int:
+        """How far the driver's clock may be from the device's: half the round trip of the sample
+        it stands on, and what the worst tolerated crystal drifts since."""
+        rtt, t_ns = self._clock_basis
+        return rtt // 2 + max(0, now_ns - t_ns) * MAX_CLOCK_RATE_ERROR_PPM // 1_000_000
+
+    def _stamp(self, raw_us: int, what: str, behind_ns: int | None = None) -> int | None:
+        """A device stamp on the driver's clock, or None when it is not believable: further ahead of
+        the device clock than its uncertainty and STAMP_AHEAD_NS, or further behind than the link
+        timeout (`behind_ns`). A rejected stamp is counted and logged (once a second), and leaves
+        nothing behind."""
+        host_now = time.monotonic_ns()
+        now = host_now + self.clock.offset_ns
+        t = self._dev_ns(raw_us)
+        err = self._clock_err_ns(host_now)
+        behind = self.link_timeout_ns if behind_ns is None else behind_ns
+        if now - behind - err <= t <= now + err + STAMP_AHEAD_NS:
+            u = self._dev_us(raw_us)
+            if u // U32_MOD > self._session_wraps:
+                self._session_wraps = u // U32_MOD
+            return t
+        self.stats.bad_stamps += 1
+        off = t - now
+        if host_now - self._bad_stamp_said_ns >= 1_000_000_000:
+            self._bad_stamp_said_ns = host_now
+            log.warning(
+                "%s: %s stamped %s %s the device clock rejected (%d so far)",
+                self.name,
+                what,
+                _fmt_ns(abs(off)),
+                "ahead of" if off > 0 else "behind",
+                self.stats.bad_stamps,
+            )
+        return None
+
+    def _anchor(self, raw_us: int, host_mid_ns: int, rtt_ns: int) -> None:
         """Start a device session's timeline at `host_mid_ns` on the driver clock, never going back."""
-        self._wraps_total += self._unwrap.wraps
-        self._unwrap = Unwrapper()
-        self._base_us = self._unwrap.unwrap(raw_us)
+        self._wraps_total += self._session_wraps
+        self._session_wraps = 0
+        self._base_us = raw_us
         self._base_ns = max(host_mid_ns + self.clock.offset_ns, self._last_stamp_ns + 1)
         self.clock.offset_ns = self._base_ns - host_mid_ns
+        self._clock_basis = (rtt_ns, host_mid_ns)
         self._offsets.clear()
+        self._clock_jumps = 0
+        self._rate_off = 0
+        # The rate is judged against a precise sample of this session (the handshake's, if quick).
+        self._rate_ref = (host_mid_ns, self._base_ns, rtt_ns) if rtt_ns <= _RATE_REF_RTT_NS else None
 
     def _clock_sample(self, raw_us: int, t_send_ns: int, t_recv_ns: int) -> None:
+        """A PONG: the device clock at the round trip's middle. A sample that disagrees with the
+        clock by more than the two can explain is one bad frame: counted, not taken (three in a
+        row: the device's clock jumped, and the session is handshaken again). The device's clock
+        rate is judged against the session's first precise sample; off by more than
+        MAX_CLOCK_RATE_ERROR_PPM three times in a row, the session is refused."""
         rtt = t_recv_ns - t_send_ns
+        mid = (t_send_ns + t_recv_ns) // 2
+        dev = self._dev_ns(raw_us)
+        off = dev - mid
+        ref = self._rate_ref
+        if ref is not None and mid - ref[0] >= self.heartbeat_ns // 2:
+            span = mid - ref[0]
+            ppm = ((dev - ref[1]) - span) * 1_000_000 // span
+            slack_ppm = (ref[2] + rtt) * 1_000_000 // span
+            if abs(ppm) > MAX_CLOCK_RATE_ERROR_PPM + slack_ppm:
+                self._rate_off += 1
+                if self._rate_off >= 3 and not self._refuse_why:
+                    rate = (dev - ref[1]) / span
+                    self._rate_refusal = (
+                        f"the device clock runs at {rate:.6f} us per us ({ppm / 10_000:+.3f} %), more than"
+                        f" {MAX_CLOCK_RATE_ERROR_PPM / 10_000:.1f} % off: the host cannot time strokes on it"
+                        " (a wrong timer prescaler or clock source?)"
+                    )
+                    self._refuse_why = self._rate_refusal
+                    return
+            else:
+                self._rate_off = 0
+        jump = abs(off - self.clock.offset_ns)
+        if jump > self._clock_err_ns(t_recv_ns) + rtt // 2 + STAMP_AHEAD_NS:
+            self.stats.bad_stamps += 1
+            self._clock_jumps += 1
+            log.warning(
+                "%s: PONG stamped %s off the device clock not taken",
+                self.name,
+                _fmt_ns(off - self.clock.offset_ns),
+            )
+            if self._clock_jumps >= 3 and not self._resync_why:
+                self._resync_why = f"its clock jumped by {_fmt_ns(off - self.clock.offset_ns)}"
+            return
+        self._clock_jumps = 0
         self.stats.last_rtt_ns = rtt
         self.stats.max_rtt_ns = max(self.stats.max_rtt_ns, rtt)
-        self._offsets.append((rtt, self._dev_ns(raw_us) - (t_send_ns + t_recv_ns) // 2))
-        self.clock.offset_ns = min(self._offsets)[1]
+        if ref is None and rtt <= _RATE_REF_RTT_NS:
+            self._rate_ref = (mid, dev, rtt)
+        u = self._dev_us(raw_us)
+        self._session_wraps = max(self._session_wraps, u // U32_MOD)
+        self._offsets.append((rtt, off, mid))
+        best = min(self._offsets)
+        self.clock.offset_ns = best[1]
+        self._clock_basis = (best[0], best[2])
 
     # -- sending -----------------------------------------------------------------------------
     def _send(self, msg: Message, waiter: _Waiter | None = None) -> int:
@@ -330,7 +458,11 @@ class McuDaq(Daq):
         delay_us = (delay_ns + 500) // 1000
         dev = self.device
         if dev is not None and delay_us > dev.max_delay_us:
-            raise ValueError(f"delay_ns={delay_ns} exceeds the device's maximum of {dev.max_delay_us} us")
+            # The device would refuse it (BAD_ARG): a driver error the loop handles, never a crash.
+            raise DaqError(
+                f"{self.name}: a delay of {_fmt_ns(delay_ns)} is longer than the device's longest,"
+                f" {_fmt_ns(dev.max_delay_us * 1000)}"
+            )
         self._stroke_id = (self._stroke_id + 1) % U16_MOD
         msg = Arm(self._stroke_id, int(direction), delay_us, self.stroke_timeout_ns // 1000)
         self._armed_msg = msg
@@ -364,7 +496,18 @@ class McuDaq(Daq):
             )
         self._armed_msg = None
         with self._state:
-            return self._dev_ns(ack.t_us)
+            if t_cmd_ns is not None:
+                if ack.t_us != cmd.t_cmd_us:  # the device must keep the instant it was given
+                    self.stats.bad_stamps += 1
+                    log.warning(
+                        "%s: ACK of COMMAND says instant %d us, it was %d us",
+                        self.name,
+                        ack.t_us,
+                        cmd.t_cmd_us,
+                    )
+                return t_cmd_ns
+            t = self._stamp(ack.t_us, "ACK of COMMAND")
+            return self._host_stamp() if t is None else t
 
     def _stop(self) -> None:
         self._armed_msg = None
@@ -446,14 +589,26 @@ class McuDaq(Daq):
         if missing:
             self.stats.handshake_failures += 1
             raise DaqError(f"{self.name}: device lacks required capabilities: {missing!r}")
+        if msg.max_delay_us * 1000 < self.max_delay_ns:
+            self.stats.handshake_failures += 1
+            raise DaqError(
+                f"{self.name}: {self.transport.describe()} delays a start by at most"
+                f" {_fmt_ns(msg.max_delay_us * 1000)} (HELLO_ACK max_delay_us {msg.max_delay_us}); this"
+                f" host may ask for up to {_fmt_ns(self.max_delay_ns)} (its longest target)"
+            )
         with self._state:
+            restarted = self._note_restart(msg, t_recv)
+            if self._rate_refusal:
+                if not restarted:
+                    self.stats.handshake_failures += 1
+                    raise DaqError(f"{self.name}: {self.transport.describe()}: {self._rate_refusal}")
+                self._rate_refusal = ""  # a new run of the device (new firmware?): judged afresh
             self.device = msg
-            self._note_restart(msg, t_recv)
             self._dev_heard = (msg.t_us, t_recv)
             self._keep_seq_totals()
             self._rx_seq = SeqTracker()
             self._rx_seq.reset((seq + 1) % U16_MOD)
-            self._anchor(msg.t_us, (t_send + t_recv) // 2)
+            self._anchor(msg.t_us, (t_send + t_recv) // 2, t_recv - t_send)
             self._last_rx_ns = t_recv
             self._next_ping_ns = t_recv
             self._dev_errors_base = (self.stats.device_rx_errors, self.stats.device_rx_lost)
@@ -470,13 +625,13 @@ class McuDaq(Daq):
             Caps(msg.caps),
         )
 
-    def _note_restart(self, msg: HelloAck, t_recv: int) -> None:
+    def _note_restart(self, msg: HelloAck, t_recv: int) -> bool:
         """At a handshake: has the device restarted since the last session (or was this the first)?
         A restart by its watchdog, not already reported by its BOOT, is reported now."""
         self.stats.reset_cause = msg.reset_cause
         if self._boot_reported:
             self._boot_reported = False  # its BOOT said so already
-            return
+            return True
         heard = self._dev_heard
         if heard is not None:
             elapsed_ns = t_recv - heard[1]
@@ -484,10 +639,11 @@ class McuDaq(Daq):
             off_ns = abs(((msg.t_us - expected + U32_MOD // 2) % U32_MOD - U32_MOD // 2) * 1000)
             slack_ns = _CLOCK_CONTINUITY_NS + 2 * self.stats.max_rtt_ns + elapsed_ns // 1000
             if off_ns <= slack_ns:
-                return  # the same run of the device (a reconnect): its cause is old news
+                return False  # the same run of the device (a reconnect): its cause is old news
         if heard is not None:
             self.stats.device_resets += 1
         self._report_reset(msg.reset_cause, in_session=False)
+        return True
 
     def _report_reset(self, cause: int, *, in_session: bool) -> None:
         """A device restart as an event: FAULT DRIVE for its watchdog or a brown-out; any other
@@ -551,6 +707,10 @@ class McuDaq(Daq):
             with self._state:
                 for seq, msg in frames:
                     self._handle(seq, msg, now)
+            if self._refuse_why:
+                why, self._refuse_why = self._refuse_why, ""
+                self._link_failed(why)
+                return
             if self._resync_why:
                 why, self._resync_why = self._resync_why, ""
                 self._resync(why)
@@ -695,7 +855,10 @@ class McuDaq(Daq):
         if msg.channel > 1 or msg.level > 1:
             log.warning("%s: EDGE with channel %d level %d ignored", self.name, msg.channel, msg.level)
             return
-        ev = Event.edge(self._dev_ns(msg.t_us), Channel(msg.channel), msg.level)
+        t = self._stamp(msg.t_us, f"EDGE of sensor {Channel(msg.channel).name}")
+        if t is None:
+            return
+        ev = Event.edge(t, Channel(msg.channel), msg.level)
         if self._levels is not None:
             self._levels[msg.channel] = msg.level
         ctx = self._ctx
@@ -710,24 +873,50 @@ class McuDaq(Daq):
         self._deliver(ev)
 
     def _on_start(self, msg: Start) -> None:
-        t = self._dev_ns(msg.t_us)
-        self.last_start_late_ns = msg.late_us * 1000
         direction = Direction(msg.direction) if msg.direction <= 1 else None
         if direction is None:
             log.warning("%s: START with direction %d ignored", self.name, msg.direction)
             return
+        ctx = self._ctx
+        why = ""
+        if ctx is None:
+            why = f"a START of stroke {msg.stroke}, which was not commanded"
+        elif ctx.stroke != msg.stroke:
+            why = f"a START naming stroke {msg.stroke} during stroke {ctx.stroke}"
+        elif ctx.started:
+            why = f"a second START of stroke {msg.stroke}"
+        elif direction is not ctx.direction:
+            why = f"a START of stroke {msg.stroke} going {direction.name}, armed {ctx.direction.name}"
+        t = None
+        if not why:
+            t = self._stamp(msg.t_us, f"START of stroke {msg.stroke}")
+            if t is None:
+                why = f"its START stamped {self._off_text(msg.t_us)}"
+        else:
+            self.stats.foreign_starts += 1
+            log.warning("%s: %s rejected", self.name, why)
+        if t is None:
+            # Not this stroke's start. Its own may still come, or its STROKE report rebuild it: the
+            # stroke's events are held till then, delivered in order; else it ends with a SEQUENCE fault.
+            if ctx is not None and not ctx.started and not ctx.reported:
+                ctx.start_rejected = ctx.start_rejected or why
+                if not ctx.gap:
+                    ctx.gap = True
+                    ctx.hold_until_ns = time.monotonic_ns() + REPORT_WAIT_NS
+            return
+        assert ctx is not None
+        self.last_start_late_ns = msg.late_us * 1000
         detail = f"late {msg.late_us} us" if msg.late_us else ""
         ev = Event(EventKind.START, t, direction=direction, detail=detail, lateness_ns=msg.late_us * 1000)
-        ctx = self._ctx
-        if ctx is None or ctx.stroke != msg.stroke:
-            if ctx is not None:
-                self._give_up(ctx, f"START of stroke {msg.stroke} came first")
-            ctx = self._ctx = _StrokeCtx(msg.stroke, direction)
         ctx.started = True
         if ctx.gap:
             ctx.held.append(ev)
         else:
             self._deliver(ev)
+
+    def _off_text(self, raw_us: int) -> str:
+        off = self._dev_ns(raw_us) - self.clock.now_ns()
+        return f"{_fmt_ns(abs(off))} {'ahead of' if off > 0 else 'behind'} the device clock"
 
     def _on_stopped(self, msg: Stopped) -> None:
         ctx = self._ctx
@@ -740,9 +929,14 @@ class McuDaq(Daq):
         name = (
             StopReason(msg.reason).name.lower() if msg.reason in StopReason._value2member_map_ else "unknown"
         )
-        ev = Event.stop(self._dev_ns(msg.t_us), direction, detail=name)
+        # The drive went off: that is news even with a stamp not to be believed (stamped on arrival).
+        t = self._stamp(msg.t_us, "STOPPED")
+        ev = Event.stop(self._host_stamp() if t is None else t, direction, detail=name)
         if ctx is not None and ctx.gap and not ctx.reported:
             ctx.held.append(ev)
+            if direction is not None and ctx.start_rejected:
+                # The device sends its STROKE report before STOPPED: none will come to rebuild it.
+                self._give_up(ctx, "no STROKE report came before its STOPPED")
         else:
             self._deliver(ev)
 
@@ -752,16 +946,23 @@ class McuDaq(Daq):
             return  # a report of a stroke this host session did not command
         ctx.reported = True
         flags = StrokeFlags(msg.flags)
+        behind = self.link_timeout_ns + self.stroke_timeout_ns
         rebuilt: list[Event] = []
         if not ctx.started:
-            rebuilt.append(Event.start(self._dev_ns(msg.t_start_us), ctx.direction))
-            ctx.started = True
+            t = self._stamp(msg.t_start_us, f"STROKE {msg.stroke} report's start", behind)
+            if t is not None:
+                rebuilt.append(Event.start(t, ctx.direction))
+                ctx.started = True
         if StrokeFlags.DEPARTED in flags and not ctx.departed:
-            rebuilt.append(Event.edge(self._dev_ns(msg.t_depart_us), ctx.direction.source, 0))
-            ctx.departed = True
+            t = self._stamp(msg.t_depart_us, f"STROKE {msg.stroke} report's departure", behind)
+            if t is not None:
+                rebuilt.append(Event.edge(t, ctx.direction.source, 0))
+                ctx.departed = True
         if StrokeFlags.ARRIVED in flags and not ctx.arrived:
-            rebuilt.append(Event.edge(self._dev_ns(msg.t_arrive_us), ctx.direction.dest, 1))
-            ctx.arrived = True
+            t = self._stamp(msg.t_arrive_us, f"STROKE {msg.stroke} report's arrival", behind)
+            if t is not None:
+                rebuilt.append(Event.edge(t, ctx.direction.dest, 1))
+                ctx.arrived = True
         if rebuilt:
             self.stats.recovered_strokes += 1
             log.info(
@@ -769,9 +970,25 @@ class McuDaq(Daq):
             )
         ctx.held.extend(rebuilt)
         self._flush(ctx)
+        self._no_start(ctx, "nor did its STROKE report give one")
+
+    def _no_start(self, ctx: _StrokeCtx, why: str) -> None:
+        """A stroke whose START was rejected and never came good: a SEQUENCE fault ends it."""
+        if ctx.started or not ctx.start_rejected:
+            return
+        ctx.started = True  # said once
+        self.stats.unrecovered_strokes += 1
+        self._deliver(
+            Event.fault_event(
+                self._host_stamp(),
+                FaultCode.SEQUENCE,
+                f"stroke {ctx.stroke} has no START of its own ({ctx.start_rejected} was rejected), {why}",
+            )
+        )
 
     def _on_fault(self, msg: Fault) -> None:
-        t = self._dev_ns(msg.t_us)
+        t = self._stamp(msg.t_us, "FAULT")
+        t = self._host_stamp() if t is None else t  # a fault is news whatever its stamp
         code = {
             DeviceFault.STALL: FaultCode.STALL,
             DeviceFault.HOST_SILENT: FaultCode.DISCONNECT,
@@ -808,7 +1025,9 @@ class McuDaq(Daq):
         """Frames of `ctx` were lost and its report never came: deliver what there is, flag it."""
         ctx.reported = True
         self._flush(ctx)
-        if not ctx.arrived:
+        if not ctx.started and ctx.start_rejected:
+            self._no_start(ctx, f"and {why}")
+        elif not ctx.arrived:
             self.stats.unrecovered_strokes += 1
             self._deliver(
                 Event.fault_event(
@@ -828,7 +1047,34 @@ class McuDaq(Daq):
 
     def _deliver(self, ev: Event) -> None:
         self._last_stamp_ns = max(self._last_stamp_ns, ev.t_ns)
-        self._events.append(ev)
+        events = self._events
+        if len(events) >= self.max_queued_events:
+            # Nobody reads as fast as the device talks: the oldest go, counted. A stroke in progress
+            # has lost its events: a SEQUENCE fault (at the queue's end) ends it, once per spell.
+            events.popleft()
+            self.stats.events_dropped += 1
+            ctx = self._ctx
+            if ctx is not None and not ctx.stopped and not self._overflow_said:
+                self._overflow_said = True
+                events.popleft()
+                self.stats.events_dropped += 1
+                events.append(
+                    Event.fault_event(
+                        max(self.clock.now_ns(), self._last_stamp_ns),
+                        FaultCode.SEQUENCE,
+                        f"events lost: the driver's queue of {self.max_queued_events} was full"
+                        f" during stroke {ctx.stroke}",
+                    )
+                )
+            if self.stats.events_dropped % 10_000 == 1:
+                log.warning(
+                    "%s: event queue full: the oldest dropped (%d so far)",
+                    self.name,
+                    self.stats.events_dropped,
+                )
+        elif not events:
+            self._overflow_said = False
+        events.append(ev)
         self._state.notify_all()
 
 
@@ -851,3 +1097,16 @@ def _reset_text(cause: int) -> str:
 
 def _with_where(where: str, why: str) -> str:
     return why if where in why else f"{where}: {why}"
+
+
+def _fmt_ns(ns: int) -> str:
+    """Nanoseconds for people, as usmswitch.daemon.units.format_ns writes them: "12.000 ms", "95.3 us"."""
+    sign = "-" if ns < 0 else ""
+    mag = abs(ns)
+    if mag < 1_000:
+        return f"{sign}{mag} ns"
+    if mag < 999_950:
+        return f"{sign}{mag / 1e3:.1f} us"
+    if mag < 999_999_500:
+        return f"{sign}{mag / 1e6:.3f} ms"
+    return f"{sign}{mag / 1e9:.6f} s"

@@ -86,6 +86,12 @@ class LinkStats:
     device_resets: int = 0
     watchdog_resets: int = 0
     reset_cause: int = 0
+    #: Stamps (EDGE, START, STOPPED, FAULT, STROKE, PONG, ACK) too far from the device clock: rejected.
+    bad_stamps: int = 0
+    #: STARTs naming another stroke (or a second START, or the other direction): rejected.
+    foreign_starts: int = 0
+    #: Events dropped, oldest first, from the full queue between the link thread and the loop.
+    events_dropped: int = 0
     max_rtt_ns: int = 0
     last_rtt_ns: int = 0
 
