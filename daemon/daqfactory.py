@@ -27,12 +27,19 @@ def make_daq(config: Config) -> Daq:
             faults=dict(config.sim.faults),
             debounce_ns=debounce,
         )
+    # A hardware-timed device must delay a start by up to the longest target (T_d = T - t_hat <= T).
+    c = config.control
+    longest_delay = max(c.target_on_ns, c.target_off_ns, c.open_delay_ns)
     if kind == "serial":
         from usmswitch.drivers.serial_mcu import SerialMcuDaq
 
         s = config.driver.serial
         return SerialMcuDaq(
-            s.port, s.baudrate, debounce_ns=debounce, stroke_timeout_ns=config.control.stroke_timeout_ns
+            s.port,
+            s.baudrate,
+            debounce_ns=debounce,
+            stroke_timeout_ns=config.control.stroke_timeout_ns,
+            max_delay_ns=longest_delay,
         )
     if kind == "usb":
         from usmswitch.drivers.usb_mcu import UsbMcuDaq
@@ -40,6 +47,9 @@ def make_daq(config: Config) -> Daq:
         u = config.driver.usb
         spec = f"{u.vid:04x}:{u.pid:04x}" + (f":{u.serial}" if u.serial else "")
         return UsbMcuDaq.from_spec(
-            spec, debounce_ns=debounce, stroke_timeout_ns=config.control.stroke_timeout_ns
+            spec,
+            debounce_ns=debounce,
+            stroke_timeout_ns=config.control.stroke_timeout_ns,
+            max_delay_ns=longest_delay,
         )
     raise ConfigError("driver.kind", f"unknown driver {kind!r}; known: {', '.join(DRIVER_KINDS)}")

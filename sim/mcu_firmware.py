@@ -180,6 +180,7 @@ class McuEmulator:
         minor: int = PROTOCOL_MINOR,
         start_at: Channel = Channel.A,
         bootloader_ms: int = 0,
+        max_delay_us: int = MAX_DELAY_US,
     ) -> None:
         """`bootloader_ms`: after each power-on (`power_cycle()`, as an Arduino's reset when its
         port opens) the firmware starts only once the line has been quiet that long: like the
@@ -189,8 +190,13 @@ class McuEmulator:
         self.bootloader_ns = bootloader_ms * 1_000_000
         if not 0 <= clock_start_us < U32_MOD:
             raise ValueError(f"clock_start_us must be a 32-bit count, got {clock_start_us!r}")
-        if not -1000 <= drift_ppm <= 1000:
-            raise ValueError(f"drift_ppm must be in -1000..1000, got {drift_ppm!r}")
+        # A crystal is within 100 ppm; up to +-90 % emulates a wrong clock (the host must refuse it).
+        if not -900_000 <= drift_ppm <= 9_000_000:
+            raise ValueError(f"drift_ppm must be in -900000..9000000, got {drift_ppm!r}")
+        if not 0 <= max_delay_us < U32_MOD:
+            raise ValueError(f"max_delay_us must be a 32-bit count, got {max_delay_us!r}")
+        #: The longest start delay it announces in HELLO_ACK and accepts in ARM.
+        self.max_delay_us = max_delay_us
         self.model = model or UsmSwitchModel(seed=seed)
         self.clock_start_us = clock_start_us
         self.drift_ppm = drift_ppm
@@ -544,7 +550,9 @@ class McuEmulator:
         minor = min(self.minor, msg.minor) if self._synced else self.minor
         cause = int(self.reset_cause) if minor >= 1 else 0
         self._send(
-            HelloAck(self.major, minor, int(self.caps), FW_VERSION, self.device_us(now), MAX_DELAY_US, cause)
+            HelloAck(
+                self.major, minor, int(self.caps), FW_VERSION, self.device_us(now), self.max_delay_us, cause
+            )
         )
 
     def _on_arm(self, seq: int, msg: Arm, now: int) -> None:
@@ -552,7 +560,7 @@ class McuEmulator:
         if cur is not None and not cur.done:
             self._ack(msg, seq, Status.BUSY, msg.stroke, now)
             return
-        if msg.direction > 1 or msg.delay_us > MAX_DELAY_US or not 1000 <= msg.timeout_us <= 10_000_000:
+        if msg.direction > 1 or msg.delay_us > self.max_delay_us or not 1000 <= msg.timeout_us <= 10_000_000:
             self._ack(msg, seq, Status.BAD_ARG, msg.stroke, now)
             return
         self._armed = _Stroke(msg.stroke, Direction(msg.direction), msg.delay_us, msg.timeout_us)
