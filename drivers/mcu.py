@@ -291,6 +291,7 @@ class McuDaq(Daq):
             s.lost_frames = self._lost_total + self._rx_seq.lost
             s.seq_resets = self._resets_total + self._rx_seq.resets
             s.wraps = self._session_wraps + self._wraps_total
+            s.halts_cleared = getattr(self.transport, "halts_cleared", 0)
             return s.as_dict()
 
     # -- the clock ---------------------------------------------------------------------------

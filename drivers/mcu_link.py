@@ -92,6 +92,8 @@ class LinkStats:
     foreign_starts: int = 0
     #: Events dropped, oldest first, from the full queue between the link thread and the loop.
     events_dropped: int = 0
+    #: USB endpoint halts (EPIPE) cleared with CLEAR_FEATURE(ENDPOINT_HALT) and the transfer retried.
+    halts_cleared: int = 0
     max_rtt_ns: int = 0
     last_rtt_ns: int = 0
 

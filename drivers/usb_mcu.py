@@ -43,6 +43,8 @@ class UsbTransport(Transport):
         self._dev: Any = None
         self._ep_out: Any = None
         self._ep_in: Any = None
+        #: Endpoint halts (EPIPE) cleared with CLEAR_FEATURE(ENDPOINT_HALT) and retried.
+        self.halts_cleared = 0
 
     def describe(self) -> str:
         sn = f" serial {self.serial}" if self.serial else ""
@@ -115,10 +117,14 @@ class UsbTransport(Transport):
         ep = self._ep_out
         if self._dev is None or ep is None:
             raise TransportLost(f"{self.describe()} is not open")
-        try:
-            ep.write(data, timeout=500)
-        except usb.core.USBError as exc:
-            raise TransportLost(f"{self.describe()}: bulk write: {exc}") from exc
+        for attempt in (0, 1):
+            try:
+                ep.write(data, timeout=500)
+                return
+            except usb.core.USBError as exc:
+                if attempt == 0 and self._cleared(ep, exc):
+                    continue
+                raise TransportLost(f"{self.describe()}: bulk write: {exc}") from exc
 
     def read(self, timeout_ns: int) -> bytes:
         ep = self._ep_in
@@ -126,14 +132,40 @@ class UsbTransport(Transport):
             raise TransportLost(f"{self.describe()} is not open")
         # pyusb treats 0 as "no timeout": wait at least 1 ms.
         timeout_ms = max(1, timeout_ns // 1_000_000)
-        try:
-            return bytes(ep.read(_READ_SIZE, timeout=timeout_ms))
-        except usb.core.USBTimeoutError:
-            return b""
-        except usb.core.USBError as exc:
-            if exc.errno in _TIMEOUT_ERRNOS:
+        for attempt in (0, 1):
+            try:
+                return bytes(ep.read(_READ_SIZE, timeout=timeout_ms))
+            except usb.core.USBTimeoutError:
                 return b""
-            raise TransportLost(f"{self.describe()}: bulk read: {exc}") from exc
+            except usb.core.USBError as exc:
+                if exc.errno in _TIMEOUT_ERRNOS:
+                    return b""
+                if attempt == 0 and self._cleared(ep, exc):
+                    continue
+                raise TransportLost(f"{self.describe()}: bulk read: {exc}") from exc
+        return b""
+
+    def _cleared(self, ep: Any, exc: usb.core.USBError) -> bool:
+        """An endpoint halt (EPIPE: the device stalled the pipe) is cleared with CLEAR_FEATURE
+        (ENDPOINT_HALT), as libusb drivers do, and the transfer retried once; False if it was
+        not a halt or the clear failed (then the link is lost as for any other error)."""
+        if exc.errno != errno.EPIPE or self._dev is None:
+            return False
+        try:
+            self._dev.clear_halt(ep)
+        except usb.core.USBError as clear_exc:
+            log.warning(
+                "%s: endpoint 0x%02x halted, clear failed: %s",
+                self.describe(),
+                ep.bEndpointAddress,
+                clear_exc,
+            )
+            return False
+        self.halts_cleared += 1
+        log.warning(
+            "%s: endpoint 0x%02x halted (%s): cleared, retrying", self.describe(), ep.bEndpointAddress, exc
+        )
+        return True
 
 
 class UsbMcuDaq(McuDaq):

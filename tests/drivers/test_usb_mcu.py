@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import errno
+
 import pytest
 import usb.core
 from mcu_rig import FAST, run_stroke, wait_for
@@ -69,3 +71,55 @@ def test_absent_device_and_bad_spec(two_rigs) -> None:
     for bad, match in [("usb:1209", "VID:PID"), ("usb:12g9:0001", "hexadecimal"), ("usb:12345:1", "16-bit")]:
         with pytest.raises(ValueError, match=match):
             parse_usb_spec(bad)
+
+
+class StallingBackend(UsbBackend):
+    """The fake backend with endpoint halts: a halted endpoint answers every bulk transfer with
+    EPIPE until the host clears it with CLEAR_FEATURE(ENDPOINT_HALT) (pyusb's clear_halt), as a
+    device that stalled its pipe does."""
+
+    def __init__(self, *devices: UsbDevice) -> None:
+        super().__init__(*devices)
+        self.halted: set[int] = set()
+        self.clears = 0
+
+    def halt(self, *eps: int) -> None:
+        self.halted.update(eps)
+
+    def clear_halt(self, dev_handle: UsbDevice, ep: int) -> None:
+        self.clears += 1
+        self.halted.discard(ep)
+
+    def _check(self, ep: int) -> None:
+        if ep in self.halted:
+            raise usb.core.USBError("Pipe error", -9, errno.EPIPE)
+
+    def bulk_write(self, dev_handle, ep, intf, data, timeout):  # type: ignore[no-untyped-def]
+        self._check(ep)
+        return super().bulk_write(dev_handle, ep, intf, data, timeout)
+
+    def bulk_read(self, dev_handle, ep, intf, buff, timeout):  # type: ignore[no-untyped-def]
+        self._check(ep)
+        return super().bulk_read(dev_handle, ep, intf, buff, timeout)
+
+
+def test_an_endpoint_halt_is_cleared_and_the_transfer_retried() -> None:
+    """Issue 29 item 6: a stall that only CLEAR_FEATURE(ENDPOINT_HALT) clears had failed the
+    handshake for good (32 times in 3 s). Now EPIPE is cleared with clear_halt and retried: the
+    handshake and the strokes go on, and nothing is reported lost."""
+    emu = McuEmulator(seed=4).start()
+    dev = UsbDevice(emu, serial="RIG-H")
+    backend = StallingBackend(dev)
+    try:
+        backend.halt(UsbDevice.EP_OUT, UsbDevice.EP_IN)  # halted before the first HELLO
+        with UsbMcuDaq(0x1209, 0x0001, "RIG-H", backend=backend, **FAST) as daq:
+            assert daq.connected
+            run_stroke(daq, Direction.ON)
+            backend.halt(UsbDevice.EP_IN)  # and again mid-session
+            seen = run_stroke(daq, Direction.OFF)
+            assert seen.events[-1].detail == "arrived"
+            stats = daq.link_stats()
+        assert stats["halts_cleared"] == backend.clears == 3
+        assert stats["disconnects"] == 0 and stats["handshake_failures"] == 0
+    finally:
+        emu.stop()
