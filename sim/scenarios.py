@@ -17,11 +17,24 @@ stroke) and the stroke's innovation floor: the std of the part no predictor can 
 | noise8 | white stroke noise x8 (4.4 %) |
 | friction-0.8 | friction mean-reverting, phi 0.8 (std 4 % still) |
 | idle-120s | a 120 s pause every 500 cycles: the motor cools |
+| thermal-idle | the ambient rises 15 C over the run, a 60 s pause every 300 cycles (drift, idle gaps) |
+| outliers | the default rig, one stroke in ~250 per direction 10 floors off (a sticky start, a bounce) |
+| random-walk | no rig: a random walk (0.3 %/stroke) plus white noise (1 %) around 8.5 ms |
+| random-walk-slow | no rig: a random walk (0.1 %/stroke) plus white noise (1 %) |
+| ar-0.1, ar-0.3, ar-0.6 | no rig: stationary AR(1) (phi 0.1, 0.3, 0.6; std 1.5 %) around 8.5 ms + white 1 % |
+| level-shifts | no rig: AR(1) (phi 0.9, std 0.5 %) + white 0.8 %, the mean jumping 3-8 floors ~every 400 |
+
+The rows marked "no rig" are bare processes (each direction its own, independent), so the issue's classes
+of process are tested as such; their conditions are constant (40 kHz, 500 Vpp, 25 C) and their floor is
+the steady-state Kalman filter's innovation std of the process (at a jump of the mean, or an outlier, the
+jump's or the outlier's own size is added in quadrature: no predictor can know it).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
+import random
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -44,6 +57,38 @@ class Scenario:
     ambient_rise_c: float = 0.0  # the ambient rises linearly by this much over the run
     idle_every: int = 0  # a pause of idle_ns after every this many cycles (0: none)
     idle_ns: int = 0
+    outlier_every: int = 0  # about one stroke in this many per direction is 10 floors off (0: none)
+    process: Process | None = None  # a bare process instead of the rig
+
+
+@dataclass(frozen=True)
+class Process:
+    """A bare stroke-time process per direction: t = mean (1 + J + F + w), F AR(1) (phi, stationary std
+    `std`; phi = 1: a random walk of innovation std `std`), w white (`white`), J a level that jumps by
+    +-3..8 floors with probability `jump_rate` per stroke. All relative to `mean_ns`."""
+
+    phi: float
+    std: float
+    white: float
+    jump_rate: float = 0.0
+    mean_ns: float = 8_500_000.0
+
+    @property
+    def innovation_sd(self) -> float:
+        return self.std if self.phi >= 1.0 else self.std * math.sqrt(1.0 - self.phi**2)
+
+    @property
+    def floor_relative(self) -> float:
+        """The steady-state Kalman filter's one-step innovation std (relative):
+        P = phi^2 P r / (P + r) + q."""
+        q, r, phi2 = self.innovation_sd**2, self.white**2, min(self.phi, 1.0) ** 2
+        c = r * (1.0 - phi2) - q
+        big_p = 0.5 * (-c + math.sqrt(c * c + 4.0 * q * r))
+        return math.sqrt(big_p + r)
+
+
+#: The scale of a 10-floor outlier.
+OUTLIER_FLOORS = 10.0
 
 
 SCENARIOS: dict[str, Scenario] = {
@@ -63,6 +108,24 @@ SCENARIOS: dict[str, Scenario] = {
         Scenario("noise8", "white noise x8", params={"white_std": 8 * _BASE.white_std}),
         Scenario("friction-0.8", "friction phi 0.8", params={"friction_phi": 0.8}),
         Scenario("idle-120s", "120 s pause every 500 cycles", idle_every=500, idle_ns=120_000_000_000),
+        Scenario(
+            "thermal-idle",
+            "ambient +15 C over the run, 60 s pause every 300 cycles",
+            ambient_rise_c=15.0,
+            idle_every=300,
+            idle_ns=60_000_000_000,
+        ),
+        Scenario("outliers", "one stroke in ~250 per direction 10 floors off", outlier_every=250),
+        Scenario("random-walk", "random walk 0.3 % + white 1 %", process=Process(1.0, 0.003, 0.01)),
+        Scenario("random-walk-slow", "random walk 0.1 % + white 1 %", process=Process(1.0, 0.001, 0.01)),
+        Scenario("ar-0.1", "AR(1) phi 0.1 std 1.5 % + white 1 %", process=Process(0.1, 0.015, 0.01)),
+        Scenario("ar-0.3", "AR(1) phi 0.3 std 1.5 % + white 1 %", process=Process(0.3, 0.015, 0.01)),
+        Scenario("ar-0.6", "AR(1) phi 0.6 std 1.5 % + white 1 %", process=Process(0.6, 0.015, 0.01)),
+        Scenario(
+            "level-shifts",
+            "AR(1) phi 0.9 std 0.5 % + white 0.8 %, mean jumps 3-8 floors ~every 400",
+            process=Process(0.9, 0.005, 0.008, jump_rate=1 / 400),
+        ),
     )
 }
 
@@ -87,6 +150,7 @@ class ScenarioRun:
     strokes: list[ScenarioStroke]
     step_cycle: int | None
     after_idle: list[int]
+    jumps: list[int] = field(default_factory=list)  # cycles where a bare process's mean jumped
 
 
 def run_scenario(
@@ -99,6 +163,8 @@ def run_scenario(
     if name not in SCENARIOS:
         raise KeyError(f"unknown scenario {name!r}; known: {', '.join(SCENARIOS)}")
     sc = SCENARIOS[name]
+    if sc.process is not None:
+        return _run_process(sc, seed, cycles, period_ns)
     params = dataclasses.replace(_BASE, **sc.params)
     model = UsmSwitchModel(params, seed=seed)
     step_cycle = cycles // 2 if sc.step else None
@@ -137,4 +203,51 @@ def run_scenario(
             floor = st.motion_nominal_ns * model.innovation_floor_relative
             strokes.append(ScenarioStroke(cycle, d, st.operating_ns, cond, floor))
         t += period_ns
+    if sc.outlier_every:
+        strokes = _with_outliers(strokes, sc.outlier_every, seed)
     return ScenarioRun(sc, seed, strokes, step_cycle, after_idle)
+
+
+def with_outlier(stroke: ScenarioStroke, floors: float = OUTLIER_FLOORS) -> ScenarioStroke:
+    """The stroke `floors` of its floor off (negative: short), its floor now including that offset."""
+    off = floors * stroke.floor_ns
+    return dataclasses.replace(
+        stroke, operating_ns=stroke.operating_ns + round(off), floor_ns=math.hypot(stroke.floor_ns, off)
+    )
+
+
+def _with_outliers(strokes: list[ScenarioStroke], every: int, seed: int) -> list[ScenarioStroke]:
+    rng = random.Random(f"outliers-{seed}")
+    return [
+        with_outlier(s, rng.choice((-OUTLIER_FLOORS, OUTLIER_FLOORS))) if rng.random() < 1.0 / every else s
+        for s in strokes
+    ]
+
+
+def _run_process(sc: Scenario, seed: int, cycles: int, period_ns: int) -> ScenarioRun:
+    """A bare process (`Process`) per direction, alternating on/off `period_ns` apart."""
+    pr = sc.process
+    assert pr is not None
+    rng = random.Random(f"{sc.name}-{seed}")
+    floor_rel = pr.floor_relative
+    q = pr.innovation_sd
+    f = [0.0 if pr.phi >= 1.0 else rng.gauss(0.0, pr.std) for _ in range(2)]
+    jump = [0.0, 0.0]
+    cond = {"frequency_hz": 40_000.0, "voltage_v": 500.0, "temperature_c": 25.0}
+    strokes: list[ScenarioStroke] = []
+    jumps: list[int] = []
+    for k in range(cycles):
+        d = Direction.ON if k % 2 == 0 else Direction.OFF
+        floor = pr.mean_ns * floor_rel
+        if pr.jump_rate and rng.random() < pr.jump_rate:
+            jumps.append(k)
+            size = rng.uniform(3.0, 8.0) * floor_rel * rng.choice((-1.0, 1.0))
+            jump[d] += size
+            floor = math.hypot(floor, size * pr.mean_ns)
+        f[d] = (pr.phi if pr.phi < 1.0 else 1.0) * f[d] + q * rng.gauss(0.0, 1.0)
+        t = pr.mean_ns * (1.0 + jump[d] + f[d] + pr.white * rng.gauss(0.0, 1.0))
+        c: dict[str, float | int] = dict(cond)
+        if k >= 2:
+            c["idle_ns"] = 2 * period_ns
+        strokes.append(ScenarioStroke(k, d, round(t), c, floor))
+    return ScenarioRun(sc, seed, strokes, None, [], jumps)
