@@ -81,13 +81,14 @@ class ConditionedPredictor:
         for v in check_strokes(samples):
             self.update(v)  # type: ignore[attr-defined]  # each model's own
 
-    def _taken(self, t_ns: int) -> None:
-        """The end of every update: counted, and the cold-start fit fed until it is no longer needed."""
+    def _taken(self, t_ns: int, cold_ns: int | None = None) -> None:
+        """The end of every update: counted, and the cold-start fit fed until it is no longer needed
+        (`cold_ns` in the stroke's place when given: what the model believes of a suspect stroke)."""
         self._count += 1
         self._seen += 1
         cold = self._cold
         if cold is not None:
-            cold.update(t_ns)
+            cold.update(t_ns if cold_ns is None else cold_ns)
             if self._count >= SOUND_FIT:
                 self._cold = None
 

@@ -27,15 +27,35 @@ from .conditioned import ConditionedPredictor, finite_number, finite_numbers
 from .conditions import Conditions
 from .normalise import NOISE_VAR
 
-STATE_FORMAT = "usmswitch.predictor.kalman/1"
-#: The (phi, K) grid: gains log-spaced at phi = 1 (a drifting level under little to much stroke noise)
-#: and two mean-reverting filters. Measured on the scenario suite, six filters predict as well as an
-#: 18-filter (3 x 6) grid (fewer candidates, less chance of picking one by luck) for a third of the work.
-GRID = ((1.0, 0.85), (1.0, 0.55), (1.0, 0.33), (1.0, 0.18), (0.95, 0.8), (0.8, 1.0))
+STATE_FORMAT = "usmswitch.predictor.kalman/2"
+#: The (phi, K) grid: gains log-spaced at phi = 1 (a drifting level under little to much stroke noise),
+#: two slowly mean-reverting filters, and three for a stationary process around its mean (phi 0.6, 0.3
+#: and the mean itself, phi 0: issue 24's AR(1) with phi 0.1-0.6 plus noise, where the six filters of
+#: the first grid were 1.03-1.08x the floor). Fewer candidates means less chance of picking one by luck;
+#: each member here was measured to pay for itself on some class of process (docs/predictor.md).
+GRID = (
+    (1.0, 0.85),
+    (1.0, 0.55),
+    (1.0, 0.33),
+    (1.0, 0.18),
+    (1.0, 0.1),
+    (0.95, 0.8),
+    (0.8, 1.0),
+    (0.6, 0.65),
+    (0.3, 0.7),
+    (0.0, 0.0),
+)
 #: Forgetting of the filters' squared errors (memory ~ 1 / (1 - FORGET) strokes).
 FORGET = 0.99
 #: Strokes over which mu is averaged.
 MU_STROKES = 200
+#: A stroke whose innovation (the chosen filter's one-step error) is beyond SUSPECT standard deviations
+#: of that filter's recent error is suspect: it teaches nothing (no filter, score beyond SUSPECT^2
+#: variances, mu nor the cold-start fit takes it) unless the next stroke of the direction is as far off
+#: on the same side, which makes the two a level shift: every filter then restarts at their mean.
+SUSPECT = 3.0
+#: The scale of the robust rule is the chosen filter's recent error: from this many strokes on.
+ROBUST_FROM = 10
 
 
 def _grid_step(
@@ -46,22 +66,41 @@ def _grid_step(
     phi + (1 - phi) = 1 the prediction moves by exactly that), then level = pr + K (z - pr) and
     score = FORGET score + (z - pr)^2. Written out with GRID's numbers: the loop over GRID costs
     2.5x as much, the most of a stroke (tests/predictor/test_kalman.py checks the two agree)."""
-    v0, v1, v2, v3, v4, v5 = levels
-    s0, s1, s2, s3, s4, s5 = scores
+    v0, v1, v2, v3, v4, v5, v6, v7, v8, _ = levels  # phi = 0: the mean alone
+    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9 = scores
     p0 = v0 + moved
     p1 = v1 + moved
     p2 = v2 + moved
     p3 = v3 + moved
-    p4 = 0.95 * v4 + 0.05 * mu + moved
-    p5 = 0.8 * v5 + 0.2 * mu + moved
+    p4 = v4 + moved
+    p5 = 0.95 * v5 + 0.05 * mu + moved
+    p6 = 0.8 * v6 + 0.2 * mu + moved
+    p7 = 0.6 * v7 + 0.4 * mu + moved
+    p8 = 0.3 * v8 + 0.7 * mu + moved
+    p9 = mu + moved
     e0 = z - p0
     e1 = z - p1
     e2 = z - p2
     e3 = z - p3
     e4 = z - p4
     e5 = z - p5
+    e6 = z - p6
+    e7 = z - p7
+    e8 = z - p8
+    e9 = z - p9
     return (
-        [p0 + 0.85 * e0, p1 + 0.55 * e1, p2 + 0.33 * e2, p3 + 0.18 * e3, p4 + 0.8 * e4, p5 + e5],
+        [
+            p0 + 0.85 * e0,
+            p1 + 0.55 * e1,
+            p2 + 0.33 * e2,
+            p3 + 0.18 * e3,
+            p4 + 0.1 * e4,
+            p5 + 0.8 * e5,
+            z,
+            p7 + 0.65 * e7,
+            p8 + 0.7 * e8,
+            p9,
+        ],
         [
             0.99 * s0 + e0 * e0,
             0.99 * s1 + e1 * e1,
@@ -69,14 +108,24 @@ def _grid_step(
             0.99 * s3 + e3 * e3,
             0.99 * s4 + e4 * e4,
             0.99 * s5 + e5 * e5,
+            0.99 * s6 + e6 * e6,
+            0.99 * s7 + e7 * e7,
+            0.99 * s8 + e8 * e8,
+            0.99 * s9 + e9 * e9,
         ],
     )
+
+
+def _hold(levels: list[float], mu: float, moved: float) -> list[float]:
+    """Every filter's prediction with no measurement (a suspect stroke): pr = phi level + (1 - phi) mu
+    + moved."""
+    return [phi * v + (1.0 - phi) * mu + moved for (phi, _), v in zip(GRID, levels, strict=True)]
 
 
 class KalmanPredictor(ConditionedPredictor):
     """AR(1) + noise Kalman filter on the log stroke time, (phi, K) chosen online by recent error."""
 
-    __slots__ = ("_best", "_level", "_mu", "_score", "_zhat")
+    __slots__ = ("_best", "_level", "_mu", "_pending", "_score", "_zhat")
 
     model = "kalman"
     STATE_FORMAT = STATE_FORMAT
@@ -90,6 +139,8 @@ class KalmanPredictor(ConditionedPredictor):
         self._mu = 0.0
         self._zhat = 0.0  # ln t_hat of the next stroke before its conditions' shift
         self._best = 0
+        # A suspect stroke not yet judged: (its innovation, its ln t), else None.
+        self._pending: tuple[float, float] | None = None
 
     # ---- the Predictor calls -------------------------------------------------------------------
 
@@ -107,21 +158,64 @@ class KalmanPredictor(ConditionedPredictor):
         # The best filter's recent one-step error variance: what the conditions' change cannot explain.
         noise = (1.0 - FORGET) * self._score[self._best] if self._count > SOUND_FIT else NOISE_VAR
         moved = self._cm.learn(z, self._zhat if self._count else None, conditions, noise)
-        if self._count == 0:
+        count = self._count
+        if count == 0:
             self._mu = z
             self._level = [z] * len(GRID)
             self._zhat = z
-        else:
-            mu = self._mu
-            levels, scores = _grid_step(self._level, self._score, z, mu, moved)
-            self._level = levels
-            self._score = scores
-            self._best = best = scores.index(min(scores))
-            mu += moved
-            n = self._count + 1
-            self._mu = mu = mu + (z - mu) / (n if n < MU_STROKES else MU_STROKES)
-            phi = GRID[best][0]
-            self._zhat = mu + phi * (levels[best] - mu)
+            self._taken(t_ns)
+            return
+        mu = self._mu
+        scores = self._score
+        best = self._best
+        pb = self._zhat + moved  # the chosen filter's prediction of this stroke
+        e = z - pb  # its innovation
+        if count >= ROBUST_FROM:
+            # The chosen filter's recent error variance: its forgotten sum over its weights' sum.
+            m = count - 1
+            var = scores[best] * ((1.0 - FORGET) / (1.0 - FORGET**m) if m < 2000 else 1.0 - FORGET)
+            cap = SUSPECT * SUSPECT * var
+            if e * e > cap:
+                pending = self._pending
+                if pending is not None and 0.5 <= e / pending[0] <= 2.0:
+                    # Off on the same side as the suspect before, by half to twice as much: a level
+                    # shift (an outlier after a suspect stroke is not one). Every filter restarts at the
+                    # two strokes' mean, mu moves with them.
+                    new = 0.5 * (pending[1] + moved + z)
+                    self._pending = None
+                    self._level = [new] * len(GRID)
+                    self._mu = mu + moved + (new - pb)
+                    self._score = [FORGET * sc + cap for sc in scores]
+                    self._zhat = new
+                    self._taken(t_ns)
+                    return
+                # Suspect: its innovation's influence redescends from SUSPECT sds to none at 2.5x that
+                # (every filter's innovation scaled alike), every score takes the same bounded loss.
+                self._pending = (e, z)
+                sd = math.sqrt(var)
+                w = max(0.0, (2.5 * SUSPECT * sd / abs(e) - 1.0) / 1.5)
+                levels = [
+                    pr + k * w * (z - pr)
+                    for (phi, k), pr in zip(GRID, _hold(self._level, mu, moved), strict=True)
+                ]
+                self._level = levels
+                self._score = [FORGET * sc + cap for sc in scores]
+                self._mu = mu = mu + moved
+                self._zhat = mu + GRID[best][0] * (levels[best] - mu)
+                self._taken(t_ns, min(MAX_T_NS, max(1, round(math.exp(pb + w * e)))))  # the cold fit
+                return
+        self._pending = None
+        levels, scores = _grid_step(self._level, scores, z, mu, moved)
+        self._score = scores
+        self._best = best = scores.index(min(scores))
+        mu += moved
+        n = count + 1
+        mu += (z - mu) / (n if n < MU_STROKES else MU_STROKES)
+        phi = GRID[best][0]
+        zhat = mu + phi * (levels[best] - mu)
+        self._level = levels
+        self._mu = mu
+        self._zhat = zhat
         self._taken(t_ns)
 
     def predict(self, conditions: Conditions | None = None) -> float:
@@ -134,7 +228,10 @@ class KalmanPredictor(ConditionedPredictor):
 
     def state(self) -> dict[str, Any]:
         """Plain-typed state (msgpack-safe); `from_state` rebuilds one that predicts identically."""
-        return self._state(level=list(self._level), score=list(self._score), mu=self._mu, best=self._best)
+        pending = None if self._pending is None else list(self._pending)
+        return self._state(
+            level=list(self._level), score=list(self._score), mu=self._mu, best=self._best, pending=pending
+        )
 
     @classmethod
     def from_state(cls, d: Any) -> KalmanPredictor:
@@ -145,6 +242,7 @@ class KalmanPredictor(ConditionedPredictor):
         p._score = finite_numbers(d, "score", n)
         p._mu = mu = finite_number(d, "mu")
         p._best = best = check_int("best", d.get("best"), 0, n - 1)
+        p._pending = None if d.get("pending") is None else tuple(finite_numbers(d, "pending", 2))  # type: ignore[assignment]
         p._zhat = mu + GRID[best][0] * (p._level[best] - mu)
         return p
 
