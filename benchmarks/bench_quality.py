@@ -1,11 +1,16 @@
-"""Prediction quality (issue 15): every shipped model on the scenario suite, against the rig's floor.
+"""Prediction quality (issues 15, 24): every shipped model on the scenario suite, against the floor.
 
 Each predictor (one per direction, told each stroke's conditions) predicts every stroke of every
-scenario (`usmswitch.sim.scenarios`, 5 seeds x 4000 strokes). Printed per predictor x scenario: the RMS
-one-step error over the innovation floor (strokes from cycle 200), the worst error within three strokes
-of each direction after a drive step, and the error of each direction's first stroke after a 120 s
-pause. Beside the shipped models: a statsmodels AutoReg(1, trend="c") refitted on the last 100 strokes
-every 25 strokes. Then the cost per stroke. The targets are the issue's, for the default model.
+scenario (`usmswitch.sim.scenarios`, 5 seeds x 4000 strokes): the simulated rig as real rigs differ,
+and bare processes (random walk plus noise, stationary AR(1) around a mean, level shifts). Printed per
+scenario x predictor: the RMS one-step error over the innovation floor (strokes from cycle 200). Then
+per predictor: the worst error within three strokes of each direction after a drive step, the error of
+each direction's first stroke after a 120 s pause, and the outlier rule (issue 24): one stroke 10 floors
+off, the error RMS of that direction's next 20 strokes over what it is without the outlier. Beside the
+shipped models: a statsmodels AutoReg(1, trend="c") refitted on the last 100 strokes every 25 strokes.
+Then the cost per stroke. The targets are the issue's, for the default model: <= 1.03x the floor on
+every scenario and never worse than the paper's AR(1); the first drive step, commissioned, <= 300 us;
+the outlier rule <= 1.1x.
 
 The default runs twice: told nothing beforehand (its step column is the first step of a kind it has
 ever seen: news, as for the paper's AR(1)), and told the drive sensitivities that the commissioning
@@ -40,7 +45,7 @@ from usmswitch.experiments.rig import SimulatedRig
 from usmswitch.predictor import AR_MODELS, DEFAULT_MODEL, MODELS, ARPredictor, make_predictors
 from usmswitch.sim.model import UsmSwitchModel
 from usmswitch.sim.params import RigParams
-from usmswitch.sim.scenarios import SCENARIOS, ScenarioRun, run_scenario
+from usmswitch.sim.scenarios import SCENARIOS, ScenarioRun, run_scenario, with_outlier
 
 SEEDS = (1, 2, 3, 4, 5)
 CYCLES = 4000
@@ -48,10 +53,16 @@ SKIP = 200  # cold start, left out of the ratio
 NOMINAL_NS = 8_000_000
 REFIT_EVERY = 25
 TARGET_RATIO = 1.03
-TARGET_VS_PAPER = 1.01
-TARGET_STEP_NS = 150_000
+TARGET_VS_PAPER = 1.0
+TARGET_STEP_NS = 300_000  # issue 24: the worst first drive step, commissioned
 TARGET_IDLE_NS = 120_000
-TARGET_COST_US = 5.0
+TARGET_COST_US = 10.0
+TARGET_OUTLIER = 1.1
+#: The outlier rule: a stroke 10 floors off (each sign) at these cycles of each seed's run, scored on
+#: these scenarios; the next OUTLIER_AFTER strokes of its direction.
+OUTLIER_CYCLES = (1000, 1601, 2200, 2801, 3400)
+OUTLIER_SCENARIOS = ("default", "noise4", "random-walk", "ar-0.3")
+OUTLIER_AFTER = 20
 TARGET_RESELECT_US = 50.0
 #: The simulated rig's seed the commissioning runs on: none of SEEDS.
 COMMISSION_SEED = 1001
@@ -148,8 +159,62 @@ def _makers(known: DriveSensitivity) -> dict[str, Callable[[ScenarioRun], list[A
     out["statsmodels AutoReg(1, c) refit"] = lambda run: [StatsmodelsRefit(), StatsmodelsRefit()]
     out[ORACLE] = lambda run: [
         Oracle(dataclasses.replace(RigParams(), **run.scenario.params), d) for d in Direction
-    ]
+    ]  # the rig's scenarios only (a bare process has no rig physics)
     return out
+
+
+def _next_errors(
+    make: Callable[[ScenarioRun], list[Any]], run: ScenarioRun, strokes: list[Any], at: int
+) -> list[float]:
+    """Errors of the OUTLIER_AFTER strokes of stroke `at`'s direction after it, predicting `strokes`."""
+    ps = make(run)
+    out = []
+    for s in strokes[: at + 2 * OUTLIER_AFTER + 1]:
+        p = ps[s.direction]
+        e = s.operating_ns - p.predict(s.conditions)
+        p.update(s.operating_ns, s.conditions)
+        if s.cycle > at and (s.cycle - at) % 2 == 0:
+            out.append(e)
+    return out
+
+
+def _outlier_rule(make: Callable[[ScenarioRun], list[Any]], runs: list[ScenarioRun]) -> tuple[float, float]:
+    """(RMS over all cases, worst case) of the next OUTLIER_AFTER strokes' error with a 10-floor outlier
+    over the same without it, each case the same run and predictor, the outlier +-10 floors at each of
+    OUTLIER_CYCLES."""
+    num = den = 0.0
+    worst = 0.0
+    for run in runs:
+        for at in OUTLIER_CYCLES:
+            clean = _next_errors(make, run, run.strokes, at)
+            c2 = sum(e * e for e in clean)
+            for sign in (1.0, -1.0):
+                strokes = list(run.strokes)
+                strokes[at] = with_outlier(strokes[at], 10.0 * sign)
+                hit = _next_errors(make, run, strokes, at)
+                h2 = sum(e * e for e in hit)
+                num += h2
+                den += c2
+                worst = max(worst, math.sqrt(h2 / c2))
+    return math.sqrt(num / den), worst
+
+
+def _without_after_jump(make: Callable[[ScenarioRun], list[Any]], runs: list[ScenarioRun]) -> float:
+    """The ratio to the floor leaving out the stroke of each direction right after a jump of the mean:
+    the one stroke that the outlier rule does not let a predictor follow (it cannot tell it from an
+    outlier yet)."""
+    se = sf = 0.0
+    for run in runs:
+        ps = make(run)
+        skip = {j + 2 for j in run.jumps}
+        for s in run.strokes:
+            p = ps[s.direction]
+            e = s.operating_ns - p.predict(s.conditions)
+            p.update(s.operating_ns, s.conditions)
+            if s.cycle >= SKIP and s.cycle not in skip:
+                se += e * e
+                sf += s.floor_ns * s.floor_ns
+    return math.sqrt(se / sf)
 
 
 def _score(
@@ -245,6 +310,8 @@ def main() -> int:
         quiets[label] = []
         idles[label] = []
         for name, rs in runs.items():
+            if label == ORACLE and SCENARIOS[name].process is not None:
+                continue
             se = sf = 0.0
             for run in rs:
                 a, b, st, idle, quiet = _score(make, run)
@@ -259,28 +326,55 @@ def main() -> int:
     paper = next(k for k in makers if k.startswith("paper"))
     default = next(k for k in makers if k.endswith("(default)"))
     commissioned = default + COMMISSIONED
+    others = [k for k in makers if k not in (default, commissioned, paper)]
+    rows = []
+    for n in SCENARIOS:
+        d, dc, pp = ratio[default][n], ratio[commissioned][n], ratio[paper][n]
+        rows.append(
+            [n, f"{d:.3f}", f"{dc:.3f}", f"{pp:.3f}", f"{d / pp:.3f}",
+             *[f"{ratio[k][n]:.3f}" if n in ratio[k] else "-" for k in others]]
+        )  # fmt: skip
+    print_table(
+        ["scenario", "default", "default commissioned", "paper AR(1)", "default / paper", *others],
+        rows,
+        title=(
+            f"RMS one-step error / innovation floor, {len(SEEDS)} seeds x {CYCLES} strokes per scenario "
+            f"(from cycle {SKIP}); default: {default}; commissioned: told the drive sensitivities measured "
+            f"on seed {COMMISSION_SEED}; oracle: the rig's own physics and Kalman filter (no controller has "
+            "them; rig scenarios only)"
+        ),
+    )
+    rule = {label: _outlier_rule(makers[label], [r for n in OUTLIER_SCENARIOS for r in runs[n]])
+            for label in makers if label != ORACLE}  # fmt: skip
+    after_jump = {
+        label: _without_after_jump(makers[label], runs["level-shifts"]) for label in (default, paper)
+    }
     rows = []
     for label in makers:
         rows.append(
-            [label, *[f"{ratio[label][n]:.3f}" for n in SCENARIOS],
-             f"{np.mean(steps[label]) / 1e3:.0f}", f"{np.max(steps[label]) / 1e3:.0f}",
+            [label, f"{np.mean(steps[label]) / 1e3:.0f}", f"{np.max(steps[label]) / 1e3:.0f}",
              f"{np.mean(quiets[label]) / 1e3:.0f}", f"{np.mean(shifts[label]) / 1e3:.0f}",
-             f"{np.mean(idles[label]) / 1e3:.0f}"]
+             f"{np.mean(idles[label]) / 1e3:.0f}",
+             f"{rule[label][0]:.3f}" if label in rule else "-",
+             f"{rule[label][1]:.3f}" if label in rule else "-",
+             f"{after_jump[label]:.3f}" if label in after_jump else "-"]
         )  # fmt: skip
+    print()
     print_table(
-        ["predictor", *SCENARIOS, "step us mean", "step us max", "no step us", "shift us", "idle us"],
+        ["predictor", "step us mean", "step us max", "no step us", "shift us", "idle us",
+         "outlier rule", "outlier worst", "level-shifts less the stroke after a jump"],
         rows,
         title=(
-            f"RMS one-step error / innovation floor, {len(SEEDS)} seeds x {CYCLES} strokes per scenario; "
-            "step: worst |error| within 3 strokes per direction of the drive step (frequency, voltage), "
-            f"the first such step the predictor ever sees; no step: the same metric {QUIET} cycles before "
-            "the step (its floor); shift: the same at the far sensor's unreported "
-            "move (shift-noise4); idle: |error| of the first stroke per "
-            f"direction after 120 s; {COMMISSIONED.strip()}: told the drive sensitivities measured on "
-            f"seed {COMMISSION_SEED}; oracle: the rig's own physics and Kalman filter (no controller has"
-            " them): what each column reads at the floor"
+            "step: worst |error| within 3 strokes per direction of the drive step (frequency, voltage), the "
+            f"first such step the predictor ever sees; no step: the same metric {QUIET} cycles before the "
+            "step (its floor); shift: the same at the far sensor's unreported move (shift-noise4); idle: "
+            "|error| of the first stroke per direction after 120 s; outlier rule: one stroke 10 floors off "
+            f"(+ and -, cycles {', '.join(map(str, OUTLIER_CYCLES))}, on {', '.join(OUTLIER_SCENARIOS)}), "
+            f"the error RMS of its direction's next {OUTLIER_AFTER} strokes over the same without it (all "
+            "cases pooled; worst: the worst case); level-shifts less ...: the ratio to the floor leaving out "
+            "each direction's stroke right after a jump of the mean"
         ),
-    )
+    )  # fmt: skip
     missed = []
     for label in (default, commissioned):
         for n in SCENARIOS:
@@ -288,25 +382,22 @@ def main() -> int:
             if r > TARGET_RATIO:
                 missed.append(f"{n}: {label} {r:.3f}x the floor > {TARGET_RATIO}")
             if r > TARGET_VS_PAPER * rp:
-                missed.append(f"{n}: {label} {r:.3f} worse than the paper's {rp:.3f} by more than 1 %")
-    step_mean = float(np.mean(steps[commissioned]))  # the issue's target: a drive step
-    if step_mean > TARGET_STEP_NS:
-        quiet_mean = float(np.mean(quiets[commissioned]))
+                missed.append(f"{n}: {label} {r:.3f} worse than the paper's {rp:.3f}")
+        if rule[label][0] > TARGET_OUTLIER:
+            missed.append(f"outlier rule: {label} {rule[label][0]:.3f}x > {TARGET_OUTLIER}")
+    step_max = float(np.max(steps[commissioned]))  # the issue's target: the first drive step, commissioned
+    if step_max > TARGET_STEP_NS:
         missed.append(
-            f"step error, commissioned, {step_mean / 1e3:.0f} us > {TARGET_STEP_NS / 1e3:.0f} us"
-            f" (the same metric with no step: {quiet_mean / 1e3:.0f} us; the oracle at the step:"
-            f" {np.mean(steps[ORACLE]) / 1e3:.0f} us)"
+            f"first drive step, commissioned, worst {step_max / 1e3:.0f} us > {TARGET_STEP_NS / 1e3:.0f} us"
         )
     idle_mean = float(np.mean(idles[default]))
     if idle_mean > TARGET_IDLE_NS:
         missed.append(f"first stroke after idle {idle_mean / 1e3:.0f} us > {TARGET_IDLE_NS / 1e3:.0f} us")
 
     cost_rows = []
-    base = None
     for model in MODELS:
         t = _cost(model, runs["default"][:2])
         med = float(np.median(t))
-        base = med if model == "paper" else base
         target = ""
         if model == DEFAULT_MODEL:
             target = f"median <= {TARGET_COST_US:g} us: " + ("ok" if med <= TARGET_COST_US else "MISSED")
@@ -325,7 +416,8 @@ def main() -> int:
     print_table(
         ["predictor", "median us", "p99 us", "target"],
         cost_rows,
-        title="update + predict per stroke, told the conditions (timer pair included)",
+        title="update + predict per stroke, told the conditions (timer pair included; the default's "
+        "worst strokes: make bench BENCH=predictor)",
     )
     for m in missed:
         print(f"TARGET MISSED: {m}")
