@@ -749,8 +749,8 @@ class McuDaq(Daq):
             self._ctx = None
             self._state.notify_all()
         log.warning("%s: %s: handshaking again", self.name, why)
+        self.stats.resyncs += 1  # before: the handshake delivers the reset's FAULT, a reader sees it
         self._handshake()
-        self.stats.resyncs += 1
         arm = self._armed_msg
         if arm is not None:
             self._send(arm)  # the device forgot it
