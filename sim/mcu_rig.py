@@ -9,6 +9,7 @@ firmware meets the same physics as the emulator. Times are host (physical) nanos
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 from usmswitch.drivers.events import Channel, Direction
@@ -61,10 +62,19 @@ class Mover:
         self._jam_next = False
         self._bounce_next = False
 
-    def sensors(self) -> tuple[int, int]:
-        """Sensor A and sensor B, 1 where active (the mover within release_mm of it)."""
+    def sensors(self, t_ns: int | None = None) -> tuple[int, int]:
+        """Sensor A and sensor B at `t_ns` (now if None), 1 where active (the mover within
+        release_mm of it). During a stroke the source is released from its departure on, as its
+        EDGE said: a PONG's snapshot never contradicts the edges sent before it."""
         a = 1 if self.position_mm <= self.release_mm else 0
         b = 1 if self.position_mm >= self.stroke_mm - self.release_mm else 0
+        plan = self._plan
+        now = time.monotonic_ns() if t_ns is None else t_ns
+        if self.drive_on and plan is not None and plan.depart_ns is not None and now >= plan.depart_ns:
+            if self._direction.source is Channel.A:
+                a = 0
+            else:
+                b = 0
         return a, b
 
     def jam_next(self) -> None:
