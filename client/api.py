@@ -117,16 +117,20 @@ class Api(ABC):
         target: Duration | None = None,
         allow_late: bool = False,
         take_over: bool = False,
+        owner: str | None = None,
     ) -> Cycling:
         """Open a run: alternate on/off strokes every `period`, `count` of them (0: until stopped),
         at `target` when given (else the current targets).
 
         The daemon's own start-up run (`make run`) gives way to it. A run that a client or an
-        experiment started raises WrongState naming it, unless `take_over` ends it first.
+        experiment started raises WrongState naming it, unless `take_over` ends it first. `owner`
+        (default: this user, host, pid and program) is who the run is recorded as started by; the
+        daemon's own start-up run is owned by "autostart", and gives way to any other.
         """
         period_ns = duration_ns("period", period)
         target_ns = None if target is None else duration_ns("target", target)
-        return self.call("start_cycling", period_ns, count, target_ns, allow_late, take_over, run_owner())
+        who = run_owner() if owner is None else owner
+        return self.call("start_cycling", period_ns, count, target_ns, allow_late, take_over, who)
 
     def stop_cycling(self) -> dict[str, Any]:
         """Stop cycling after the stroke in progress; the reply carries the ended run."""

@@ -109,6 +109,7 @@ class Methods:
             "cycle": loop.cycle,
             "target_on_ns": loop.targets[Direction.ON],
             "target_off_ns": loop.targets[Direction.OFF],
+            "open_delay_ns": loop.open_delay_ns,
             "metrics_url": self._metrics_url(),
             "scheduling": loop.scheduling,
             "implausible_strokes": loop.implausible,

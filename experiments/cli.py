@@ -73,6 +73,11 @@ def build_parser() -> argparse.ArgumentParser:
         "(postgresql://USER@HOST/DB, with --rig)",
     )
     p.add_argument("--run", type=int, help="with --from-records: the run to analyse (default: the last)")
+    p.add_argument(
+        "--take-over",
+        action="store_true",
+        help="with --socket: end a run a client started (it is started again when the experiment ends)",
+    )
     p.add_argument("--rig", help="with --from-records postgresql://...: the rig (when it holds several)")
     p.add_argument(
         "--scale",
@@ -149,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
             ctx.recorded, where = recorded_run(args.from_records, args.run, args.rig)
             names = [n for n in names if n in FROM_RECORDS]
         elif args.socket is not None:
-            ctx.rig, where = LiveRig(args.socket), f"the live rig at {args.socket}"
+            ctx.rig, where = LiveRig(args.socket, args.take_over), f"the live rig at {args.socket}"
         else:
             ctx.rig, ctx.seed = SimulatedRig(out / "records.sqlite", seed), seed
             where = "the simulated rig (in-process, virtual time)"
@@ -191,7 +196,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{PROG}: {name} done ({time.monotonic() - t0:.1f} s)", file=sys.stderr)
     finally:
         if ctx.rig is not None:
-            ctx.rig.close()
+            ctx.rig.close()  # a live rig: every setting changed is put back, whatever happened
+    if isinstance(ctx.rig, LiveRig):
+        summary["meta"]["restored"] = ctx.rig.restored
+        for line in ctx.rig.restored:
+            print(f"{PROG}: restored {line}", file=sys.stderr)
     summary["meta"]["seconds"] = round(time.monotonic() - t0, 1)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=_plain) + "\n")
     (out / "report.md").write_text(report.render(summary))

@@ -37,6 +37,9 @@ def render(summary: dict[str, Any]) -> str:
     ]
     if meta.get("notes"):
         lines += [f"- {n}" for n in meta["notes"]] + [""]
+    if "restored" in meta:  # a live rig: what the experiments changed, put back as it was
+        lines += ["What the experiments changed on the rig, and put back when they ended:", ""]
+        lines += [f"- {n}" for n in meta["restored"] or ["nothing needed putting back"]] + [""]
     section = summary.get
     if section("open_loop"):
         o = summary["open_loop"]

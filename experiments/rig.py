@@ -15,10 +15,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from usmswitch.client import Client
-from usmswitch.daemon.loop import ControlLoop, Mode
+from usmswitch.client import Client, RpcError
+from usmswitch.daemon.loop import AUTOSTART_OWNER, ControlLoop, Mode
 from usmswitch.daemon.record import CycleRecord
 from usmswitch.daemon.records import RecordStore
+from usmswitch.daemon.units import format_ns
 from usmswitch.predictor import ARPredictor
 from usmswitch.sim import SimDaq
 from usmswitch.sim.model import UsmSwitchModel
@@ -130,28 +131,71 @@ class SimulatedRig:
 
 
 class LiveRig:
-    """A running daemon (a real rig) through its socket: runs as `Client.run` makes them."""
+    """A running daemon (a real rig) through its socket: runs as `Client.run` makes them.
+
+    The rig is lent, not given: every setting an experiment changes (targets, mode and open delay,
+    drive frequency and voltage, the cycling that was going) is noted at the start and put back by
+    `close()` (the CLI calls it however the experiment ends: done, failed, Ctrl-C). A run that a
+    client started is never ended unasked: `take_over` (`--take-over`) says to; the daemon's own
+    start-up run gives way by the daemon's rule, and is started again at the end.
+    """
 
     simulated = False
     seed = None
 
-    def __init__(self, address: str | None) -> None:
+    def __init__(self, address: str | None, take_over: bool = False) -> None:
         self.client = Client(address, timeout=30)
-        status = self.client.status()
-        if status["state"] == "fault":
+        self.take_over = take_over
+        #: What `close()` put back, as lines for the report ("mode: open -> closed").
+        self.restored: list[str] = []
+        try:
+            status = self.client.status()
+            if status["state"] == "fault":
+                raise RuntimeError(f"the rig is in FAULT ({status['fault']}): `usmswitchctl reset` first")
+            self.before = self._settings(status)
+            going = self.before["run"]
+            if going is not None and going["settings"].get("owner") != AUTOSTART_OWNER and not take_over:
+                raise RuntimeError(
+                    f"run {going['run_id']} ({going['settings'].get('owner') or 'a client'}) is going on the"
+                    " rig: stop it first (`usmswitchctl stop`), or pass --take-over to end it now and start"
+                    " it again when the experiment ends"
+                )
+        except BaseException:
             self.client.close()
-            raise RuntimeError(f"the rig is in FAULT ({status['fault']}): `usmswitchctl reset` first")
+            raise
+
+    def _settings(self, status: dict[str, Any]) -> dict[str, Any]:
+        """What an experiment may change, as it is now."""
+        try:
+            drive: dict[str, Any] | None = self.client.set_drive()  # no keys: reads the drive
+        except RpcError:
+            drive = None  # neither a drive board nor the sim's drive
+        going = None
+        if status["state"] == "cycling":
+            runs = self.client.runs(1)
+            going = runs[-1] if runs and runs[-1]["end_reason"] is None else None
+        return {
+            "mode": status["mode"],
+            "open_delay_ns": status["open_delay_ns"],
+            "target_on_ns": status["target_on_ns"],
+            "target_off_ns": status["target_off_ns"],
+            "drive": drive,
+            "run": going,
+        }
 
     def run(self, spec: RunSpec, progress: Progress | None = None) -> Strokes:
         c = self.client
-        if c.status()["state"] == "cycling":
-            c.stop_cycling()
         if spec.frequency_hz is not None or spec.voltage_vpp is not None:
             # A drive board or the sim: else UNAVAILABLE.
             c.set_drive(frequency_hz=spec.frequency_hz, voltage_vpp=spec.voltage_vpp)
         c.set_mode(spec.mode, spec.open_delay_ns if spec.mode == "open" else None)
         run = c.run(
-            count=spec.count, period=spec.period_ns, target=spec.target_ns, allow_late=True, timeout=10
+            count=spec.count,
+            period=spec.period_ns,
+            target=spec.target_ns,
+            allow_late=True,
+            take_over=self.take_over,
+            timeout=10,
         )
         records: list[dict[str, Any]] = []
         for rec in run:
@@ -160,5 +204,52 @@ class LiveRig:
                 progress(1)
         return Strokes.from_records(records, run_id=run.run_id)
 
+    def restore(self) -> list[str]:
+        """Put back what was changed; the lines say what, for the report. Safe to call twice."""
+        c, b = self.client, self.before
+        now = c.status()
+        done: list[str] = []
+        if now["state"] == "cycling":  # an experiment's run cut short (Ctrl-C, a failure)
+            c.stop_cycling()
+            done.append("cycling: the experiment's run stopped")
+        if (now["mode"], now["open_delay_ns"]) != (b["mode"], b["open_delay_ns"]):
+            c.set_mode(b["mode"], b["open_delay_ns"])
+            done.append(
+                f"mode: {now['mode']} (open delay {format_ns(now['open_delay_ns'])}) -> {b['mode']}"
+                f" (open delay {format_ns(b['open_delay_ns'])})"
+            )
+        for d in ("on", "off"):
+            key = f"target_{d}_ns"
+            if now[key] != b[key]:
+                c.set_target(b[key], d, allow_late=True)
+                done.append(f"target {d}: {format_ns(now[key])} -> {format_ns(b[key])}")
+        if b["drive"] is not None:
+            drive = c.set_drive()
+            for key, unit in (("frequency_hz", "Hz"), ("voltage_vpp", "Vpp")):
+                if b["drive"].get(key) is not None and drive.get(key) != b["drive"][key]:
+                    c.set_drive(**{key: b["drive"][key]})
+                    done.append(f"drive {key}: {drive.get(key):g} {unit} -> {b['drive'][key]:g} {unit}")
+        going = b["run"]
+        if going is not None:
+            s = going["settings"]
+            count = s["count"] and max(1, s["count"] - self._made(going))
+            run = c.start_cycling(s["period_ns"], count, owner=s.get("owner") or None)
+            done.append(
+                f"cycling: run {going['run_id']} ({s.get('owner') or 'a client'}) started again as run"
+                f" {run['run_id']}, every {format_ns(s['period_ns'])}"
+            )
+        self.restored += done
+        return done
+
+    def _made(self, run: dict[str, Any]) -> int:
+        """Strokes the run had made when it was taken over."""
+        for r in self.client.runs(50):
+            if r["run_id"] == run["run_id"] and r["last_cycle"] is not None:
+                return int(r["last_cycle"]) - int(r["first_cycle"]) + 1
+        return 0
+
     def close(self) -> None:
-        self.client.close()
+        try:
+            self.restore()
+        finally:
+            self.client.close()
