@@ -1046,19 +1046,27 @@ class McuDaq(Daq):
     def _host_stamp(self) -> int:
         return max(self.clock.now_ns(), self._last_stamp_ns)
 
+    def _drop_oldest(self, events: deque[Event]) -> None:
+        """Drop the oldest edge (what floods are made of), else the oldest event: a fault, a start
+        or a stop near the head outlives the chatter behind it."""
+        self.stats.events_dropped += 1
+        for i in range(min(len(events), 64)):
+            if events[i].kind is EventKind.EDGE:
+                del events[i]
+                return
+        events.popleft()
+
     def _deliver(self, ev: Event) -> None:
         self._last_stamp_ns = max(self._last_stamp_ns, ev.t_ns)
         events = self._events
         if len(events) >= self.max_queued_events:
             # Nobody reads as fast as the device talks: the oldest go, counted. A stroke in progress
             # has lost its events: a SEQUENCE fault (at the queue's end) ends it, once per spell.
-            events.popleft()
-            self.stats.events_dropped += 1
+            self._drop_oldest(events)
             ctx = self._ctx
             if ctx is not None and not ctx.stopped and not self._overflow_said:
                 self._overflow_said = True
-                events.popleft()
-                self.stats.events_dropped += 1
+                self._drop_oldest(events)
                 events.append(
                     Event.fault_event(
                         max(self.clock.now_ns(), self._last_stamp_ns),

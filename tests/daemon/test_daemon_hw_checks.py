@@ -86,6 +86,9 @@ def test_stamps_off_the_device_clock_are_rejected_and_outlive_nothing(tmp_path: 
     got = rows(tmp_path)
     assert st["state"] == "idle", st["fault"]
     assert len(got) == 20 and not [r for r in got if r[1] & (FAULT | STALL)], got
+    # The driver's timeline starts at the host's monotonic clock and stays there: two frames each
+    # 2^31 - 1 us ahead had moved it a whole wrap (71.6 min) ahead, the heartbeat following them.
+    assert abs(got[-1][3] - time.monotonic_ns()) < 60_000 * MS, got[-1]
     # 2^32 - 2 us ahead is 2 us behind the device clock: believable, and read as such.
     assert st["driver_counters"]["bad_stamps"] == 3
 
@@ -138,7 +141,11 @@ def test_a_start_naming_another_stroke_is_not_this_strokes_start(tmp_path: Path)
     assert "a START naming stroke" in fault
     got = rows(tmp_path)
     assert got[7][1] & FAULT and got[7][2] is None  # the second stroke of the run
-    assert after["state"] == "idle", (after["fault"], got[6:], [(s.stroke, s.direction, s.t_start_ns, s.t_arrive_ns, s.t_depart_ns) for s in emu.log[6:]])
+    assert after["state"] == "idle", (
+        after["fault"],
+        got[6:],
+        [(s.stroke, s.direction, s.t_start_ns, s.t_arrive_ns, s.t_depart_ns) for s in emu.log[6:]],
+    )
     assert len(got) == 12 and not [r for r in got[8:] if r[1] & FAULT]
     assert after["driver_counters"]["foreign_starts"] == 2
 
@@ -218,7 +225,7 @@ def test_a_flood_of_valid_edges_is_bounded_between_device_and_loop(tmp_path: Pat
         link.close()
         emu.stop()
     got = rows(tmp_path)
-    dropped = st["driver_counters"]["events_dropped"]
+    dropped = st["driver_counters"].get("events_dropped")
     print(f"\nflood: {sent[0]} frames, RSS {rss0} kB -> peak {peak[0]} kB, {dropped} dropped")
     assert st["state"] == "idle", st["fault"]
     assert len(got) == 6 and not [r for r in got if r[1] & (FAULT | STALL)], got

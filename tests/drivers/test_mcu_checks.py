@@ -1,0 +1,237 @@
+"""Issue 29, the MCU driver's checks of what the device says, in process: the clock rate, the bounded
+event queue, and a property-based fuzz of valid-CRC frame sequences (hypothesis) asserting that no
+exception escapes the driver, no stamp outside the band is delivered, memory stays bounded, and the
+link and the strokes recover once the line is good again."""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+
+import faultmcu
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from mcu_rig import FAST, run_stroke, wait_for
+
+from usmswitch.drivers import DaqError, Direction, EventKind, FaultCode
+from usmswitch.drivers.mcu import STAMP_AHEAD_NS
+from usmswitch.drivers.mcu_protocol import (
+    U16_MOD,
+    U32_MOD,
+    Ack,
+    Boot,
+    Edge,
+    Fault,
+    HelloAck,
+    Message,
+    Pong,
+    Start,
+    Stopped,
+    Stroke,
+)
+from usmswitch.drivers.serial_mcu import SerialMcuDaq
+
+MS = 1_000_000
+
+
+def _open(port: Path, **kwargs: object) -> SerialMcuDaq:
+    daq = SerialMcuDaq.from_spec(f"serial:{port}?reset_wait_ms=0", **{**FAST, **kwargs})  # type: ignore[arg-type]
+    daq.open()
+    return daq
+
+
+def test_a_device_clock_rate_far_off_is_refused_naming_it(tmp_path: Path) -> None:
+    """Item 3: a device whose clock runs 10 % fast (a wrong prescaler) passed; every stamp was 10 %
+    off. Now the heartbeat finds it within a few round trips, the session is dropped with a FAULT
+    that names the rate, and the handshakes after it are refused while the device runs on."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=1, drift_ppm=100_000)
+    daq = _open(port)
+    try:
+        assert wait_for(lambda: not daq.connected, 3.0)
+        ev = daq.recv(500 * MS)
+        while ev is not None and ev.kind is not EventKind.FAULT:
+            ev = daq.recv(500 * MS)
+        assert ev is not None and ev.fault is FaultCode.DISCONNECT
+        said = r"the device clock runs at 1\.(09|10)\d+ us per us \(\+(9\.9|10\.0)\d* %\)"
+        assert re.search(said, ev.detail), ev.detail
+        assert wait_for(lambda: daq.link_stats()["handshake_failures"] >= 1, 3.0)
+        assert not daq.connected
+        with pytest.raises(DaqError):
+            daq.arm(Direction.ON, MS)
+    finally:
+        daq.close()
+        link.close()
+        emu.stop()
+
+
+def test_a_crystal_within_tolerance_is_taken(tmp_path: Path) -> None:
+    emu, link, port = faultmcu.plug(tmp_path, seed=2, drift_ppm=1000)
+    daq = _open(port)
+    try:
+        time.sleep(0.3)
+        assert daq.connected and daq.link_stats()["disconnects"] == 0
+        assert run_stroke(daq, Direction.ON).events[-1].detail == "arrived"
+    finally:
+        daq.close()
+        link.close()
+        emu.stop()
+
+
+def test_the_event_queue_is_bounded_and_an_overflow_in_a_stroke_is_a_fault(tmp_path: Path) -> None:
+    """Item 4: the link thread's queue grew without bound while nothing read it (2.8 million events
+    in 20 s). Now it keeps the newest max_queued_events: the oldest are dropped and counted, and a
+    stroke in progress gets a SEQUENCE fault saying events were lost."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=3)
+    daq = _open(port, max_queued_events=500)
+    try:
+        daq.arm(Direction.ON, 30 * MS)
+        daq.command(daq.now_ns() + 5 * MS)
+        emu.flood(0.1, channel=1)  # sensor B (not the mover's) says "released", again and again
+        assert wait_for(lambda: daq.link_stats()["events_dropped"] > 0, 2.0)
+        assert len(daq._events) <= 500
+        seen = []
+        while (ev := daq.recv(200 * MS)) is not None:
+            seen.append(ev)
+        faults = [e for e in seen if e.kind is EventKind.FAULT]
+        assert faults and faults[0].fault is FaultCode.SEQUENCE and "events lost" in faults[0].detail
+        assert run_stroke(daq, Direction.OFF if emu.rig.sensors()[1] else Direction.ON).events[-1].detail == (
+            "arrived"
+        )
+    finally:
+        daq.close()
+        link.close()
+        emu.stop()
+
+
+# -- the fuzz ---------------------------------------------------------------------------------------
+
+# Offsets from the device clock (us): inside the band, just outside, far out, across the wrap.
+_OFFSETS = st.sampled_from(
+    [
+        0,
+        -1,
+        -500,
+        -50_000,
+        -399_000,
+        -450_000,
+        3_000,
+        6_000,
+        10_000_000,
+        -10_000_000,
+        2**31 - 1,
+        2**31,
+        2**32 - 2,
+    ]
+)
+_U32 = st.integers(0, U32_MOD - 1)
+_U16 = st.integers(0, U16_MOD - 1)
+
+
+@st.composite
+def _frame(draw: st.DrawFn) -> tuple[str, tuple[int, ...]]:
+    kind = draw(
+        st.sampled_from(
+            ["edge", "edge", "start", "stopped", "stroke", "fault", "pong", "ack", "hello", "boot"]
+        )
+    )
+    off = draw(_OFFSETS)
+    sid = draw(st.integers(0, 2))  # this stroke, the next one, any
+    return kind, (off, draw(st.integers(0, 3)), draw(st.integers(0, 2)), draw(_U16), draw(_U32), sid)
+
+
+def _message(kind: str, args: tuple[int, ...], now_us: int, stroke: int) -> Message:
+    off, a, b, x16, x32, which = args
+    t = (now_us + off) % U32_MOD
+    sid = (stroke, (stroke + 1) % U16_MOD, x16)[which]
+    if kind == "edge":
+        return Edge(a, b, t)
+    if kind == "start":
+        return Start(sid, b, t, x32 % 5000)
+    if kind == "stopped":
+        return Stopped(sid, a, t)
+    if kind == "stroke":
+        return Stroke(sid, b, x16 & 0x3F, t, t, (t + 1000) % U32_MOD, (t + 9000) % U32_MOD)
+    if kind == "fault":
+        return Fault(a + 1, t, x16)
+    if kind == "pong":
+        return Pong(a + 1, t, x16 & 0x1F, 0, 0)
+    if kind == "ack":
+        return Ack(a + 1, x16, b, sid, t)
+    if kind == "hello":
+        return HelloAck(1, 1, 31, 0x0101, t, x32, 0)
+    return Boot(8 if a == 0 else 1, 0x0101)
+
+
+def test_fuzz_valid_frames_never_break_the_driver_and_it_recovers(tmp_path: Path) -> None:
+    """Sequences of frames with valid CRCs (stamps in and out of the band, other strokes' ids,
+    restarts, PONGs and ACKs nobody asked for) said during a stroke: the driver raises nothing but
+    DaqError, delivers no stamp outside the band, keeps its queues bounded, and once the line is
+    good again the link is up and a stroke is exact."""
+    import resource
+
+    emu, link, port = faultmcu.plug(tmp_path, seed=5)
+    daq = _open(port, max_queued_events=2000)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    examples = [0]
+
+    @settings(
+        max_examples=25,
+        deadline=None,
+        derandomize=True,
+        suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+    )
+    @given(st.lists(_frame(), min_size=1, max_size=12), st.booleans())
+    def one(frames: list[tuple[str, tuple[int, ...]]], boot_ok: bool) -> None:
+        examples[0] += 1
+        try:
+            direction = Direction.OFF if emu.rig.sensors()[1] else Direction.ON
+            daq.arm(direction, 2 * MS)
+            daq.command(daq.now_ns() + 5 * MS)
+        except DaqError:
+            pass  # a session the last example's BOOT ended: the fuzz goes on, the recovery is checked
+        stroke = daq._stroke_id
+        for kind, args in frames:
+            if kind == "boot" and not boot_ok:
+                continue
+            emu.say(_message(kind, args, emu.device_us(), stroke))
+        end = time.monotonic() + 0.08
+        while time.monotonic() < end:
+            try:
+                ev = daq.recv(10 * MS)
+            except DaqError:
+                continue
+            if ev is None:
+                continue
+            now = daq.now_ns()
+            # A delivered stamp is within the band the driver keeps (its host-stamped events are now).
+            assert (
+                now - 2 * daq.link_timeout_ns - daq.stroke_timeout_ns
+                <= ev.t_ns
+                <= now + STAMP_AHEAD_NS + 5 * MS
+            ), (
+                ev,
+                now,
+            )
+        assert len(daq._events) <= daq.max_queued_events
+        assert daq._ctx is None or len(daq._ctx.held) <= 64
+
+    try:
+        one()
+        # The line is good again: the link comes back on its own, and a stroke is exact.
+        assert wait_for(lambda: daq.connected, 5.0)
+        while daq.recv(50 * MS) is not None:
+            pass
+        direction = Direction.OFF if emu.rig.sensors()[1] else Direction.ON
+        seen = run_stroke(daq, direction)
+        assert seen.events[-1].detail == "arrived", seen.events
+        true_ns = emu.log[-1].t_arrive_ns - emu.log[-1].t_start_ns
+        assert abs(seen.edge(direction.dest, 1).t_ns - seen.start.t_ns - true_ns) <= 2_000
+    finally:
+        daq.close()
+        link.close()
+        emu.stop()
+    assert examples[0] >= 10
+    grown_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0
+    assert grown_kb < 50_000, grown_kb
