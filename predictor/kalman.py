@@ -28,12 +28,14 @@ from .conditions import Conditions
 from .normalise import NOISE_VAR
 
 STATE_FORMAT = "usmswitch.predictor.kalman/2"
-#: The (phi, K) grid: gains log-spaced at phi = 1 (a drifting level under little to much stroke noise),
+#: The (phi, K) grid: gains at phi = 1 from the last stroke itself (K = 1: a random walk under little
+#: noise, where the paper's AR(1) is at home) down to 0.1 (a drifting level under much stroke noise),
 #: two slowly mean-reverting filters, and three for a stationary process around its mean (phi 0.6, 0.3
 #: and the mean itself, phi 0: issue 24's AR(1) with phi 0.1-0.6 plus noise, where the six filters of
 #: the first grid were 1.03-1.08x the floor). Fewer candidates means less chance of picking one by luck;
 #: each member here was measured to pay for itself on some class of process (docs/predictor.md).
 GRID = (
+    (1.0, 1.0),
     (1.0, 0.85),
     (1.0, 0.55),
     (1.0, 0.33),
@@ -66,18 +68,19 @@ def _grid_step(
     phi + (1 - phi) = 1 the prediction moves by exactly that), then level = pr + K (z - pr) and
     score = FORGET score + (z - pr)^2. Written out with GRID's numbers: the loop over GRID costs
     2.5x as much, the most of a stroke (tests/predictor/test_kalman.py checks the two agree)."""
-    v0, v1, v2, v3, v4, v5, v6, v7, v8, _ = levels  # phi = 0: the mean alone
-    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9 = scores
+    v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, _ = levels  # phi = 0: the mean alone
+    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10 = scores
     p0 = v0 + moved
     p1 = v1 + moved
     p2 = v2 + moved
     p3 = v3 + moved
     p4 = v4 + moved
-    p5 = 0.95 * v5 + 0.05 * mu + moved
-    p6 = 0.8 * v6 + 0.2 * mu + moved
-    p7 = 0.6 * v7 + 0.4 * mu + moved
-    p8 = 0.3 * v8 + 0.7 * mu + moved
-    p9 = mu + moved
+    p5 = v5 + moved
+    p6 = 0.95 * v6 + 0.05 * mu + moved
+    p7 = 0.8 * v7 + 0.2 * mu + moved
+    p8 = 0.6 * v8 + 0.4 * mu + moved
+    p9 = 0.3 * v9 + 0.7 * mu + moved
+    p10 = mu + moved
     e0 = z - p0
     e1 = z - p1
     e2 = z - p2
@@ -88,18 +91,20 @@ def _grid_step(
     e7 = z - p7
     e8 = z - p8
     e9 = z - p9
+    e10 = z - p10
     return (
         [
-            p0 + 0.85 * e0,
-            p1 + 0.55 * e1,
-            p2 + 0.33 * e2,
-            p3 + 0.18 * e3,
-            p4 + 0.1 * e4,
-            p5 + 0.8 * e5,
             z,
-            p7 + 0.65 * e7,
-            p8 + 0.7 * e8,
-            p9,
+            p1 + 0.85 * e1,
+            p2 + 0.55 * e2,
+            p3 + 0.33 * e3,
+            p4 + 0.18 * e4,
+            p5 + 0.1 * e5,
+            p6 + 0.8 * e6,
+            z,
+            p8 + 0.65 * e8,
+            p9 + 0.7 * e9,
+            p10,
         ],
         [
             0.99 * s0 + e0 * e0,
@@ -112,6 +117,7 @@ def _grid_step(
             0.99 * s7 + e7 * e7,
             0.99 * s8 + e8 * e8,
             0.99 * s9 + e9 * e9,
+            0.99 * s10 + e10 * e10,
         ],
     )
 

@@ -21,6 +21,7 @@ stroke) and the stroke's innovation floor: the std of the part no predictor can 
 | outliers | the default rig, one stroke in ~250 per direction 10 floors off (a sticky start, a bounce) |
 | random-walk | no rig: a random walk (0.3 %/stroke) plus white noise (1 %) around 8.5 ms |
 | random-walk-slow | no rig: a random walk (0.1 %/stroke) plus white noise (1 %) |
+| random-walk-fast | no rig: a random walk (1 %/stroke) plus white noise (0.2 %): the paper's AR(1) at home |
 | ar-0.1, ar-0.3, ar-0.6 | no rig: stationary AR(1) (phi 0.1, 0.3, 0.6; std 1.5 %) around 8.5 ms + white 1 % |
 | level-shifts | no rig: AR(1) (phi 0.9, std 0.5 %) + white 0.8 %, the mean jumping 3-8 floors ~every 400 |
 
@@ -118,6 +119,7 @@ SCENARIOS: dict[str, Scenario] = {
         Scenario("outliers", "one stroke in ~250 per direction 10 floors off", outlier_every=250),
         Scenario("random-walk", "random walk 0.3 % + white 1 %", process=Process(1.0, 0.003, 0.01)),
         Scenario("random-walk-slow", "random walk 0.1 % + white 1 %", process=Process(1.0, 0.001, 0.01)),
+        Scenario("random-walk-fast", "random walk 1 % + white 0.2 %", process=Process(1.0, 0.01, 0.002)),
         Scenario("ar-0.1", "AR(1) phi 0.1 std 1.5 % + white 1 %", process=Process(0.1, 0.015, 0.01)),
         Scenario("ar-0.3", "AR(1) phi 0.3 std 1.5 % + white 1 %", process=Process(0.3, 0.015, 0.01)),
         Scenario("ar-0.6", "AR(1) phi 0.6 std 1.5 % + white 1 %", process=Process(0.6, 0.015, 0.01)),
