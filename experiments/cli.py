@@ -12,6 +12,7 @@ summary.json and report.md. docs/experiments.md explains each experiment.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import secrets
@@ -114,18 +115,39 @@ def rich_progress(label: str, total: int) -> Iterator[Progress]:
         yield advance
 
 
-def recorded_run(source: str, run_id: int | None, rig: str | None = None) -> tuple[Strokes, str]:
-    """A run's strokes from a records file, a state directory or the PostgreSQL copy (`rig` of it)."""
+def recorded_run(
+    source: str, run_id: int | None, rig: str | None = None, closed_loop: bool = False
+) -> tuple[Strokes, str]:
+    """A run's strokes from a records file, a state directory or the PostgreSQL copy (`rig` of it):
+    run `run_id`, else the last one (`closed_loop`: the last closed-loop one). Says which on stderr."""
     with open_records(source, rig) as f:
         runs = f.runs()
-        if run_id is None and runs:
-            run_id = runs[-1]["run_id"]
+        run = None
+        if run_id is not None:
+            run = next((r for r in runs if r["run_id"] == run_id), None)
+        elif runs:
+            fitting = [r for r in runs if not closed_loop or r["settings"].get("mode") == "closed"]
+            if not fitting:
+                raise RecordsFileError(
+                    f"{f.name}: no closed-loop run (runs: {len(runs)}); name one with --run"
+                )
+            run = fitting[-1]
+            run_id = run["run_id"]
         records = list(f.records(run=run_id)) if run_id is not None else list(f.records())
         name = f.name
+    if run is not None:
+        s = run["settings"]
+        print(
+            f"{PROG}: run {run_id} of {name}: {s.get('mode', '?')} loop, model {s.get('model', '?')}"
+            f" order {s.get('order', '?')}, {len(records)} strokes"
+            + ("" if closed_loop or run is runs[-1] else " (not the last run)"),
+            file=sys.stderr,
+        )
     if not records:
         raise RecordsFileError(f"{name}: no strokes" + (f" in run {run_id}" if run_id else ""))
     where = f"{name}" + (f", run {run_id}" if run_id is not None else ", every stroke")
-    return Strokes.from_records(records, run_id=run_id), where
+    strokes = Strokes.from_records(records, run_id=run_id)
+    return dataclasses.replace(strokes, run=run), where
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -151,7 +173,8 @@ def main(argv: list[str] | None = None) -> int:
     ctx = Context(out=out, seed=None, scale=args.scale, progress=progress)  # type: ignore[arg-type]
     try:
         if args.from_records is not None:
-            ctx.recorded, where = recorded_run(args.from_records, args.run, args.rig)
+            closed = args.experiment == "closed-loop"  # its run is a closed-loop one unless named
+            ctx.recorded, where = recorded_run(args.from_records, args.run, args.rig, closed_loop=closed)
             names = [n for n in names if n in FROM_RECORDS]
         elif args.socket is not None:
             ctx.rig, where = LiveRig(args.socket, args.take_over), f"the live rig at {args.socket}"
@@ -165,8 +188,18 @@ def main(argv: list[str] | None = None) -> int:
     except (RecordsFileError, OSError, RuntimeError) as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return EXIT_FAILED
+    if args.from_records is not None:
+        data = f"read from {where} (read-only; nothing was written beside this report)"
+    elif args.socket is not None:
+        data = (
+            "the daemon's own records file, on the rig (`usmswitchctl runs` lists the experiment's runs, "
+            "`usmswitchctl export --run N` exports one); nothing was written beside this report"
+        )
+    else:
+        data = "`records.sqlite` in this folder (every stroke, `usmswitchctl export --state-dir .`)"
     summary: dict[str, Any] = {
         "meta": {
+            "data": data,
             "command": " ".join(["usmswitch-experiment", *(argv if argv is not None else sys.argv[1:])]),
             "where": where,
             "seed": ctx.seed,

@@ -25,6 +25,7 @@ COLUMNS = (
     "flags",
     "temperature_c",
     "frequency_hz",
+    "lateness_ns",
 )
 
 
@@ -43,7 +44,10 @@ class Strokes:
     flags: np.ndarray
     temperature_c: np.ndarray
     frequency_hz: np.ndarray
+    lateness_ns: np.ndarray
     run_id: int | None = None
+    #: The run's record (settings: model, order, mode, ...) when read from the records.
+    run: Mapping[str, Any] | None = None
 
     @classmethod
     def from_records(cls, records: Iterable[Mapping[str, Any]], run_id: int | None = None) -> Strokes:

@@ -30,9 +30,9 @@ def render(summary: dict[str, Any]) -> str:
         "",
         f"Made by `{meta['command']}` on {meta['where']}"
         + (f", seed {meta['seed']}" if meta.get("seed") is not None else "")
-        + f", usmswitch {meta['version']}, {meta['started']}. Records: `records.sqlite` "
-        "(every stroke, `usmswitchctl export --state-dir`), figures in `figures/`, numbers in "
-        "`summary.json`.",
+        + f", usmswitch {meta['version']}, {meta['started']}. Data: "
+        + meta.get("data", "`records.sqlite` (every stroke, `usmswitchctl export --state-dir .`)")
+        + ". Figures in `figures/`, numbers in `summary.json`.",
         "",
     ]
     if meta.get("notes"):
@@ -174,8 +174,19 @@ def render(summary: dict[str, Any]) -> str:
             )
         lines += ["Beside the paper (paper in brackets):", ""]
         lines += _table(
-            ["T", "error std", "max error, % of T", "operating time within", "late strokes"], rows
+            ["T", "error std", "max error, % of T", "switch time within (Fig. 12-13)", "late strokes"], rows
         )
+        lines += [
+            "Error std and max error are the prediction's, t - t_hat; the switch time is the real one, "
+            "command to arrival from the stamps, against T: start lateness included."
+        ]
+        if all(cond.get("lateness_max_ns") == 0 for cond in c["conditions"]):
+            lines += [
+                "Here every start was on its instant (lateness 0: the simulated rig in virtual time starts "
+                "on the tick), so the switch time's error equals the prediction error by construction, and "
+                "the two maxima agree to the digit; on a rig they differ by the start lateness."
+            ]
+        lines += [""]
         lines += [
             "The first strokes of each direction (the predictor's window) are left out, as the paper's "
             "figures show a running controller. A note on the paper's own numbers: a standard deviation of "

@@ -202,7 +202,7 @@ class LiveRig:
             records.append(dict(rec))
             if progress is not None:
                 progress(1)
-        return Strokes.from_records(records, run_id=run.run_id)
+        return dataclasses.replace(Strokes.from_records(records, run_id=run.run_id), run=run.info)
 
     def restore(self) -> list[str]:
         """Put back what was changed; the lines say what, for the report. Safe to call twice."""

@@ -169,7 +169,7 @@ def test_from_a_daemons_records_the_same_figures_as_the_records(tmp_path: Path) 
         if seen[d] > SETTLE:
             errors.append(e)
     ours = summary["closed_loop"][0]
-    assert ours["model"] == "paper AR(1), controlling" and ours["target_ns"] == 12_000_000
+    assert ours["model"] == "kalman (default), controlling" and ours["target_ns"] == 12_000_000
     assert ours["strokes"] == len(errors) == 100
     assert ours["std_ns"] == pytest.approx(np.std(errors, ddof=1), abs=0.1)
     assert ours["max_abs_error_ns"] == max(abs(e) for e in errors)
@@ -209,3 +209,51 @@ def test_drive_sensitivity_measures_the_rigs_drive_and_prints_the_config(tmp_pat
     lines = dict(line.split(" = ") for line in ds["config"].splitlines())
     cfg = load_config(overrides={f"control.{k}": v.strip('"') for k, v in lines.items()})
     assert cfg.control.sensitivity_frequency == pytest.approx(ds["per_khz"], rel=1e-3)
+
+
+def test_from_records_reads_the_model_and_mode_and_picks_the_last_closed_loop_run(tmp_path: Path) -> None:
+    """Issue 25: any run was labelled "paper AR(1), controlling" and the last run (an open-loop one,
+    say) was taken without a word."""
+    args = daemonproc.daemon_args(
+        tmp_path, "--sim-clock", "virtual", "--no-autostart", "--log-level", "warning"
+    )
+    proc = daemonproc.spawn(args)
+    try:
+        daemonproc.wait_serving(tmp_path / "d.sock", proc)
+        with Client(tmp_path / "d.sock", timeout=30) as c:
+            closed = c.run(count=260, period="25ms", target="12ms").wait()
+            c.set_mode("open", "1ms")
+            opened = c.run(count=260, period="25ms", target="12ms").wait()
+    finally:
+        daemonproc.stop(proc)
+    db = str(tmp_path / "state" / "records.sqlite")
+    cmd = [sys.executable, "-m", "usmswitch.experiments", "closed-loop", "--from-records", db]
+    r = subprocess.run([*cmd, "--out", str(tmp_path / "a")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert f"run {closed['run_id']} of " in r.stderr and "closed loop, model kalman" in r.stderr
+    rows = json.loads((tmp_path / "a" / "summary.json").read_text())["closed_loop"]
+    assert (
+        rows[0]["model"] == "kalman (default), controlling"
+        and rows[0]["measured"] == "closed loop: t - t_hat"
+    )
+    r = subprocess.run(
+        [*cmd, "--run", str(opened["run_id"]), "--out", str(tmp_path / "b")], capture_output=True, text=True
+    )
+    assert r.returncode == 0, r.stderr
+    rows = json.loads((tmp_path / "b" / "summary.json").read_text())["closed_loop"]
+    assert rows[0]["model"] == "open loop (fixed delay), not controlling"
+    report = (tmp_path / "a" / "report.md").read_text()
+    assert (
+        "switch time within (Fig. 12-13)" in report
+        and "equals the prediction error by construction" in report
+    )
+
+
+def test_the_report_names_the_data_it_really_read(everything: Path, tmp_path: Path) -> None:
+    report = (everything / "report.md").read_text()
+    assert "Data: `records.sqlite` in this folder" in report and (everything / "records.sqlite").exists()
+    db = everything / "records.sqlite"
+    assert run("open-loop", "--from-records", str(db), "--out", str(tmp_path / "r")) == 0
+    report = (tmp_path / "r" / "report.md").read_text()
+    assert f"Data: read from {db}" in report and "`records.sqlite` in this folder" not in report
+    assert not (tmp_path / "r" / "records.sqlite").exists()
