@@ -58,11 +58,35 @@ FROM_RECORDS = ("open-loop", "aic", "closed-loop", "reliability")
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
 
+def _about(name: str) -> str:
+    """An experiment's own help: its module's docstring (what figure of the paper, how)."""
+    if name == "all":
+        return "every experiment in turn on one rig, then report.md beside the paper's numbers"
+    fn = EXPERIMENTS[name][1]
+    doc = sys.modules[fn.__module__].__doc__ or name
+    return doc.strip()
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
-    p.add_argument(
-        "experiment", choices=[*EXPERIMENTS, "all"], help="which one; `all` runs every one, then the report"
-    )
+    p.add_argument("--version", action="version", version=f"{PROG} {PACKAGE_VERSION}")
+    common = argparse.ArgumentParser(add_help=False)
+    _options(common)
+    sub = p.add_subparsers(dest="experiment", required=True, metavar="EXPERIMENT")
+    for name in [*EXPERIMENTS, "all"]:
+        about = _about(name)
+        sub.add_parser(
+            name,
+            parents=[common],
+            help=" ".join(about.split("\n\n")[0].split()),
+            description=about,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+    return p
+
+
+def _options(p: argparse.ArgumentParser) -> None:
+    """The options every experiment takes."""
     p.add_argument("--seed", type=int, help="the simulated rig's seed (default: a new one, recorded)")
     p.add_argument("--out", type=Path, help="the output folder (default runs/<experiment>-<time>)")
     src = p.add_mutually_exclusive_group()
@@ -86,8 +110,6 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         help="stroke counts as a fraction of the paper's (default 1; tests use less)",
     )
-    p.add_argument("--version", action="version", version=f"{PROG} {PACKAGE_VERSION}")
-    return p
 
 
 @contextmanager

@@ -257,3 +257,14 @@ def test_the_report_names_the_data_it_really_read(everything: Path, tmp_path: Pa
     report = (tmp_path / "r" / "report.md").read_text()
     assert f"Data: read from {db}" in report and "`records.sqlite` in this folder" not in report
     assert not (tmp_path / "r" / "records.sqlite").exists()
+
+
+@pytest.mark.parametrize("name", ["open-loop", "closed-loop", "drive-sensitivity", "all"])
+def test_each_experiment_has_its_own_help(name: str) -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", "usmswitch.experiments", name, "--help"], capture_output=True, text=True
+    )
+    assert r.returncode == 0 and f"usage: usmswitch-experiment {name} " in r.stdout
+    assert "--from-records" in r.stdout and "--take-over" in r.stdout
+    if name != "all":
+        assert "Fig." in r.stdout or "Table" in r.stdout or "commission" in r.stdout, r.stdout
