@@ -21,7 +21,7 @@ stroke) and the stroke's innovation floor: the std of the part no predictor can 
 | outliers | the default rig, one stroke in ~250 per direction 10 floors off (a sticky start, a bounce) |
 | random-walk | no rig: a random walk (0.3 %/stroke) plus white noise (1 %) around 8.5 ms |
 | random-walk-slow | no rig: a random walk (0.1 %/stroke) plus white noise (1 %) |
-| random-walk-fast | no rig: a random walk (1 %/stroke) plus white noise (0.2 %): the paper's AR(1) at home |
+| random-walk-fast | no rig: a random walk (0.5 %/stroke) plus white noise (0.1 %): the paper's home |
 | ar-0.1, ar-0.3, ar-0.6 | no rig: stationary AR(1) (phi 0.1, 0.3, 0.6; std 1.5 %) around 8.5 ms + white 1 % |
 | level-shifts | no rig: AR(1) (phi 0.9, std 0.5 %) + white 0.8 %, the mean jumping 3-8 floors ~every 400 |
 
@@ -64,9 +64,9 @@ class Scenario:
 
 @dataclass(frozen=True)
 class Process:
-    """A bare stroke-time process per direction: t = mean (1 + J + F + w), F AR(1) (phi, stationary std
+    """A bare stroke-time process per direction: ln t = ln mean + J + F + w, F AR(1) (phi, stationary std
     `std`; phi = 1: a random walk of innovation std `std`), w white (`white`), J a level that jumps by
-    +-3..8 floors with probability `jump_rate` per stroke. All relative to `mean_ns`."""
+    +-3..8 floors with probability `jump_rate` per stroke (so a random walk never reaches 0)."""
 
     phi: float
     std: float
@@ -119,7 +119,7 @@ SCENARIOS: dict[str, Scenario] = {
         Scenario("outliers", "one stroke in ~250 per direction 10 floors off", outlier_every=250),
         Scenario("random-walk", "random walk 0.3 % + white 1 %", process=Process(1.0, 0.003, 0.01)),
         Scenario("random-walk-slow", "random walk 0.1 % + white 1 %", process=Process(1.0, 0.001, 0.01)),
-        Scenario("random-walk-fast", "random walk 1 % + white 0.2 %", process=Process(1.0, 0.01, 0.002)),
+        Scenario("random-walk-fast", "random walk 0.5 % + white 0.1 %", process=Process(1.0, 0.005, 0.001)),
         Scenario("ar-0.1", "AR(1) phi 0.1 std 1.5 % + white 1 %", process=Process(0.1, 0.015, 0.01)),
         Scenario("ar-0.3", "AR(1) phi 0.3 std 1.5 % + white 1 %", process=Process(0.3, 0.015, 0.01)),
         Scenario("ar-0.6", "AR(1) phi 0.6 std 1.5 % + white 1 %", process=Process(0.6, 0.015, 0.01)),
@@ -246,8 +246,10 @@ def _run_process(sc: Scenario, seed: int, cycles: int, period_ns: int) -> Scenar
             size = rng.uniform(3.0, 8.0) * floor_rel * rng.choice((-1.0, 1.0))
             jump[d] += size
             floor = math.hypot(floor, size * pr.mean_ns)
+        level = jump[d] + (pr.phi if pr.phi < 1.0 else 1.0) * f[d]  # what the past can tell
         f[d] = (pr.phi if pr.phi < 1.0 else 1.0) * f[d] + q * rng.gauss(0.0, 1.0)
-        t = pr.mean_ns * (1.0 + jump[d] + f[d] + pr.white * rng.gauss(0.0, 1.0))
+        t = pr.mean_ns * math.exp(jump[d] + f[d] + pr.white * rng.gauss(0.0, 1.0))
+        floor *= math.exp(level)  # the floor at the stroke's level (relative std x its predictable time)
         c: dict[str, float | int] = dict(cond)
         if k >= 2:
             c["idle_ns"] = 2 * period_ns
