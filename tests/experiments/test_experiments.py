@@ -267,4 +267,4 @@ def test_each_experiment_has_its_own_help(name: str) -> None:
     assert r.returncode == 0 and f"usage: usmswitch-experiment {name} " in r.stdout
     assert "--from-records" in r.stdout and "--take-over" in r.stdout
     if name != "all":
-        assert "Fig." in r.stdout or "Table" in r.stdout or "commission" in r.stdout, r.stdout
+        assert "Fig." in r.stdout or "Table" in r.stdout or "Commissioning" in r.stdout, r.stdout
