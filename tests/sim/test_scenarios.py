@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import statistics
 
 import pytest
@@ -75,3 +76,45 @@ def test_temperature_rises_and_idle_pauses_cool_the_motor() -> None:
 def test_an_unknown_scenario_is_named() -> None:
     with pytest.raises(KeyError, match="'storm'"):
         run_scenario("storm")
+
+
+def test_outliers_are_the_default_rig_with_strokes_10_floors_off() -> None:
+    base, hit = run_scenario("default", seed=6, cycles=4000), run_scenario("outliers", seed=6, cycles=4000)
+    off = [(a, b) for a, b in zip(base.strokes, hit.strokes, strict=True) if a != b]
+    assert 8 <= len(off) <= 30  # ~1 in 250
+    for a, b in off:
+        assert abs(abs(b.operating_ns - a.operating_ns) - 10 * a.floor_ns) <= 1
+        assert b.floor_ns == pytest.approx(a.floor_ns * 101**0.5)
+    assert {b.operating_ns > a.operating_ns for a, b in off} == {True, False}
+
+
+@pytest.mark.parametrize("name", ["random-walk", "ar-0.3", "random-walk-fast"])
+def test_a_bare_processs_floor_is_what_its_own_kalman_filter_reaches(name: str) -> None:
+    # The exact filter of the process (in ln t, knowing phi, q, r and the mean) errs by the floor.
+    pr = SCENARIOS[name].process
+    assert pr is not None
+    run = run_scenario(name, seed=3, cycles=8000)
+    phi = min(pr.phi, 1.0)
+    q, r = pr.innovation_sd**2, pr.white**2
+    f, var = [0.0, 0.0], [pr.std**2 if phi < 1 else 0.0] * 2
+    se = sf = 0.0
+    for s in run.strokes:
+        d = s.direction
+        fp, vp = phi * f[d], phi * phi * var[d] + q
+        pred = pr.mean_ns * math.exp(fp)
+        if s.cycle >= 400:
+            se += (s.operating_ns - pred) ** 2
+            sf += s.floor_ns**2
+        y = math.log(s.operating_ns / pr.mean_ns)
+        k = vp / (vp + r)
+        f[d], var[d] = fp + k * (y - fp), (1 - k) * vp
+    assert math.sqrt(se / sf) == pytest.approx(1.0, abs=0.03)
+
+
+def test_level_shifts_record_their_jumps_and_count_them_in_the_floor() -> None:
+    run = run_scenario("level-shifts", seed=2, cycles=4000)
+    assert 4 <= len(run.jumps) <= 25  # ~1 in 400 per direction
+    usual = statistics.median(s.floor_ns for s in run.strokes)
+    for j in run.jumps:
+        assert run.strokes[j].floor_ns > 3 * usual
+    assert sum(s.floor_ns > 3 * usual for s in run.strokes) == len(run.jumps)
