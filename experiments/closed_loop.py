@@ -101,9 +101,8 @@ def run(ctx: Context) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
     conditions: list[dict[str, Any]] = []
     figures: list[str] = []
-    fig_hist, ax_hist = new_figure(
-        1, 1 if ctx.recorded is not None else len(CONDITIONS), width=6.0, height=4.0
-    )
+    panels = 1 if ctx.recorded is not None else len(CONDITIONS)
+    fig_hist, ax_hist = new_figure(1, panels, width=4.8 * panels, height=4.0)  # each title whole
     conds = CONDITIONS if ctx.recorded is None else CONDITIONS[:1]  # a records file holds one run
     for k, (target_ns, freq, paper_std, paper_pct, band_pct) in enumerate(conds):
         s = ctx.strokes(

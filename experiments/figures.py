@@ -29,12 +29,37 @@ def save(fig: Any, figures_dir: Path, name: str) -> list[str]:
     import matplotlib.pyplot as plt
 
     figures_dir.mkdir(parents=True, exist_ok=True)
+    clipped = clipped_text(fig)
+    if clipped:  # a title or label cut at the figure's edge reads wrong: a bug of the figure's layout
+        plt.close(fig)
+        raise ValueError(f"figure {name}: text outside the figure: {clipped}")
     out = []
     for suffix in ("png", "svg"):
         path = figures_dir / f"{name}.{suffix}"
         fig.savefig(path, dpi=130)
         out.append(f"{figures_dir.name}/{path.name}")
     plt.close(fig)
+    return out
+
+
+def clipped_text(fig: Any) -> list[str]:
+    """The titles and axis labels that do not lie wholly inside the figure (laid out as saved)."""
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    box = fig.bbox
+    out = []
+    for ax in fig.axes:
+        for text in (ax.title, ax.xaxis.label, ax.yaxis.label):
+            if not text.get_text():
+                continue
+            ext = text.get_window_extent(renderer)
+            if (
+                ext.x0 < box.x0 - 0.5
+                or ext.x1 > box.x1 + 0.5
+                or ext.y0 < box.y0 - 0.5
+                or ext.y1 > box.y1 + 0.5
+            ):
+                out.append(text.get_text())
     return out
 
 

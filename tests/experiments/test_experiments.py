@@ -268,3 +268,13 @@ def test_each_experiment_has_its_own_help(name: str) -> None:
     assert "--from-records" in r.stdout and "--take-over" in r.stdout
     if name != "all":
         assert "Fig." in r.stdout or "Table" in r.stdout or "Commissioning" in r.stdout, r.stdout
+
+
+def test_a_figure_with_clipped_text_is_refused_by_name(tmp_path: Path) -> None:
+    """Fig. 14's title was cut at the figure's edge; `save` now checks every title and label."""
+    from usmswitch.experiments.figures import new_figure, save
+
+    fig, ax = new_figure(1, 2, width=3.0, height=2.0)
+    ax[0][1].set_title("T = 24 ms, 40.5 kHz (Fig. 14), a title far too long for its panel")
+    with pytest.raises(ValueError, match="figure narrow: text outside the figure"):
+        save(fig, tmp_path, "narrow")
