@@ -59,6 +59,12 @@ def run(ctx: Context) -> dict[str, Any]:
                 "two_xi_wn": round(b, 2),
                 "k_wn": round(k_wn, 1),
                 "paper": {"wn2": TABLE1_WN2[i], "two_xi_wn": TABLE1_2XI_WN[i], "k_wn": TABLE1_K_WN[i]},
+                # What the identification should recover: the simulated rig's own Eq. 1 at this frequency.
+                "model": {
+                    "wn2": sim.params.table_wn2[i],
+                    "two_xi_wn": sim.params.table_2xi_wn[i],
+                    "k_wn": sim.params.table_k_wn[i],
+                },
                 "operating_ns": stroke.operating_ns,
             }
         )

@@ -80,14 +80,14 @@ def render(summary: dict[str, Any]) -> str:
         )
     if section("identify"):
         lines += ["## Identification (Fig. 8, Table 1)", ""]
+        lines += ["Each: identified / the rig model's own / the paper's.", ""]
         lines += _table(
-            ["frequency", "w_n^2 (paper)", "2 xi w_n (paper)", "K w_n (paper)"],
+            ["frequency", "w_n^2", "2 xi w_n", "K w_n"],
             [
-                [
-                    f"{r['frequency_hz'] / 1e3:g} kHz",
-                    f"{r['wn2']} ({r['paper']['wn2']})",
-                    f"{r['two_xi_wn']} ({r['paper']['two_xi_wn']})",
-                    f"{r['k_wn']} ({r['paper']['k_wn']})",
+                [f"{r['frequency_hz'] / 1e3:g} kHz"]
+                + [
+                    f"{r[k]} / {r.get('model', {}).get(k, '-')} / {r['paper'][k]}"
+                    for k in ("wn2", "two_xi_wn", "k_wn")
                 ]
                 for r in summary["identify"]["rows"]
             ],
@@ -195,6 +195,36 @@ def render(summary: dict[str, Any]) -> str:
             "of one sigma, and cannot hold beside it. Its +-0.85 % band (+-102 us at 12 ms) and "
             '"less than 0.14 ms" agree with each other but not with the std either. We report ours as '
             "measured; the max error we give is the largest over the run.",
+            "",
+        ]
+    if section("drive_sensitivity"):
+        d = summary["drive_sensitivity"]
+        lines += ["## Drive sensitivity (commissioning; not in the paper)", ""]
+        lines += _table(
+            ["", "d ln t", "standard error", "meaning"],
+            [
+                [
+                    "per kHz of drive frequency",
+                    f"{d['per_khz']:+.4f}",
+                    f"{d['stderr_per_khz']:.4f}",
+                    f"{100 * d['per_khz']:+.1f} % stroke time per kHz",
+                ],
+                [
+                    "per 100 V of drive voltage",
+                    f"{d['per_100v']:+.4f}",
+                    f"{d['stderr_per_100v']:.4f}",
+                    f"{100 * d['per_100v']:+.1f} % stroke time per 100 V",
+                ],
+            ],
+        )
+        lines += [
+            f"Measured at {d['frequency_hz'] / 1e3:g} kHz, {d['voltage_vpp']:g} Vpp, {d['blocks']} blocks "
+            "stepped away and back (the friction's drift cancels). For the daemon's `[control]` "
+            "(docs/config.md), so the `kalman` predictor meets a drive step from its first stroke:",
+            "",
+            "```toml",
+            d["config"].rstrip("\n"),
+            "```",
             "",
         ]
     if section("reliability"):

@@ -278,3 +278,14 @@ def test_a_figure_with_clipped_text_is_refused_by_name(tmp_path: Path) -> None:
     ax[0][1].set_title("T = 24 ms, 40.5 kHz (Fig. 14), a title far too long for its panel")
     with pytest.raises(ValueError, match="figure narrow: text outside the figure"):
         save(fig, tmp_path, "narrow")
+
+
+def test_the_report_shows_the_rig_models_table_1_and_the_drive_sensitivity(everything: Path) -> None:
+    summary = json.loads((everything / "summary.json").read_text())
+    report = (everything / "report.md").read_text()
+    row = summary["identify"]["rows"][1]  # 40 kHz
+    assert row["model"] == {"wn2": 296.7, "two_xi_wn": 23.74, "k_wn": 642.9}
+    assert f"| {row['wn2']} / 296.7 / 296.7 |" in report
+    d = summary["drive_sensitivity"]
+    assert "## Drive sensitivity" in report and f"{d['per_khz']:+.4f}" in report
+    assert f"{d['stderr_per_100v']:.4f}" in report and "sensitivity_frequency" in report
