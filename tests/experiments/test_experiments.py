@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sqlite3
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import daemonproc
@@ -23,6 +25,21 @@ SCALE = "0.01"  # 1,000 reliability strokes, 40-240 for the others
 
 def run(*args: str) -> int:
     return main(list(args))
+
+
+@contextlib.contextmanager
+def virtual_daemon(tmp_path: Path) -> Iterator[Client]:
+    """A daemon on the simulated rig in virtual time, idle, and a client of it."""
+    args = daemonproc.daemon_args(
+        tmp_path, "--sim-clock", "virtual", "--no-autostart", "--log-level", "warning"
+    )
+    proc = daemonproc.spawn(args)
+    try:
+        daemonproc.wait_serving(tmp_path / "d.sock", proc)
+        with Client(tmp_path / "d.sock", timeout=30) as c:
+            yield c
+    finally:
+        daemonproc.stop(proc)
 
 
 @pytest.fixture(scope="module")
@@ -134,25 +151,17 @@ def test_a_seed_replays(tmp_path: Path) -> None:
 
 def test_from_a_daemons_records_the_same_figures_as_the_records(tmp_path: Path) -> None:
     """A daemon (virtual-time sim) makes a closed-loop run; the experiment reads its records file."""
-    args = daemonproc.daemon_args(
-        tmp_path, "--sim-clock", "virtual", "--no-autostart", "--log-level", "warning"
-    )
-    proc = daemonproc.spawn(args)
-    try:
-        daemonproc.wait_serving(tmp_path / "d.sock", proc)
-        with Client(tmp_path / "d.sock", timeout=30) as c:
-            run_info = c.run(count=300, period="25ms", target="12ms").wait()
-            # A live rig without a position sensor: the speed profile says what it needs.
-            r = subprocess.run(
-                [sys.executable, "-m", "usmswitch.experiments", "speed", "--socket", str(tmp_path / "d.sock"),
-                 "--out", str(tmp_path / "live")],
-                capture_output=True, text=True, timeout=60,
-            )  # fmt: skip
-            assert r.returncode == 1
-            notes = json.loads((tmp_path / "live" / "summary.json").read_text())["meta"]["notes"]
-            assert "speed: skipped: the speed profile needs the simulated rig" in notes[0]
-    finally:
-        daemonproc.stop(proc)
+    with virtual_daemon(tmp_path) as c:
+        run_info = c.run(count=300, period="25ms", target="12ms").wait()
+        # A live rig without a position sensor: the speed profile says what it needs.
+        r = subprocess.run(
+            [sys.executable, "-m", "usmswitch.experiments", "speed", "--socket", str(tmp_path / "d.sock"),
+             "--out", str(tmp_path / "live")],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert r.returncode == 1
+        notes = json.loads((tmp_path / "live" / "summary.json").read_text())["meta"]["notes"]
+        assert "speed: skipped: the speed profile needs the simulated rig" in notes[0]
     out = tmp_path / "from"
     db = tmp_path / "state" / "records.sqlite"
     assert run("closed-loop", "--from-records", str(db), "--out", str(out)) == 0
@@ -214,18 +223,10 @@ def test_drive_sensitivity_measures_the_rigs_drive_and_prints_the_config(tmp_pat
 def test_from_records_reads_the_model_and_mode_and_picks_the_last_closed_loop_run(tmp_path: Path) -> None:
     """Issue 25: any run was labelled "paper AR(1), controlling" and the last run (an open-loop one,
     say) was taken without a word."""
-    args = daemonproc.daemon_args(
-        tmp_path, "--sim-clock", "virtual", "--no-autostart", "--log-level", "warning"
-    )
-    proc = daemonproc.spawn(args)
-    try:
-        daemonproc.wait_serving(tmp_path / "d.sock", proc)
-        with Client(tmp_path / "d.sock", timeout=30) as c:
-            closed = c.run(count=260, period="25ms", target="12ms").wait()
-            c.set_mode("open", "1ms")
-            opened = c.run(count=260, period="25ms", target="12ms").wait()
-    finally:
-        daemonproc.stop(proc)
+    with virtual_daemon(tmp_path) as c:
+        closed = c.run(count=260, period="25ms", target="12ms").wait()
+        c.set_mode("open", "1ms")
+        opened = c.run(count=260, period="25ms", target="12ms").wait()
     db = str(tmp_path / "state" / "records.sqlite")
     cmd = [sys.executable, "-m", "usmswitch.experiments", "closed-loop", "--from-records", db]
     r = subprocess.run([*cmd, "--out", str(tmp_path / "a")], capture_output=True, text=True, timeout=120)

@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from usmswitch.drivers.mcu_protocol import FrameDecoder, Message, encode_frame
+from usmswitch.drivers.mcu_protocol import FrameDecoder, Hello, Message, encode_frame
 
 
 class Lockstep:
@@ -133,6 +133,12 @@ class FirmwareDevice:
 
     def send(self, msg: Message, seq: int) -> None:
         self.write(encode_frame(msg, seq))
+
+    def open_session(self, watchdog_ms: int = 60_000) -> None:
+        """End any partial frame, HELLO (protocol 1.1) and run 5 ms: the firmware answers and waits."""
+        self.write(b"\x00")
+        self.send(Hello(1, 1, watchdog_ms), 0)
+        self.run(5000)
 
     def run(self, us: int) -> list[tuple[int, Message]]:
         return self.decoder.feed(self.sim.run(us))

@@ -108,9 +108,7 @@ def test_every_interrupts_off_section_is_bounded(avrsim: Path, firmware_elf: Pat
     sim = Lockstep(avrsim, firmware_elf, "--seed", "4")
     dev = FirmwareDevice(sim)
     try:
-        dev.write(b"\x00")
-        dev.send(mp.Hello(1, 1, 60_000), 0)
-        dev.run(5000)
+        dev.open_session()
         seq = 1
         for n in range(1, 31):
             if n % 3 == 0:

@@ -91,9 +91,7 @@ def test_the_production_image_kicks_it_well_inside_its_period(avrsim: Path, firm
     sim = Lockstep(avrsim, firmware_elf, "--seed", "4")
     dev = FirmwareDevice(sim)
     try:
-        dev.write(b"\x00")
-        dev.send(mp.Hello(1, 1, 60_000), 0)
-        dev.run(5000)
+        dev.open_session()
         seq = 1
         for stroke in range(1, 21):
             dev.send(mp.Arm(stroke, (stroke + 1) % 2, 1000, 100_000), seq)
