@@ -8,7 +8,7 @@ import numpy as np
 
 from usmswitch.predictor import AR_MODELS, CRITERIA, aic_table
 
-from .context import Context
+from .context import Context, NeedsStrokes
 from .data import Strokes
 from .figures import DIRECTION_NAMES
 from .open_loop import FREQUENCY_HZ, PERIOD_NS, STROKES
@@ -53,7 +53,12 @@ def tables(s: Strokes) -> list[dict[str, Any]]:
 def run(ctx: Context) -> dict[str, Any]:
     s = ctx.strokes("aic", ctx.count(STROKES), PERIOD_NS, 12_000_000, mode="open", frequency_hz=FREQUENCY_HZ)
     all_tables = tables(s)
-    head = next(t for t in all_tables if "values" in t and t["criterion"] == "fit" and t["model"] == "paper")
+    head = next(
+        (t for t in all_tables if "values" in t and t["criterion"] == "fit" and t["model"] == "paper"), None
+    )
+    if head is None:
+        why = next((t["error"] for t in all_tables if "error" in t), "no strokes")
+        raise NeedsStrokes(f"aic: {len(s)} strokes of run {s.run_id} are too few to fit AR(1..3): {why}")
     return {
         "orders": head["orders"],
         "values": head["values"],

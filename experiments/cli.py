@@ -37,7 +37,7 @@ from . import (
     speed,
     temperature,
 )
-from .context import Context, NeedsSimulatedRig, no_progress
+from .context import Context, NeedsSimulatedRig, NeedsStrokes, no_progress
 from .data import Strokes
 from .rig import LiveRig, Progress, SimulatedRig
 
@@ -238,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
             key, fn = EXPERIMENTS[name]
             try:
                 section = fn(ctx)
-            except NeedsSimulatedRig as exc:
+            except (NeedsSimulatedRig, NeedsStrokes) as exc:
                 ctx.notes.append(f"{name}: skipped: {exc}")
                 if args.experiment != "all":
                     status = EXIT_FAILED

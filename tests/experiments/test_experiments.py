@@ -290,3 +290,15 @@ def test_the_report_shows_the_rig_models_table_1_and_the_drive_sensitivity(every
     d = summary["drive_sensitivity"]
     assert "## Drive sensitivity" in report and f"{d['per_khz']:+.4f}" in report
     assert f"{d['stderr_per_100v']:.4f}" in report and "sensitivity_frequency" in report
+
+
+def test_aic_on_a_run_too_short_to_fit_says_so(everything: Path, tmp_path: Path) -> None:
+    db = everything / "records.sqlite"
+    with sqlite3.connect(db) as con:
+        short = con.execute(
+            "SELECT run_id FROM cycles GROUP BY run_id HAVING count(*) < 20 ORDER BY run_id LIMIT 1"
+        ).fetchone()
+    assert short is not None
+    assert run("aic", "--from-records", str(db), "--run", str(short[0]), "--out", str(tmp_path / "r")) == 1
+    notes = json.loads((tmp_path / "r" / "summary.json").read_text())["meta"]["notes"]
+    assert notes and "too few to fit AR(1..3)" in notes[0]
