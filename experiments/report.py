@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from usmswitch.daemon.units import format_ns
 
 from .aic import PAPER_AIC
@@ -111,10 +113,28 @@ def render(summary: dict[str, Any]) -> str:
                 for r in summary["temperature"]["rows"]
             ],
         )
+        t = summary["temperature"]
         lines += [
-            "The paper shows the speed falling as the motor warms from 25 to 30 C, without numbers.",
+            "The paper shows the speed falling as the motor warms from 25 to 30 C, without numbers. "
+            "Each temperature's run here meets the same friction and noise (the rig model rewound: common "
+            "random numbers), so the runs differ by the temperature alone, not by the friction's drift "
+            "between runs, which is as large as the effect.",
             "",
         ]
+        if t.get("slopes_ms_per_c"):
+            slopes = t["slopes_ms_per_c"]
+            sign = (
+                "slower when warmer on every seed."
+                if t["every_seed_slower_when_warmer"]
+                else "NOT the same sign on every seed."
+            )
+            lines += [
+                f"Trend: {t['slope_ms_per_c'] * 1e3:+.1f} us per C on this seed; over {len(slopes)} "
+                f"seeds {np.mean(slopes) * 1e3:+.1f} us per C, spread (sd) "
+                f"{t['slope_spread_ms_per_c'] * 1e3:.1f} us per C, from {min(slopes) * 1e3:+.1f} to "
+                f"{max(slopes) * 1e3:+.1f}: {sign}",
+                "",
+            ]
     if section("aic"):
         a = summary["aic"]
         lines += ["## AIC order selection (Table 2)", ""]

@@ -483,6 +483,19 @@ class UsmSwitchModel:
         scale = 1.0 + self.params.friction_phi * self._friction[i]
         return self.dead_time_ns(direction) + round(self.motion_ns(direction) * scale)
 
+    def noise_state(self) -> tuple[list[float], object]:
+        """The friction and the noise stream as they are now. `rewind` to it and the rig makes the
+        same strokes again, so an experiment can vary one condition and nothing else (common random
+        numbers: Fig. 9's temperatures each meet the same friction, not three stretches of its drift)."""
+        return (list(self._friction), self._rng.getstate())
+
+    def rewind(self, state: tuple[list[float], object]) -> None:
+        """Back to a `noise_state()`: the same friction and noise from here (the drive, the thermal
+        state and the stroke counts are left as they are)."""
+        friction, rng = state
+        self._friction = [float(f) for f in friction]
+        self._rng.setstate(rng)  # type: ignore[arg-type]
+
     def friction(self, direction: Direction) -> float:
         """The friction state of a direction (relative motion-time offset), for diagnostics."""
         return self._friction[int(Direction(direction))]
