@@ -40,7 +40,7 @@ from benchmarks.bench_loop import PRIORITY, fifo_allowed, percentiles
 from benchmarks.table import print_table
 from usmswitch.client import Client, ConnectionClosed, RpcError
 from usmswitch.daemon.children import wait_exit
-from usmswitch.daemon.wire import estop_socket_path
+from usmswitch.protocol.wire import estop_socket_path
 
 ROOT = Path(__file__).resolve().parents[1]
 MS = 1_000_000

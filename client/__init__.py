@@ -9,8 +9,8 @@ daemon; a lab machine needs only this package.
             print(rec["cycle"], rec["error_ns"])
 """
 
-from usmswitch.daemon.sockdir import client_socket_paths
-from usmswitch.daemon.wire import (
+from usmswitch.protocol.sockets import client_socket_paths
+from usmswitch.protocol.wire import (
     Busy,
     CallTimeout,
     ErrorCode,

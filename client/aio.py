@@ -28,8 +28,8 @@ from typing import Any
 
 import msgpack
 
-from usmswitch.daemon.sockdir import check_peer, check_socket_owner
-from usmswitch.daemon.wire import MAX_MSGID, REQUEST, estop_socket_path
+from usmswitch.protocol.sockets import check_peer, check_socket_owner
+from usmswitch.protocol.wire import MAX_MSGID, REQUEST, estop_socket_path
 
 from .api import Api, Duration, find_socket
 from .connection import (

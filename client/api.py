@@ -17,8 +17,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from usmswitch.daemon.sockdir import client_socket_paths, rig_socket_path
-from usmswitch.daemon.units import parse_duration_ns
+from usmswitch.protocol.sockets import client_socket_paths, rig_socket_path
+from usmswitch.protocol.units import parse_duration_ns
 
 from .types import CycleRecord, Cycling, RunInfo, Stats, Status, Targets
 

@@ -25,8 +25,8 @@ from urllib.parse import parse_qs, urlsplit
 
 import msgpack
 
-from usmswitch.daemon.sockdir import UntrustedSocketError, check_peer, check_socket_owner
-from usmswitch.daemon.wire import (
+from usmswitch.protocol.sockets import UntrustedSocketError, check_peer, check_socket_owner
+from usmswitch.protocol.wire import (
     MAX_MSGID,
     NOTIFICATION,
     REQUEST,

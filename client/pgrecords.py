@@ -26,7 +26,7 @@ from usmswitch.daemon.pg_schema import (
     SELECT_VERSION,
     redact_url,
 )
-from usmswitch.daemon.record import RunRecord
+from usmswitch.protocol.record import RunRecord
 
 from .records import RecordsFileError, RecordsSource
 

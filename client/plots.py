@@ -12,8 +12,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from usmswitch.daemon.record import CycleRecord, Flag
-from usmswitch.daemon.units import format_ns
+from usmswitch.protocol.record import CycleRecord, Flag
+from usmswitch.protocol.units import format_ns
 
 # The paper's bounds on the closed-loop error, in % of T (dashed on the error plot).
 PAPER_BOUNDS_PCT = (0.42, 0.85)

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
-from usmswitch.daemon.record import FIELDS, LATER_FIELDS, CycleRecord, Flag, RunRecord
+from usmswitch.protocol.record import FIELDS, LATER_FIELDS, CycleRecord, Flag, RunRecord
 
 RECORDS_FILE = "records.sqlite"
 KNOWN_SCHEMAS = ("1", "2", "3")

@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from typing import Any, Protocol
 
-from usmswitch.daemon.wire import MAX_HISTORY
+from usmswitch.protocol.wire import MAX_HISTORY
 
 from .types import CycleRecord, Cycling, Notification, RunInfo, Stats
 

@@ -103,7 +103,7 @@ class CycleRecord(TypedDict):
     lateness_ns: int | None
     temperature_c: float | None
     frequency_hz: float | None
-    flags: int  # usmswitch.daemon.record.Flag bits
+    flags: int  # usmswitch.protocol.record.Flag bits
     wall_ns: int
     driver: str | None  # the driver that made the stroke ("sim", "serial", "usb")
     rig: str | None  # the rig's identity ([daemon] rig, the host name by default)

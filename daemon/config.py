@@ -24,6 +24,8 @@ from typing import Any
 from usmswitch.drivers.serial_mcu import DEFAULT_BAUD
 from usmswitch.predictor import DEFAULT_MODEL, MAX_ORDER, MODELS, check_stroke_ns, min_samples
 from usmswitch.predictor.factory import OPTIONS as PREDICTOR_OPTIONS
+from usmswitch.protocol.sockets import default_socket_path
+from usmswitch.protocol.units import format_ns
 from usmswitch.sim import FaultPlan
 
 from .config_values import (
@@ -56,8 +58,6 @@ from .config_values import (
     text_value,
 )
 from .pg_schema import check_url, redact_url
-from .sockdir import default_socket_path
-from .units import format_ns
 
 DRIVERS = ("sim", "serial", "usb")
 SIM_CLOCKS = ("real", "virtual")

@@ -16,8 +16,7 @@ from socket import gethostname
 from typing import Any
 
 from usmswitch.predictor import MAX_ORDER
-
-from .units import UNITS_NS, parse_duration_ns
+from usmswitch.protocol.units import UNITS_NS, parse_duration_ns
 
 #: The most a socket's mode may allow: owner and group read and write.
 SOCKET_MODE_ALLOWED = 0o660

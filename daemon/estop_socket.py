@@ -23,8 +23,8 @@ from typing import Any
 
 import msgpack
 
-from .rpc_params import check_params
-from .wire import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, Limits, RpcError
+from usmswitch.protocol.rpc_params import check_params
+from usmswitch.protocol.wire import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, Limits, RpcError
 
 log = logging.getLogger("usmswitch.rpc")
 

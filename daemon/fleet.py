@@ -15,14 +15,15 @@ from typing import Any
 
 import structlog
 
+from usmswitch.protocol.record import CycleRecord, RunRecord
+from usmswitch.protocol.version import PACKAGE_VERSION
+
 from .config import Config
 from .loop import ControlLoop
 from .metrics import STATE_FEED, STROKES_FEED, StrokeMetrics
-from .record import CycleRecord, RunRecord
 from .records import RecordStore
 from .rpc import RpcServer
 from .shipper_process import STOP_OVERHEAD_NS, ShipperProcess
-from .version import PACKAGE_VERSION
 
 #: The least a stopping shipper is given to ship what the records file committed last.
 SHIP_DRAIN_MIN_NS = 5_000_000

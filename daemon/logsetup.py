@@ -28,7 +28,7 @@ from typing import Any, TextIO
 import structlog
 from structlog.typing import EventDict, Processor, WrappedLogger
 
-from .units import format_ns, is_instant_field
+from usmswitch.protocol.units import format_ns, is_instant_field
 
 LEVELS = {
     "debug": logging.DEBUG,

@@ -22,11 +22,11 @@ from typing import Any
 import structlog
 
 from usmswitch.drivers import Conditions, Daq, DaqError, DaqHalted, Direction, EventKind, FaultCode, check_ns
+from usmswitch.protocol.record import CycleRecord, Flag, RunRecord
+from usmswitch.protocol.stats import DirectionStats
+from usmswitch.protocol.units import format_ns
 
 from .plan import Mode, Plan, direction_from_levels, drive_of, flags_for_failure, predictor_conditions
-from .record import CycleRecord, Flag, RunRecord
-from .stats import DirectionStats
-from .units import format_ns
 
 log = structlog.get_logger("usmswitch.loop")
 

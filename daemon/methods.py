@@ -18,17 +18,17 @@ from typing import Any, Protocol
 import structlog
 
 from usmswitch.drivers import Daq, DaqError, Direction
+from usmswitch.protocol.record import CycleRecord, RunRecord
+from usmswitch.protocol.version import PACKAGE_VERSION
+from usmswitch.protocol.wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, estop_socket_path
 
 from .config import Config
 from .config_values import parse_host_port, parse_listen
 from .estop_socket import EstopSocket
 from .loop import AUTOSTART_OWNER, ControlLoop, LoopError, Mode, State, TargetUnreachableError
 from .metrics import FEEDS
-from .record import CycleRecord, RunRecord
 from .records import RecordStore
 from .rpc import RpcServer
-from .version import PACKAGE_VERSION
-from .wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, estop_socket_path
 
 log = structlog.get_logger("usmswitch.daemon")
 
@@ -425,7 +425,7 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         records_path=daemon.store.path,
         topics=("stroke", "state", "run"),
         snapshot_methods=("stats",),
-        snapshot_finishers={"stats": "usmswitch.daemon.stats:finish_snapshot"},
+        snapshot_finishers={"stats": "usmswitch.protocol.stats:finish_snapshot"},
         feeds=FEEDS if daemon.config.metrics.listen else (),
         metrics=parse_listen(daemon.config.metrics.listen) if daemon.config.metrics.listen else None,
         limits=Limits(max_connections=cfg.max_clients, max_tcp_connections=cfg.max_tcp_clients),

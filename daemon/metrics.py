@@ -13,8 +13,8 @@ from __future__ import annotations
 from bisect import bisect_left
 from typing import Any
 
-from .record import CycleRecord, Flag, RunRecord
-from .stats import Running
+from usmswitch.protocol.record import CycleRecord, Flag, RunRecord
+from usmswitch.protocol.stats import Running
 
 #: The snapshots the daemon sends the server process for the page (RpcServer feeds): the strokes
 #: (record writer's thread) and the state (the loop's slack).

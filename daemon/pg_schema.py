@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Any
 from urllib.parse import SplitResult, urlsplit, urlunsplit
 
-from .record import FIELDS, RUN_FIELDS
+from usmswitch.protocol.record import FIELDS, RUN_FIELDS
 
 #: The version of these tables; the shipper creates them at start and refuses a newer database.
 PG_SCHEMA_VERSION = 1

@@ -8,8 +8,7 @@ from enum import StrEnum
 from typing import Any
 
 from usmswitch.drivers import Conditions, Direction
-
-from .record import Flag
+from usmswitch.protocol.record import Flag
 
 
 class Mode(StrEnum):

@@ -36,9 +36,8 @@ from urllib.parse import quote
 
 import structlog
 
-from .realtime import drop_realtime
-from .record import UNUSABLE, CycleRecord, RunRecord
-from .records_schema import (
+from usmswitch.protocol.record import UNUSABLE, CycleRecord, RunRecord
+from usmswitch.protocol.records_schema import (
     INSERT_CYCLE,
     INSERT_EVENT,
     MIGRATIONS,
@@ -49,6 +48,8 @@ from .records_schema import (
     SELECT_CYCLES,
     UPSERT_RUN,
 )
+
+from .realtime import drop_realtime
 
 log = structlog.get_logger("usmswitch.records")
 

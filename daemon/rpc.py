@@ -34,9 +34,18 @@ from typing import Any
 
 import msgpack
 
+from usmswitch.protocol.wire import (
+    BUILTIN_METHODS,
+    SERVER_TOPICS,
+    ErrorCode,
+    Limits,
+    RpcError,
+    note_frame,
+    packb,
+)
+
 from .children import end_child
 from .rpc_process import serve
-from .wire import BUILTIN_METHODS, SERVER_TOPICS, ErrorCode, Limits, RpcError, note_frame, packb
 
 log = logging.getLogger("usmswitch.rpc")
 

@@ -25,11 +25,8 @@ from typing import Any
 
 import msgpack
 
-from .logsetup import configure_logging
-from .process_exit import exit_now
-from .realtime import renice
-from .rpc_params import PARAMS, check_params, show
-from .wire import (
+from usmswitch.protocol.rpc_params import PARAMS, check_params, show
+from usmswitch.protocol.wire import (
     BUILTIN_METHODS,
     MAX_MSGID,
     REQUEST,
@@ -42,6 +39,10 @@ from .wire import (
     packb,
     unpacker,
 )
+
+from .logsetup import configure_logging
+from .process_exit import exit_now
+from .realtime import renice
 
 log = logging.getLogger("usmswitch.rpc")
 
@@ -121,7 +122,7 @@ def _stats_reply(
     records_path: str, run_id: int | None, first_cycle: int | None, last_cycle: int | None
 ) -> bytes:
     """Statistics of a past run or a range of cycles, from the records file, packed."""
-    from .stats import stats_of_records  # the server process only
+    from usmswitch.protocol.stats import stats_of_records  # the server process only
 
     store = _reader(records_path, "stats")
     run = None if run_id is None else _known_run(store, "stats", run_id)

@@ -27,6 +27,8 @@ import structlog
 
 from usmswitch.drivers import Daq, DaqError, Direction
 from usmswitch.predictor import AR_MODELS, Predictor, make_predictors
+from usmswitch.protocol.record import CycleRecord, Flag, RunRecord
+from usmswitch.protocol.units import format_ns
 
 from .board import BoardPoller
 from .config import Config, ConfigError
@@ -36,13 +38,11 @@ from .logsetup import configure_logging
 from .loop import AUTOSTART_OWNER, ControlLoop, State, TargetUnreachableError, direction_from_levels
 from .methods import start_rpc
 from .realtime import apply_realtime, lift_helpers, resolve_priority, scheduling_text
-from .record import CycleRecord, Flag, RunRecord
 from .records import RecordStore, RecordStoreError
 from .rig_memory import RigMemory
 from .sdnotify import Notifier
 from .sensitivity_memory import Sensitivities, SensitivityMemory
 from .sockdir import ensure_private_dir, prepare_socket_dir
-from .units import format_ns
 
 RECORDS_FILE = "records.sqlite"
 LOCK_FILE = "usmswitchd.lock"

@@ -22,6 +22,9 @@ from urllib.parse import quote
 
 import structlog
 
+from usmswitch.protocol.record import RUN_FIELDS
+from usmswitch.protocol.records_schema import COLUMNS, SCHEMA_VERSION
+
 from .pg_schema import (
     COPY_STAGE,
     CREATE_STAGE,
@@ -40,8 +43,6 @@ from .pg_schema import (
     redact_url,
 )
 from .realtime import drop_realtime
-from .record import RUN_FIELDS
-from .records_schema import COLUMNS, SCHEMA_VERSION
 
 log = structlog.get_logger("usmswitch.shipper")
 

@@ -1109,7 +1109,7 @@ def _with_where(where: str, why: str) -> str:
 
 
 def _fmt_ns(ns: int) -> str:
-    """Nanoseconds for people, as usmswitch.daemon.units.format_ns writes them: "12.000 ms", "95.3 us"."""
+    """Nanoseconds for people, as usmswitch.protocol.units.format_ns writes them: "12.000 ms", "95.3 us"."""
     sign = "-" if ns < 0 else ""
     mag = abs(ns)
     if mag < 1_000:

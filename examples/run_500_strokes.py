@@ -21,7 +21,7 @@ import time
 from typing import Any
 
 from usmswitch.client import Client, RpcError, Stats, find_socket
-from usmswitch.daemon.units import format_ns, parse_duration_ns
+from usmswitch.protocol.units import format_ns, parse_duration_ns
 
 # The paper's closed-loop result at T = 12 ms and 24 ms (std of the error), for comparison.
 PAPER_STD_NS = {12_000_000: 95_300, 24_000_000: 102_700}

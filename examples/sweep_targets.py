@@ -6,7 +6,7 @@ USMSWITCH_SOCKET=/run/usmswitch/usmswitchd.sock python examples/sweep_targets.py
 """
 
 from usmswitch.client import Client
-from usmswitch.daemon.units import format_ns
+from usmswitch.protocol.units import format_ns
 
 with Client() as rig:  # found as usmswitchctl finds it
     if rig.status()["state"] == "cycling":

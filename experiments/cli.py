@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from usmswitch.client import RecordsFileError, open_records
-from usmswitch.daemon.version import PACKAGE_VERSION
+from usmswitch.protocol.version import PACKAGE_VERSION
 
 from . import (
     aic,

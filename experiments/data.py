@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from usmswitch.daemon.record import UNUSABLE, Flag
+from usmswitch.protocol.record import UNUSABLE, Flag
 
 #: The record fields an experiment reads (the rest stay in the records file).
 COLUMNS = (

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from usmswitch.daemon.record import CycleRecord
+from usmswitch.protocol.record import CycleRecord
 from usmswitch.sim.params import TABLE1_2XI_WN, TABLE1_FREQUENCY_HZ, TABLE1_K_WN, TABLE1_WN2
 
 from .context import MS, Context

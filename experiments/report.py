@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from usmswitch.daemon.units import format_ns
+from usmswitch.protocol.units import format_ns
 
 from .aic import PAPER_AIC
 

@@ -17,10 +17,10 @@ from typing import Any, Protocol
 
 from usmswitch.client import Client, RpcError
 from usmswitch.daemon.loop import AUTOSTART_OWNER, ControlLoop, Mode
-from usmswitch.daemon.record import CycleRecord
 from usmswitch.daemon.records import RecordStore
-from usmswitch.daemon.units import format_ns
 from usmswitch.predictor import ARPredictor
+from usmswitch.protocol.record import CycleRecord
+from usmswitch.protocol.units import format_ns
 from usmswitch.sim import SimDaq
 from usmswitch.sim.model import UsmSwitchModel
 from usmswitch.sim.params import RigParams

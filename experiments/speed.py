@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from usmswitch.daemon.record import CycleRecord
+from usmswitch.protocol.record import CycleRecord
 
 from .context import MS, Context
 from .figures import new_figure, save

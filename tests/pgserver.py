@@ -160,7 +160,7 @@ def synthetic_records(first: int, count: int, seed: int = 1, run_id: int | None 
     stamps: what a shipper must carry over field for field."""
     import random
 
-    from usmswitch.daemon.record import CycleRecord, Flag
+    from usmswitch.protocol.record import CycleRecord, Flag
 
     rng = random.Random(seed * 1_000_003 + first)
     out = []

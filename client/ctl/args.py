@@ -6,7 +6,7 @@ import argparse
 import re
 from decimal import Decimal, InvalidOperation
 
-from usmswitch.daemon.units import parse_duration_ns
+from usmswitch.protocol.units import parse_duration_ns
 
 EXIT_OK = 0
 EXIT_REFUSED = 1

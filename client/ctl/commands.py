@@ -8,7 +8,7 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
-from usmswitch.daemon.record import UNUSABLE
+from usmswitch.protocol.record import UNUSABLE
 
 from ..connection import Client
 from .args import (

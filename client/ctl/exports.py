@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import IO
 
-from usmswitch.daemon.record import CycleRecord as Record
+from usmswitch.protocol.record import CycleRecord as Record
 
 from ..connection import Client
 from ..records import RecordsFileError

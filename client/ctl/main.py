@@ -19,7 +19,7 @@ import signal
 import sys
 from typing import Any
 
-from usmswitch.daemon.wire import ErrorCode, RpcError, estop_socket_path
+from usmswitch.protocol.wire import ErrorCode, RpcError, estop_socket_path
 
 from ..api import find_socket
 from ..connection import DEFAULT_TIMEOUT, Client, ConnectionClosed, parse_address

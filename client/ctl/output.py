@@ -13,9 +13,9 @@ from collections.abc import Callable, Iterable, Sequence
 from types import TracebackType
 from typing import IO, Any
 
-from usmswitch.daemon.record import FIELDS, UNUSABLE, Flag
-from usmswitch.daemon.stats import Running
-from usmswitch.daemon.units import format_elapsed, format_ns, is_instant_field
+from usmswitch.protocol.record import FIELDS, UNUSABLE, Flag
+from usmswitch.protocol.stats import Running
+from usmswitch.protocol.units import format_elapsed, format_ns, is_instant_field
 
 from ..types import CycleRecord
 from .args import DIRECTION_NAMES, WATCH_HEADER_EVERY

@@ -8,8 +8,8 @@ import re
 import sys
 from typing import Any, NoReturn
 
-from usmswitch.daemon.version import version_text
-from usmswitch.daemon.wire import MAX_HISTORY, PROTOCOL_VERSION
+from usmswitch.protocol.version import version_text
+from usmswitch.protocol.wire import MAX_HISTORY, PROTOCOL_VERSION
 
 from .args import (
     EXIT_USAGE,

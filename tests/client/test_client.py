@@ -19,7 +19,7 @@ from usmswitch.client import Client, ConnectionClosed
 from usmswitch.client.api import run_owner
 from usmswitch.client.connection import parse_address
 from usmswitch.daemon.rpc import RpcServer
-from usmswitch.daemon.wire import ErrorCode, Limits, RpcError
+from usmswitch.protocol.wire import ErrorCode, Limits, RpcError
 
 TOKEN = "client-test-token-0123"
 METHODS = (

@@ -27,7 +27,7 @@ import pytest
 from usmswitch.client import Client
 from usmswitch.client.ctl import args as ctl_args
 from usmswitch.client.ctl import output as ctl_out
-from usmswitch.daemon.record import FIELDS, CycleRecord, Flag
+from usmswitch.protocol.record import FIELDS, CycleRecord, Flag
 
 MS = 1_000_000
 BIN = Path(sys.executable).parent / "usmswitchctl"

@@ -18,7 +18,7 @@ import daemonproc
 import pytest
 
 from usmswitch.client.ctl import output as out
-from usmswitch.daemon.record import FIELDS, Flag
+from usmswitch.protocol.record import FIELDS, Flag
 
 MS = 1_000_000
 BIN = Path(sys.executable).parent / "usmswitchctl"

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 
 from usmswitch.client.ctl import args as ctl_args
-from usmswitch.daemon.version import PACKAGE_VERSION
-from usmswitch.daemon.wire import PROTOCOL_VERSION
+from usmswitch.protocol.version import PACKAGE_VERSION
+from usmswitch.protocol.wire import PROTOCOL_VERSION
 
 BIN = Path(sys.executable).parent / "usmswitchctl"
 CTL = [str(BIN)] if BIN.exists() else [sys.executable, "-m", "usmswitch.client.ctl"]
@@ -85,8 +85,8 @@ def test_every_exit_code_is_documented(repo_root: Path) -> None:
 def test_a_failed_export_leaves_no_partial_file(tmp_path: Path) -> None:
     # A records file whose row 1500 cannot be read: the export fails after the first chunks are
     # written to out.csv.partial, and must leave neither a .partial nor an out.csv behind.
-    from usmswitch.daemon.record import CycleRecord
     from usmswitch.daemon.records import RecordStore
+    from usmswitch.protocol.record import CycleRecord
 
     state = tmp_path / "state"
     state.mkdir()

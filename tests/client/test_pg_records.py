@@ -15,9 +15,9 @@ import pgserver
 import pytest
 
 from usmswitch.client import PostgresRecords, RecordsFile, RecordsFileError, open_records
-from usmswitch.daemon.record import RunRecord
 from usmswitch.daemon.records import RecordStore
 from usmswitch.daemon.shipper import PostgresShipper
+from usmswitch.protocol.record import RunRecord
 
 BIN = Path(sys.executable).parent / "usmswitchctl"
 CTL = [str(BIN)] if BIN.exists() else [sys.executable, "-m", "usmswitch.client.ctl"]

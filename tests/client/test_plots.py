@@ -9,9 +9,9 @@ import pytest
 
 from usmswitch.client.plots import plot_run, run_marks
 from usmswitch.daemon.loop import ControlLoop
-from usmswitch.daemon.record import CycleRecord
 from usmswitch.daemon.records import RecordStore
 from usmswitch.predictor import ARPredictor
+from usmswitch.protocol.record import CycleRecord
 from usmswitch.sim import SimDaq
 
 

@@ -10,9 +10,9 @@ import pytest
 
 from usmswitch.client import RecordsFile, RecordsFileError
 from usmswitch.daemon.loop import ControlLoop
-from usmswitch.daemon.record import Flag
 from usmswitch.daemon.records import RecordStore
 from usmswitch.predictor import ARPredictor
+from usmswitch.protocol.record import Flag
 from usmswitch.sim import SimDaq
 
 MS = 1_000_000

@@ -10,8 +10,8 @@ from pathlib import Path
 
 from usmswitch.daemon import cli, service
 from usmswitch.daemon.config import load_config
-from usmswitch.daemon.version import PACKAGE_VERSION
-from usmswitch.daemon.wire import PROTOCOL_VERSION
+from usmswitch.protocol.version import PACKAGE_VERSION
+from usmswitch.protocol.wire import PROTOCOL_VERSION
 
 DAEMON = [sys.executable, "-m", "usmswitch.daemon.cli"]
 

@@ -19,8 +19,8 @@ from usmswitch.daemon.config import (
 )
 from usmswitch.daemon.config_values import parse_listen, parse_modbus_url
 from usmswitch.daemon.service import direction_predictors
-from usmswitch.daemon.sockdir import client_socket_paths, default_socket_path
 from usmswitch.predictor import DEFAULT_MODEL
+from usmswitch.protocol.sockets import client_socket_paths, default_socket_path
 
 ENV = {"HOME": "/home/lab", "XDG_RUNTIME_DIR": "/run/user/1000"}
 

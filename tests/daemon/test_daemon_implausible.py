@@ -11,8 +11,8 @@ import faultmcu
 import pytest
 from test_daemon_hw_checks import FAULT, MS, daemon, rows, run
 
-from usmswitch.daemon.record import Flag
 from usmswitch.drivers.mcu_protocol import U32_MOD, Edge, Message, Start, Stroke
+from usmswitch.protocol.record import Flag
 
 pytestmark = pytest.mark.realtime
 

@@ -23,7 +23,7 @@ import pytest
 from rawsock import Raw
 
 from usmswitch.client import Client, ConnectionClosed, ErrorCode
-from usmswitch.daemon.wire import estop_socket_path
+from usmswitch.protocol.wire import estop_socket_path
 
 MS = 1_000_000
 

@@ -18,7 +18,7 @@ import msgpack
 import pytest
 
 from usmswitch.client import Client, ConnectionClosed, ErrorCode, RpcError
-from usmswitch.daemon.record import Flag
+from usmswitch.protocol.record import Flag
 
 MS = 1_000_000
 TOKEN = "lab-token-0123456789abcdef"

@@ -20,7 +20,7 @@ import daemonproc
 import pytest
 
 from usmswitch.client import Client
-from usmswitch.daemon.record import Flag
+from usmswitch.protocol.record import Flag
 
 MS = 1_000_000
 

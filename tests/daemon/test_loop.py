@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 
 from usmswitch.daemon.loop import ControlLoop, LoopError, Mode, State
-from usmswitch.daemon.record import CycleRecord, Flag
 from usmswitch.daemon.records import RecordStore
 from usmswitch.drivers import Direction
 from usmswitch.predictor import ARPredictor
+from usmswitch.protocol.record import CycleRecord, Flag
 from usmswitch.sim import SimDaq
 
 MS = 1_000_000

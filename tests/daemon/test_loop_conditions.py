@@ -6,9 +6,9 @@ from __future__ import annotations
 from typing import Any
 
 from usmswitch.daemon.loop import ControlLoop
-from usmswitch.daemon.record import CycleRecord
 from usmswitch.drivers import Direction
 from usmswitch.predictor import ARPredictor, make_predictor
+from usmswitch.protocol.record import CycleRecord
 from usmswitch.sim import SimDaq
 
 MS = 1_000_000

@@ -15,11 +15,11 @@ from pathlib import Path
 import pytest
 
 from usmswitch.daemon.loop import ControlLoop, LoopError, Mode, State
-from usmswitch.daemon.record import CycleRecord, Flag
 from usmswitch.drivers import Direction
 from usmswitch.drivers.mcu_protocol import MsgType
 from usmswitch.drivers.serial_mcu import SerialMcuDaq
 from usmswitch.predictor import ARPredictor
+from usmswitch.protocol.record import CycleRecord, Flag
 from usmswitch.sim import SimDaq
 from usmswitch.sim.mcu_emulator import McuEmulator, PtyLink
 

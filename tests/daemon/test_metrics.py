@@ -22,7 +22,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from usmswitch.client import Client
 from usmswitch.daemon.metrics import FEEDS, StrokeMetrics
 from usmswitch.daemon.metrics_page import MetricsPage
-from usmswitch.daemon.record import Flag, RunRecord
+from usmswitch.protocol.record import Flag, RunRecord
 
 # A stroke's outcome written out again here, apart from metrics.outcome(): the flag bits of
 # docs/records.md in the order of docs/fleet.md, as SQL both SQLite and PostgreSQL run.

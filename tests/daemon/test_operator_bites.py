@@ -16,9 +16,9 @@ import pytest
 import usmswitch
 from usmswitch.client import Client, ErrorCode, RpcError, TargetUnreachable, WrongState
 from usmswitch.daemon.config import load_config
-from usmswitch.daemon.units import parse_duration_ns
-from usmswitch.daemon.wire import _BY_CODE
 from usmswitch.drivers.serial_mcu import DEFAULT_BAUD
+from usmswitch.protocol.units import parse_duration_ns
+from usmswitch.protocol.wire import _BY_CODE
 
 CTL = [sys.executable, "-m", "usmswitch.client.ctl"]
 EXIT_CONFIG = 2

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import pytest
 
-from usmswitch.daemon.record import FIELDS, UNUSABLE, CycleRecord, Flag
 from usmswitch.daemon.records import RecordStore, RecordStoreError
-from usmswitch.daemon.records_schema import SCHEMA_VERSION
+from usmswitch.protocol.record import FIELDS, UNUSABLE, CycleRecord, Flag
+from usmswitch.protocol.records_schema import SCHEMA_VERSION
 
 
 def make_record(cycle: int, *, operating_ns: int | None = 10_500_000, flags: int = 0) -> CycleRecord:

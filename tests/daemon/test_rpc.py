@@ -21,8 +21,8 @@ import pytest
 from rawsock import Raw
 
 from usmswitch.daemon.rpc import RpcServer
-from usmswitch.daemon.rpc_params import check_params
-from usmswitch.daemon.wire import ErrorCode, Limits, RpcError
+from usmswitch.protocol.rpc_params import check_params
+from usmswitch.protocol.wire import ErrorCode, Limits, RpcError
 
 TOKEN = "t0ken-of-twenty-chars"
 

@@ -17,7 +17,7 @@ import pytest
 
 from usmswitch.client import Client
 from usmswitch.daemon.rpc import RpcServer
-from usmswitch.daemon.wire import ErrorCode, Limits
+from usmswitch.protocol.wire import ErrorCode, Limits
 
 GOOD = [
     [0, 1, "ping", []],

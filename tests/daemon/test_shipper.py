@@ -20,9 +20,9 @@ import pytest
 
 from usmswitch.client import Client
 from usmswitch.daemon.pg_schema import CYCLE_COLUMNS, CYCLES_TABLE, RUN_COLUMNS, RUNS_TABLE
-from usmswitch.daemon.record import CycleRecord, RunRecord
 from usmswitch.daemon.records import RecordStore
 from usmswitch.daemon.shipper import PostgresShipper
+from usmswitch.protocol.record import CycleRecord, RunRecord
 
 FAST = {"retry_ns": (20_000_000, 200_000_000), "poll_ns": 50_000_000, "connect_timeout_s": 2}
 

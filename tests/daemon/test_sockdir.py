@@ -17,12 +17,8 @@ from pathlib import Path
 import pytest
 
 from usmswitch.client import Client, UntrustedSocketError
-from usmswitch.daemon.sockdir import (
-    check_private_dir,
-    check_socket_owner,
-    ensure_private_dir,
-    prepare_socket_dir,
-)
+from usmswitch.daemon.sockdir import check_private_dir, ensure_private_dir, prepare_socket_dir
+from usmswitch.protocol.sockets import check_socket_owner
 
 NOBODY = 65534
 root_only = pytest.mark.skipif(os.geteuid() != 0, reason="chown to another uid needs root")
@@ -179,7 +175,7 @@ def test_a_path_that_is_not_a_socket_is_refused(tmp_path: Path):
 
 
 def test_a_rig_instance_socket_is_looked_for_after_usmswitch_socket() -> None:
-    from usmswitch.daemon.sockdir import client_socket_paths, rig_socket_path
+    from usmswitch.protocol.sockets import client_socket_paths, rig_socket_path
 
     assert rig_socket_path("rigA") == Path("/run/usmswitch/rigA/usmswitchd.sock")
     paths = client_socket_paths({"USMSWITCH_SOCKET": "/a.sock", "USMSWITCH_RIG": "rigB"})

@@ -14,7 +14,7 @@ import pytest
 
 from usmswitch.client import Client
 from usmswitch.daemon.config import UsbConfig, load_config
-from usmswitch.daemon.sockdir import client_socket_paths, rig_socket_path
+from usmswitch.protocol.sockets import client_socket_paths, rig_socket_path
 
 ANALYZE = shutil.which("systemd-analyze") or ""
 

@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from usmswitch.daemon.units import MAX_NS, format_ns, parse_duration_ns
+from usmswitch.protocol.units import MAX_NS, format_ns, parse_duration_ns
 
 
 @pytest.mark.parametrize(
@@ -101,7 +101,7 @@ def test_format_refuses_floats():
 
 
 def test_format_elapsed_reads_like_an_uptime() -> None:
-    from usmswitch.daemon.units import format_elapsed
+    from usmswitch.protocol.units import format_elapsed
 
     s = 1_000_000_000
     assert format_elapsed(14_514_742_000) == "14.5 s"
