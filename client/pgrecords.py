@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from usmswitch.daemon.pg_schema import (
+from usmswitch.fleet.pg_schema import (
     CYCLE_COLUMNS,
     CYCLES_TABLE,
     META_TABLE,

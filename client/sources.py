@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from usmswitch.daemon.pg_schema import is_postgres_url
+from usmswitch.fleet.pg_schema import is_postgres_url
 
 from .pgrecords import PostgresRecords
 from .records import RecordsFile, RecordsSource

@@ -22,6 +22,7 @@ from types import MappingProxyType
 from typing import Any
 
 from usmswitch.drivers.serial_mcu import DEFAULT_BAUD
+from usmswitch.fleet.pg_schema import check_url, redact_url
 from usmswitch.predictor import DEFAULT_MODEL, MAX_ORDER, MODELS, check_stroke_ns, min_samples
 from usmswitch.predictor.factory import OPTIONS as PREDICTOR_OPTIONS
 from usmswitch.protocol.sockets import default_socket_path
@@ -57,7 +58,6 @@ from .config_values import (
     table_int,
     text_value,
 )
-from .pg_schema import check_url, redact_url
 
 DRIVERS = ("sim", "serial", "usb")
 SIM_CLOCKS = ("real", "virtual")

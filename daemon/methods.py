@@ -18,6 +18,7 @@ from typing import Any, Protocol
 import structlog
 
 from usmswitch.drivers import Daq, DaqError, Direction
+from usmswitch.fleet.metrics import FEEDS
 from usmswitch.protocol.record import CycleRecord, RunRecord
 from usmswitch.protocol.version import PACKAGE_VERSION
 from usmswitch.protocol.wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, estop_socket_path
@@ -26,7 +27,6 @@ from .config import Config
 from .config_values import parse_host_port, parse_listen
 from .estop_socket import EstopSocket
 from .loop import AUTOSTART_OWNER, ControlLoop, LoopError, Mode, State, TargetUnreachableError
-from .metrics import FEEDS
 from .records import RecordStore
 from .rpc import RpcServer
 

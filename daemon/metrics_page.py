@@ -1,7 +1,7 @@
 """The Prometheus page, served by the socket's server process (daemon/rpc_process.py) over HTTP.
 
 The daemon sends two snapshots over its channel, as it sends `stats`: `metrics_strokes` (counts and
-histograms of committed strokes, daemon/metrics.py, from the record writer's thread) and
+histograms of committed strokes, fleet/metrics.py, from the record writer's thread) and
 `metrics_state` (state, fault, targets, record writer and shipper figures, from the loop's slack).
 This module turns them, with the server's own count of socket clients, into prometheus_client
 metric families and text (`choose_encoder`: the Prometheus text format, or OpenMetrics when the
@@ -28,7 +28,7 @@ from prometheus_client.core import (
 )
 from prometheus_client.exposition import choose_encoder
 
-from .metrics import DIRECTION_NAMES, FEEDS, HISTOGRAMS, OUTCOMES, STATE_FEED, STROKES_FEED
+from usmswitch.fleet.metrics import DIRECTION_NAMES, FEEDS, HISTOGRAMS, OUTCOMES, STATE_FEED, STROKES_FEED
 
 log = logging.getLogger("usmswitch.rpc")
 STATES = ("idle", "cycling", "fault", "stopped")

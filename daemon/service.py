@@ -26,6 +26,7 @@ from typing import Any, TextIO
 import structlog
 
 from usmswitch.drivers import Daq, DaqError, Direction
+from usmswitch.fleet.hooks import Fleet
 from usmswitch.predictor import AR_MODELS, Predictor, make_predictors
 from usmswitch.protocol.record import CycleRecord, Flag, RunRecord
 from usmswitch.protocol.units import format_ns
@@ -33,7 +34,6 @@ from usmswitch.protocol.units import format_ns
 from .board import BoardPoller
 from .config import Config, ConfigError
 from .daqfactory import make_daq
-from .fleet import Fleet
 from .logsetup import configure_logging
 from .loop import AUTOSTART_OWNER, ControlLoop, State, TargetUnreachableError, direction_from_levels
 from .methods import start_rpc
@@ -42,6 +42,7 @@ from .records import RecordStore, RecordStoreError
 from .rig_memory import RigMemory
 from .sdnotify import Notifier
 from .sensitivity_memory import Sensitivities, SensitivityMemory
+from .shipper_process import ShipperProcess
 from .sockdir import ensure_private_dir, prepare_socket_dir
 
 RECORDS_FILE = "records.sqlite"
@@ -288,7 +289,20 @@ class Daemon:
         self.loop.listeners.append(self._on_record)
         self._start_socket()
         # PostgreSQL shipping and the metrics feed, chained after the socket's commit hooks.
-        self.fleet = Fleet(cfg, self.store, self.loop, self.rpc, self.daq.name)
+        shipper = None
+        if cfg.records.postgres_url:
+            shipper = ShipperProcess(
+                self.store.path,
+                cfg.records.postgres_url,
+                cfg.daemon.rig,
+                log_format=cfg.daemon.log_format,
+                log_level=cfg.daemon.log_level,
+                gate=self.loop.wait_turn,
+            )
+        rpc = self.rpc if self.rpc is not None and self.rpc.metrics is not None else None
+        self.fleet = Fleet(
+            self.store, self.loop, rig=cfg.daemon.rig, driver=self.daq.name, feeds=rpc, shipper=shipper
+        )
         self.fleet.start()
         self.refresh_snapshot()
         self.store.record_event(

@@ -1,5 +1,9 @@
 """The PostgreSQL shipper in a process of its own (`python -m usmswitch.daemon.shipper_process`).
 
+The daemon starts the fleet's process: this module is the daemon's handle on it (spawn, watch,
+restart, stop) and the process's set-up as one of the daemon's (priority, signals, logs, exit);
+what the process does, shipping and the pipe's words, is usmswitch.fleet.shipper.
+
 Why a process: catching up a backlog is seconds of CPU-bound Python (reading rows, formatting
 COPY data) and network waits that end at random instants. In the loop's process every return from
 such a wait competes for the GIL, even with the shipper waiting its turn between rows, and moved
@@ -29,13 +33,13 @@ from typing import Any
 
 import structlog
 
+from usmswitch.fleet.pg_schema import redact_url
+
 from .children import KILLED_REAP_S, end_child, wait_exit
-from .pg_schema import redact_url
 from .process_exit import exit_now
 
 log = structlog.get_logger("usmswitch.shipper")
 
-STATUS_EVERY_S = 0.2
 RESTART_PAUSE_S = 2.0
 #: How long past its drain a stopping shipper may take to end before it is killed.
 EXIT_GRACE_S = 0.01
@@ -46,6 +50,9 @@ NICE = 10
 
 class ShipperProcess:
     """The daemon's handle on the shipper process: the PostgresShipper interface the daemon uses."""
+
+    #: The most stop() takes beyond its drain (usmswitch.fleet.hooks.Shipper).
+    stop_overhead_ns = STOP_OVERHEAD_NS
 
     def __init__(
         self,
@@ -172,9 +179,10 @@ def main() -> int:
     """The process's body: the settings from stdin, then ship until told to stop (or orphaned)."""
     import signal
 
+    from usmswitch.fleet.shipper import serve
+
     from .logsetup import configure_logging
     from .realtime import drop_realtime, renice
-    from .shipper import PostgresShipper
 
     # Started again by the daemon's watcher thread, which runs SCHED_FIFO when the loop does: the
     # child (and every thread it starts) belongs at SCHED_OTHER, below everything of the rig's.
@@ -187,38 +195,7 @@ def main() -> int:
     settings = json.loads(sys.stdin.readline())
     configure_logging(settings["log_format"], settings["log_level"], sys.stderr)
     renice(NICE, "shipper", "shipping competes with the loop for CPU at the loop's nice")
-    shipper = PostgresShipper(settings["records"], settings["url"], settings["rig"])
-    shipper.start()
-    out = sys.stdout
-    said: dict[str, Any] = {}
-    done = threading.Event()
-    lock = threading.Lock()
-
-    def report() -> None:
-        nonlocal said
-        with lock:
-            status = shipper.status()
-            if status != said:
-                said = status
-                out.write(json.dumps(status) + "\n")
-                out.flush()
-
-    def reporter() -> None:
-        while not done.wait(STATUS_EVERY_S):
-            report()
-
-    threading.Thread(target=reporter, name="status", daemon=True).start()
-    drain_ns = 0
-    for line in sys.stdin:
-        word, _, arg = line.strip().partition(" ")
-        if word == "w":
-            shipper.wake()
-        elif word == "stop":
-            drain_ns = int(arg or 0)
-            break
-    shipper.stop(drain_timeout_ns=drain_ns)
-    done.set()
-    report()
+    serve(settings, sys.stdin, sys.stdout)
     return 0
 
 

@@ -16,7 +16,7 @@ import pytest
 
 from usmswitch.client import PostgresRecords, RecordsFile, RecordsFileError, open_records
 from usmswitch.daemon.records import RecordStore
-from usmswitch.daemon.shipper import PostgresShipper
+from usmswitch.fleet.shipper import PostgresShipper
 from usmswitch.protocol.record import RunRecord
 
 BIN = Path(sys.executable).parent / "usmswitchctl"

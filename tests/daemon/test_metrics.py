@@ -20,8 +20,8 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from usmswitch.client import Client
-from usmswitch.daemon.metrics import FEEDS, StrokeMetrics
 from usmswitch.daemon.metrics_page import MetricsPage
+from usmswitch.fleet.metrics import FEEDS, StrokeMetrics
 from usmswitch.protocol.record import Flag, RunRecord
 
 # A stroke's outcome written out again here, apart from metrics.outcome(): the flag bits of
@@ -118,7 +118,7 @@ def test_page_from_records_counts_every_outcome_and_buckets_each_value(tmp_path:
 
 def test_the_loops_process_never_loads_prometheus_client():
     code = (
-        "import sys; import usmswitch.daemon.service, usmswitch.daemon.fleet, usmswitch.daemon.metrics\n"
+        "import sys; import usmswitch.daemon.service, usmswitch.fleet.hooks, usmswitch.fleet.metrics\n"
         "print('prometheus_client' in sys.modules, 'psycopg' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout

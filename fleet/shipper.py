@@ -7,17 +7,18 @@ table and `INSERT ... ON CONFLICT (rig, cycle) DO NOTHING`: a batch sent twice (
 during COMMIT) is harmless. Where to resume is read from the database at every (re)connect: the
 highest cycle it holds for this rig, whose stamps must match the local row (a database holding
 another file's strokes under this rig's name is refused, never merged). Failures are kept in
-`error`, logged once each, and retried with backoff. Tables: daemon/pg_schema.py, docs/fleet.md.
+`error`, logged once each, and retried with backoff. Tables: fleet/pg_schema.py, docs/fleet.md.
 """
 
 from __future__ import annotations
 
+import json
 import sqlite3
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 from urllib.parse import quote
 
 import structlog
@@ -42,10 +43,11 @@ from .pg_schema import (
     pg_run,
     redact_url,
 )
-from .realtime import drop_realtime
 
 log = structlog.get_logger("usmswitch.shipper")
 
+#: How often the shipper process says its status on its stdout (when it changed).
+STATUS_EVERY_S = 0.2
 #: Runs shipped per pass at most (a pass with a long backlog of runs goes on at the next).
 MAX_RUNS_PER_PASS = 500
 #: An idle shipper checks its connection this often, so `connected` tells the truth when idle.
@@ -211,7 +213,8 @@ class PostgresShipper:
 
     # -- the thread -------------------------------------------------------------------------------
     def _run(self) -> None:
-        drop_realtime()
+        # At SCHED_OTHER: the shipper's process drops the real-time class it was started from before
+        # it starts this thread (usmswitch.daemon.shipper_process), and threads inherit it.
         try:
             self._ship_until_stopped()
         except BaseException as exc:  # a bug: said in status and the log, never silent
@@ -379,3 +382,40 @@ class PostgresShipper:
             self._run_from = min(still_open) if still_open else runs[-1][0] + 1
             self._runs_sent = {k: v for k, v in self._runs_sent.items() if k >= self._run_from}
         return True
+
+
+def serve(settings: dict[str, Any], lines: Iterable[str], out: TextIO) -> None:
+    """The shipper process's work: ship per `settings`, woken by `w` lines, until a `stop NS` line
+    (drain for at most NS ns) or the end of `lines`; its status to `out` as JSON lines when it
+    changed (at most every STATUS_EVERY_S) and once more at the end."""
+    shipper = PostgresShipper(settings["records"], settings["url"], settings["rig"])
+    shipper.start()
+    said: dict[str, Any] = {}
+    done = threading.Event()
+    lock = threading.Lock()
+
+    def report() -> None:
+        nonlocal said
+        with lock:
+            status = shipper.status()
+            if status != said:
+                said = status
+                out.write(json.dumps(status) + "\n")
+                out.flush()
+
+    def reporter() -> None:
+        while not done.wait(STATUS_EVERY_S):
+            report()
+
+    threading.Thread(target=reporter, name="status", daemon=True).start()
+    drain_ns = 0
+    for line in lines:
+        word, _, arg = line.strip().partition(" ")
+        if word == "w":
+            shipper.wake()
+        elif word == "stop":
+            drain_ns = int(arg or 0)
+            break
+    shipper.stop(drain_timeout_ns=drain_ns)
+    done.set()
+    report()

@@ -19,9 +19,9 @@ import pgserver
 import pytest
 
 from usmswitch.client import Client
-from usmswitch.daemon.pg_schema import CYCLE_COLUMNS, CYCLES_TABLE, RUN_COLUMNS, RUNS_TABLE
 from usmswitch.daemon.records import RecordStore
-from usmswitch.daemon.shipper import PostgresShipper
+from usmswitch.fleet.pg_schema import CYCLE_COLUMNS, CYCLES_TABLE, RUN_COLUMNS, RUNS_TABLE
+from usmswitch.fleet.shipper import PostgresShipper
 from usmswitch.protocol.record import CycleRecord, RunRecord
 
 FAST = {"retry_ns": (20_000_000, 200_000_000), "poll_ns": 50_000_000, "connect_timeout_s": 2}

@@ -1,29 +1,77 @@
-"""What reaches beyond this machine: the records shipped to PostgreSQL, the metrics page's figures.
+"""What reaches beyond this machine, hooked onto the daemon: the shipper's wake-ups, the metrics feed.
 
-Both hang off the record writer's commits (`RecordStore.on_commit`/`on_run`, chained after the
-socket's publishing, never replacing it) and the loop's slack, and neither makes the loop wait:
-the shipper is a process of its own (daemon/shipper_process.py), the metrics are counted on the writer's
-thread and handed to the socket's server process as snapshots (O(1) appends), where the page is
-rendered and served (daemon/metrics_page.py). docs/fleet.md.
+Both hang off the record writer's commits (`on_commit`/`on_run`, chained after the socket's
+publishing, never replacing it) and the loop's slack, and neither makes the loop wait: the shipper
+is a process of its own (the daemon starts it and hands its handle here: usmswitch.daemon.
+shipper_process), the metrics are counted on the writer's thread and handed to the socket's server
+process as snapshots (O(1) appends), where the page is rendered and served (usmswitch.web.metrics_page).
+The daemon's parts are seen through the few attributes used here (the Protocols below): the fleet
+never imports the loop. docs/fleet.md.
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
 
 import structlog
 
 from usmswitch.protocol.record import CycleRecord, RunRecord
 from usmswitch.protocol.version import PACKAGE_VERSION
 
-from .config import Config
-from .loop import ControlLoop
 from .metrics import STATE_FEED, STROKES_FEED, StrokeMetrics
-from .records import RecordStore
-from .rpc import RpcServer
-from .shipper_process import STOP_OVERHEAD_NS, ShipperProcess
+
+
+class Store(Protocol):
+    """The record writer as the fleet sees it: its commit hooks and its health."""
+
+    on_commit: Callable[[list[CycleRecord]], None] | None
+    on_run: Callable[[RunRecord], None] | None
+
+    @property
+    def backlog(self) -> int: ...
+
+    @property
+    def writer_error(self) -> str | None: ...
+
+
+class Loop(Protocol):
+    """The control loop as the fleet sees it: its state, fault and targets, and its slack hooks."""
+
+    @property
+    def state(self) -> object: ...
+
+    @property
+    def fault_reason(self) -> str: ...
+
+    @property
+    def targets(self) -> Sequence[int]: ...
+
+    @property
+    def slack_hooks(self) -> list[Callable[[], None]]: ...
+
+
+class Feeds(Protocol):
+    """The socket's server, which keeps the latest snapshot of each feed for the page."""
+
+    def snapshot(self, method: str, result: object) -> None: ...
+
+
+class Shipper(Protocol):
+    """The daemon's handle on the shipper process."""
+
+    #: The most stop() takes beyond its drain.
+    stop_overhead_ns: int
+
+    def start(self) -> None: ...
+
+    def wake(self, records: list[Any] | None = None) -> None: ...
+
+    def stop(self, drain_timeout_ns: int = ...) -> bool: ...
+
+    def status(self) -> dict[str, Any]: ...
+
 
 #: The least a stopping shipper is given to ship what the records file committed last.
 SHIP_DRAIN_MIN_NS = 5_000_000
@@ -49,27 +97,25 @@ def fan_out(*hooks: Callable[[Any], None] | None) -> Callable[[Any], None]:
 
 
 class Fleet:
-    """The PostgreSQL shipper (with records.postgres_url) and the metrics feed (with a metrics page)."""
+    """The PostgreSQL shipper (when given one) and the metrics feed (with `feeds`: a metrics page)."""
 
     def __init__(
-        self, config: Config, store: RecordStore, loop: ControlLoop, rpc: RpcServer | None, driver: str
+        self,
+        store: Store,
+        loop: Loop,
+        *,
+        rig: str,
+        driver: str,
+        feeds: Feeds | None = None,
+        shipper: Shipper | None = None,
     ) -> None:
         self.store = store
         self.loop = loop
-        self.rpc = rpc if rpc is not None and rpc.metrics is not None else None
-        self.rig = config.daemon.rig
+        self.feeds = feeds
+        self.rig = rig
         self.driver = driver
-        self.metrics = StrokeMetrics() if self.rpc is not None else None
-        self.shipper: ShipperProcess | None = None
-        if config.records.postgres_url:
-            self.shipper = ShipperProcess(
-                store.path,
-                config.records.postgres_url,
-                self.rig,
-                log_format=config.daemon.log_format,
-                log_level=config.daemon.log_level,
-                gate=loop.wait_turn,
-            )
+        self.metrics = StrokeMetrics() if feeds is not None else None
+        self.shipper = shipper
         self._next_state_ns = 0
         self._last_key: tuple[Any, ...] = ()
 
@@ -79,7 +125,7 @@ class Fleet:
         store.on_commit = fan_out(store.on_commit, self.on_commit)
         store.on_run = fan_out(store.on_run, self.on_run)
         self.loop.slack_hooks.append(self.slack)
-        if self.rpc is not None:
+        if self.feeds is not None:
             self.push_strokes()
             self.push_state()
         if self.shipper is not None:
@@ -89,7 +135,7 @@ class Fleet:
         """After the record store closed: ship what it committed, the shipper gone by `deadline_ns`
         (monotonic; at least SHIP_DRAIN_MIN_NS of shipping); what is left ships at the next start."""
         if self.shipper is not None:
-            drain = deadline_ns - time.monotonic_ns() - STOP_OVERHEAD_NS
+            drain = deadline_ns - time.monotonic_ns() - self.shipper.stop_overhead_ns
             caught_up = self.shipper.stop(max(drain, SHIP_DRAIN_MIN_NS))
             status = self.shipper.status()
             if not caught_up:
@@ -118,13 +164,13 @@ class Fleet:
 
     def push_strokes(self) -> None:
         """The stroke counts to the server process (coalesced there to the latest)."""
-        if self.rpc is not None and self.metrics is not None:
-            self.rpc.snapshot(STROKES_FEED, self.metrics.snapshot())
+        if self.feeds is not None and self.metrics is not None:
+            self.feeds.snapshot(STROKES_FEED, self.metrics.snapshot())
 
     # -- the loop's slack ---------------------------------------------------------------------------
     def slack(self) -> None:
         """The state snapshot, once a second or when the state or fault changed (a few attribute reads)."""
-        if self.rpc is None:
+        if self.feeds is None:
             return
         loop = self.loop
         now = time.monotonic_ns()
@@ -137,7 +183,7 @@ class Fleet:
 
     def push_state(self) -> None:
         """State, fault, targets, record writer and shipper figures to the server process."""
-        if self.rpc is None:
+        if self.feeds is None:
             return
         loop, store = self.loop, self.store
         state: dict[str, Any] = {
@@ -151,4 +197,4 @@ class Fleet:
         }
         if self.shipper is not None:
             state["postgres"] = self.shipper.status()
-        self.rpc.snapshot(STATE_FEED, state)
+        self.feeds.snapshot(STATE_FEED, state)
