@@ -63,7 +63,7 @@ _TRUE = packb(True)
 
 #: Listener kinds of the server process: the Unix socket and TCP (the estop socket is the daemon's).
 _KINDS = ("unix", "tcp")
-#: The HTTP listener of the metrics page (daemon/metrics_page.py), also bound by the daemon.
+#: The HTTP listener of the metrics page (web/metrics_page.py), also bound by the daemon.
 _METRICS = "metrics"
 # A refused or timed-out connection is half-closed and kept this long (at most this many at once)
 # so that the client reads the reason instead of a reset.
@@ -650,7 +650,7 @@ async def _serve(
     servers = []
     for sock, kind in listeners:
         if kind == _METRICS:
-            from .metrics_page import serve_metrics  # prometheus_client: only with a metrics page
+            from usmswitch.web.metrics_page import serve_metrics  # aiohttp, prometheus_client: only here
 
             servers.append(await serve_metrics(sock, lambda: (hub.snaps, hub.counts)))
             continue

@@ -4,7 +4,7 @@
 counts each committed stroke by direction and outcome and folds its error, operating time and
 start lateness into fixed histograms, so the page agrees with the records file by construction.
 Its `snapshot()` is a small dict of plain integers that the daemon hands to the socket's server
-process, which renders the page (daemon/metrics_page.py): the loop's process never formats text,
+process, which renders the page (web/metrics_page.py): the loop's process never formats text,
 never serves a scrape and never imports prometheus_client. Metric names and meanings: docs/fleet.md.
 """
 

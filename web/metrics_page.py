@@ -1,12 +1,12 @@
-"""The Prometheus page, served by the socket's server process (daemon/rpc_process.py) over HTTP.
+"""The Prometheus page, served over HTTP by the socket's server process (daemon/rpc_process.py).
 
 The daemon sends two snapshots over its channel, as it sends `stats`: `metrics_strokes` (counts and
 histograms of committed strokes, fleet/metrics.py, from the record writer's thread) and
 `metrics_state` (state, fault, targets, record writer and shipper figures, from the loop's slack).
 This module turns them, with the server's own count of socket clients, into prometheus_client
 metric families and text (`choose_encoder`: the Prometheus text format, or OpenMetrics when the
-scraper asks), on the server process's event loop. A scrape never reaches the loop's process.
-Why there: docs/fleet.md, "Where the page is served".
+scraper asks), and serves them with aiohttp's low-level server on the server process's event loop.
+A scrape never reaches the loop's process. Why there: docs/fleet.md, "Where the page is served".
 """
 
 from __future__ import annotations
@@ -19,6 +19,7 @@ from collections.abc import Callable, Iterator, Mapping
 from typing import Any
 
 import msgpack
+from aiohttp import web
 from prometheus_client.core import (
     CollectorRegistry,
     CounterMetricFamily,
@@ -41,13 +42,13 @@ HISTOGRAM_NAMES = {
         "Start lateness: motor start minus (command + delay), host-timed strokes.",
     ),
 }
-# HTTP: a request head larger than this, or slower than this, is refused; a connection idle this
-# long between scrapes is closed (Prometheus keeps one open per target and scrapes every 5-60 s).
-MAX_HEAD_BYTES = 8192
-HEAD_TIMEOUT_S = 5.0
+# HTTP: a request line or header longer than this is refused (aiohttp's parser, 400); a connection
+# that sends no whole request for this long, at its start or between scrapes, is closed (Prometheus
+# keeps one open per target and scrapes every 5-60 s); more connections than MAX_SCRAPERS at once
+# are answered 503 and closed. Pipelined requests wait in the kernel once aiohttp's queue is full.
+MAX_LINE_BYTES = 8190
 IDLE_TIMEOUT_S = 120.0
 MAX_SCRAPERS = 16
-MAX_UNREAD_BYTES = 1 << 20
 #: Answers go out at most this often, all connections together (50 a second: Prometheus scrapes
 #: a target every few seconds). Scrapers hammering the page then wait for their turn instead of
 #: keeping the server process, and the machine's second core, busy.
@@ -219,158 +220,59 @@ class MetricsPage:
         return body, content_type
 
 
-class _Scrape(asyncio.Protocol):
-    """One scraper's connection: GET (or HEAD) /metrics, kept open between scrapes (HTTP/1.1
-    keep-alive, as Prometheus scrapes) until idle, or closed after an error or when asked."""
+async def _answer(page: MetricsPage, request: web.BaseRequest) -> web.StreamResponse:
+    """One request, in its turn: GET or HEAD of /metrics (or of / for a link to it)."""
+    delay = page.wait_for_turn_s()
+    if delay > 0:
+        await asyncio.sleep(delay)
+    if request.method not in ("GET", "HEAD"):
+        reply = web.Response(status=405, text="only GET and HEAD\n", headers={"Allow": "GET, HEAD"})
+    elif request.path == "/metrics":
+        try:
+            body, content_type = page.render(request.headers.get("Accept", ""))
+        except Exception as exc:  # a bug costs this scrape, not the server
+            log.exception("metrics page failed")
+            return web.Response(status=500, text=f"metrics page failed: {type(exc).__name__}: {exc}\n")
+        reply = web.Response(body=body, headers={"Content-Type": content_type})
+    elif request.path == "/":
+        page_link = '<html><body><a href="/metrics">usmswitchd metrics</a></body></html>\n'
+        reply = web.Response(text=page_link, content_type="text/html")
+    else:
+        reply = web.Response(status=404, text="not found: the page is /metrics\n")
+    if request.keep_alive:  # HTTP/1.1 keeps it anyway; said, as the scraper's logs may show it
+        reply.headers["Connection"] = "keep-alive"
+    return reply
 
-    def __init__(self, page: MetricsPage, open_count: list[int]) -> None:
-        self.page = page
-        self.open_count = open_count
-        self.buf = b""
-        self.transport: asyncio.Transport | None = None
-        self.timer: asyncio.TimerHandle | None = None
-        self.counted = False
-        self.waiting = False  # a request waits for its turn to be answered
+
+class _TooMany(asyncio.Protocol):
+    """A connection beyond MAX_SCRAPERS: told so, and closed before anything is read."""
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         assert isinstance(transport, asyncio.Transport)
-        self.transport = transport
-        if self.open_count[0] >= MAX_SCRAPERS:
-            self._reply(503, b"too many scrapes at once\n")
-            return
-        self.open_count[0] += 1
-        self.counted = True
-        self._arm(HEAD_TIMEOUT_S)
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        if self.timer is not None:
-            self.timer.cancel()
-        if self.counted:
-            self.counted = False
-            self.open_count[0] -= 1
-
-    def _arm(self, seconds: float) -> None:
-        if self.timer is not None:
-            self.timer.cancel()
-        self.timer = asyncio.get_running_loop().call_later(seconds, self._timeout)
-
-    def _timeout(self) -> None:
-        if self.buf:
-            self._reply(408, b"request head not received in time\n")
-        elif self.transport is not None:
-            self.transport.close()  # idle between scrapes
-
-    def data_received(self, data: bytes) -> None:
-        self.buf += data
-        self._pump()
-
-    def _pump(self) -> None:
-        """Answer the requests buffered, one at a time, each in its turn (ANSWER_INTERVAL_NS)."""
-        while self.transport is not None and not self.transport.is_closing() and not self.waiting:
-            end = self.buf.find(b"\r\n\r\n")
-            if end < 0:
-                if len(self.buf) > MAX_HEAD_BYTES:
-                    self._reply(431, b"request head too large\n")
-                elif self.buf:
-                    self._arm(HEAD_TIMEOUT_S)
-                return
-            head, self.buf = self.buf[:end].decode("latin-1"), self.buf[end + 4 :]
-            if self.timer is not None:
-                self.timer.cancel()  # a whole head: no 408 while it waits its turn
-            delay = self.page.wait_for_turn_s()
-            if delay > 0:
-                self.waiting = True
-                self.transport.pause_reading()  # pipelined requests wait in the kernel, not here
-                asyncio.get_running_loop().call_later(delay, self._in_turn, head)
-                return
-            self._answer(head)
-            if self.transport.get_write_buffer_size() > MAX_UNREAD_BYTES:
-                self.transport.abort()  # pipelining and not reading the answers
-
-    def _in_turn(self, head: str) -> None:
-        self.waiting = False
-        if self.transport is None or self.transport.is_closing():
-            return
-        self.transport.resume_reading()
-        self._answer(head)
-        self._pump()
-
-    def _answer(self, head: str) -> None:
-        lines = head.split("\r\n")
-        parts = lines[0].split()
-        if len(parts) != 3 or not parts[2].startswith("HTTP/1."):
-            self._reply(400, b"not an HTTP/1.x request\n")
-            return
-        method, target, version = parts
-        headers = {}
-        for line in lines[1:]:
-            name, _, value = line.partition(":")
-            headers[name.strip().lower()] = value.strip()
-        # HTTP/1.1 keeps the connection unless told not to; a body (none expected) ends it.
-        keep = (
-            version == "HTTP/1.1"
-            and headers.get("connection", "").lower() != "close"
-            and headers.get("content-length", "0") == "0"
-            and "transfer-encoding" not in headers
+        body = b"too many scrapes at once\n"
+        transport.write(
+            b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
+            b"Content-Length: %d\r\nConnection: close\r\n\r\n%s" % (len(body), body)
         )
-        path = target.split("?", 1)[0]
-        if method not in ("GET", "HEAD"):
-            self._reply(405, b"only GET and HEAD\n", extra=b"Allow: GET, HEAD\r\n", keep=keep)
-        elif path == "/metrics":
-            try:
-                body, content_type = self.page.render(headers.get("accept", ""))
-            except Exception as exc:  # a bug costs this scrape, not the server
-                log.exception("metrics page failed")
-                self._reply(500, f"metrics page failed: {type(exc).__name__}: {exc}\n".encode())
-                return
-            self._reply(200, body, content_type, head_only=method == "HEAD", keep=keep)
-        elif path == "/":
-            page = b'<html><body><a href="/metrics">usmswitchd metrics</a></body></html>\n'
-            self._reply(200, page, "text/html", keep=keep)
-        else:
-            self._reply(404, b"not found: the page is /metrics\n", keep=keep)
-
-    def _reply(
-        self,
-        status: int,
-        body: bytes,
-        content_type: str = "text/plain; charset=utf-8",
-        head_only: bool = False,
-        extra: bytes = b"",
-        keep: bool = False,
-    ) -> None:
-        transport = self.transport
-        if transport is None or transport.is_closing():
-            return
-        reason = _REASONS.get(status, "")
-        head = (
-            f"HTTP/1.1 {status} {reason}\r\nContent-Type: {content_type}\r\n"
-            f"Content-Length: {len(body)}\r\nConnection: {'keep-alive' if keep else 'close'}\r\n"
-        ).encode()
-        transport.write(head + extra + b"\r\n" + (b"" if head_only else body))
-        if keep:
-            self._arm(IDLE_TIMEOUT_S)
-        else:
-            if self.timer is not None:
-                self.timer.cancel()
-            transport.close()
-
-
-_REASONS = {
-    200: "OK",
-    400: "Bad Request",
-    404: "Not Found",
-    405: "Method Not Allowed",
-    500: "Internal Server Error",
-    408: "Request Timeout",
-    431: "Request Header Fields Too Large",
-    503: "Service Unavailable",
-}
+        transport.close()
 
 
 async def serve_metrics(sock: socket.socket, source: Source) -> asyncio.Server:
     """Serve the page on a listening TCP socket the daemon bound (the server process's event loop)."""
     page = MetricsPage(source)
-    open_count = [0]
-    loop = asyncio.get_running_loop()
-    return await loop.create_server(lambda: _Scrape(page, open_count), sock=sock)
+
+    async def handler(request: web.BaseRequest) -> web.StreamResponse:
+        return await _answer(page, request)
+
+    server = web.Server(
+        handler,
+        keepalive_timeout=IDLE_TIMEOUT_S,
+        max_line_size=MAX_LINE_BYTES,
+        max_field_size=MAX_LINE_BYTES,
+        access_log=None,
+    )
+
+    def connection() -> asyncio.Protocol:
+        return _TooMany() if len(server.connections) >= MAX_SCRAPERS else server()
+
+    return await asyncio.get_running_loop().create_server(connection, sock=sock)

@@ -1,0 +1,72 @@
+"""The page's HTTP face on its own (aiohttp in an event loop of the test's): the answers' pace for all
+scrapers together, the connection limit, idle connections closed."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+import time
+from typing import Any
+
+import pytest
+
+from usmswitch.web import metrics_page
+from usmswitch.web.metrics_page import ANSWER_INTERVAL_NS, MAX_SCRAPERS, serve_metrics
+
+
+def source() -> tuple[dict[str, bytes], dict[str, int]]:
+    return {}, {"unix": 1}
+
+
+async def _with_page(body: Any) -> Any:
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    sock.listen()
+    sock.setblocking(False)
+    server = await serve_metrics(sock, source)
+    try:
+        return await body(sock.getsockname()[1])
+    finally:
+        server.close()
+
+
+async def _get_all(port: int, n: int) -> int:
+    """`n` pipelined GETs on one connection, the last asking to close; how many were answered 200."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    get = b"GET /metrics HTTP/1.1\r\nHost: x\r\n"
+    writer.write((get + b"\r\n") * (n - 1) + get + b"Connection: close\r\n\r\n")
+    data = await reader.read()
+    writer.close()
+    return data.count(b"HTTP/1.1 200 OK\r\n")
+
+
+def test_answers_are_paced_for_all_scrapers_together():
+    async def body(port: int) -> tuple[float, list[int]]:
+        t0 = time.monotonic()
+        replies = await asyncio.gather(*(_get_all(port, 4) for _ in range(3)))
+        return time.monotonic() - t0, replies
+
+    took, replies = asyncio.run(_with_page(body))
+    assert replies == [4, 4, 4]
+    # 12 answers, ANSWER_INTERVAL_NS apart whichever connection asked: the first at once.
+    assert took >= 11 * ANSWER_INTERVAL_NS / 1e9
+
+
+def test_connections_beyond_the_limit_are_refused_and_idle_ones_closed(monkeypatch: pytest.MonkeyPatch):
+    monkeypatch.setattr(metrics_page, "IDLE_TIMEOUT_S", 0.3)
+
+    async def body(port: int) -> tuple[bytes, bytes]:
+        held = [await asyncio.open_connection("127.0.0.1", port) for _ in range(MAX_SCRAPERS)]
+        await asyncio.sleep(0.05)
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        refused = await reader.read()
+        writer.close()
+        # A connection that never sends a whole request is closed after the idle timeout.
+        idle = await asyncio.wait_for(held[0][0].read(), timeout=5)
+        for _, w in held:
+            w.close()
+        return refused, idle
+
+    refused, idle = asyncio.run(_with_page(body))
+    assert refused.startswith(b"HTTP/1.1 503") and refused.endswith(b"too many scrapes at once\n")
+    assert idle == b""
