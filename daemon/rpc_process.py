@@ -21,7 +21,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, cast
 
 import msgpack
 
@@ -341,8 +341,9 @@ class _Channel(asyncio.Protocol):
         self.transport: asyncio.Transport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        self.transport = transport
+        # Idempotent (_serve calls it too: uvloop calls it late). A cast: uvloop's transports are not
+        # asyncio.Transport subclasses.
+        self.transport = cast(asyncio.Transport, transport)
         if self.urgent:
             self.hub.urgent_channel = self
         else:
@@ -394,8 +395,7 @@ class _Conn(asyncio.Protocol):
 
     # asyncio callbacks
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        self.transport = transport
+        self.transport = transport = cast(asyncio.Transport, transport)  # uvloop's: not subclasses
         limits = self.hub.limits
         most = limits.max_tcp_connections if self.tcp else limits.max_connections
         if self.hub.counts[self.kind] >= most:
@@ -645,8 +645,11 @@ async def _serve(
 ) -> None:
     loop = asyncio.get_running_loop()
     hub = _Hub(cfg, loop)
-    await loop.connect_accepted_socket(lambda: _Channel(hub), sock=chan)
-    await loop.connect_accepted_socket(lambda: _Channel(hub, urgent=True), sock=urgent_chan)
+    # uvloop calls connection_made a step after connect_accepted_socket returns: take the
+    # transports from its return, so the "ready" below has its channel either way.
+    for urgent, sock in ((False, chan), (True, urgent_chan)):
+        transport, proto = await loop.connect_accepted_socket(lambda u=urgent: _Channel(hub, u), sock=sock)
+        proto.connection_made(transport)
     servers = []
     for sock, kind in listeners:
         if kind == _METRICS:
@@ -679,6 +682,19 @@ async def _serve(
             hub.reads.shutdown(wait=False, cancel_futures=True)
 
 
+def _loop_factory() -> Callable[[], asyncio.AbstractEventLoop] | None:
+    """uvloop's event loop where it is installed (docs/protocol.md, "Where a request's time goes"):
+    its transports and selector are C, the per-request cost of asyncio's own Python is most of what
+    the server spends beside the send itself. asyncio's default loop otherwise."""
+    if os.environ.get("USMSWITCH_RPC_LOOP") == "asyncio":
+        return None
+    try:
+        import uvloop
+    except ImportError:
+        return None
+    return uvloop.new_event_loop
+
+
 def serve(chan_fd: int, urgent_fd: int, listeners: list[tuple[int, str]], nice: int = 0) -> None:
     """The server process's body: read the config from the channel, then serve until told to stop."""
     chan = socket.socket(fileno=chan_fd)
@@ -698,7 +714,8 @@ def serve(chan_fd: int, urgent_fd: int, listeners: list[tuple[int, str]], nice: 
     chan.setblocking(False)
     urgent = socket.socket(fileno=urgent_fd)
     urgent.setblocking(False)
-    asyncio.run(_serve(chan, urgent, socks, cfg))
+    with asyncio.Runner(loop_factory=_loop_factory()) as runner:
+        runner.run(_serve(chan, urgent, socks, cfg))
 
 
 def main(argv: list[str] | None = None) -> int:
