@@ -61,10 +61,7 @@ class RpcError(Exception):
     @staticmethod
     def of(code: int, message: str) -> RpcError:
         """The error for `code` as its own subclass (`except TargetUnreachable:`), else RpcError."""
-        cls = _BY_CODE.get(int(code), RpcError)
-        err = cls.__new__(cls)
-        RpcError.__init__(err, code, message)
-        return err
+        return _BY_CODE.get(int(code), RpcError)(code, message)
 
 
 # One subclass per code, so that scripts catch what they can handle by name.
