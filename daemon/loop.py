@@ -60,6 +60,9 @@ STROKE_FAULTS = {
 }
 
 
+#: The plausible band's floor as a fraction of a direction's known stroke (`[control] min_stroke`).
+#: A USM cannot cross 5 mm three times faster than it usually does; a sensor or a stamp can lie.
+MIN_STROKE_FRACTION = 0.3
 #: Idle: how long the loop waits for a request before it reads the driver's events again.
 IDLE_POLL_NS = 50_000_000
 #: At most this many events read per idle pass (a flood waits for the next pass, requests first).
@@ -816,8 +819,11 @@ class ControlLoop:
             else None,
         )
         self.cycle += 1
-        if operating is not None:
-            self.commissioning.discard(plan.direction)
+        d = plan.direction
+        if operating is not None and not flags & Flag.IMPLAUSIBLE and d in self.commissioning:
+            self.commissioning.discard(d)
+            if not self.min_stroke_ns[d]:  # no floor from a guess: the first real stroke sets it
+                self.min_stroke_ns[d] = round(MIN_STROKE_FRACTION * operating)
         self.stats[plan.direction].add_record(rec)
         self.stats_all.add_record(rec)
         if rec.run_id is not None:

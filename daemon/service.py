@@ -35,7 +35,14 @@ from .board import BoardPoller
 from .config import Config, ConfigError
 from .daqfactory import make_daq
 from .logsetup import configure_logging
-from .loop import AUTOSTART_OWNER, ControlLoop, State, TargetUnreachableError, direction_from_levels
+from .loop import (
+    AUTOSTART_OWNER,
+    MIN_STROKE_FRACTION,
+    ControlLoop,
+    State,
+    TargetUnreachableError,
+    direction_from_levels,
+)
 from .methods import start_rpc
 from .realtime import apply_realtime, lift_helpers, resolve_priority, scheduling_text
 from .records import RecordStore, RecordStoreError
@@ -56,9 +63,6 @@ STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 CLOSE_TIMEOUT_NS = 10_000_000_000
 CLOSE_TIMEOUT_FAILING_NS = 3_000_000_000
 SWITCH_INTERVAL_S = 0.0002
-#: The plausible band's floor as a fraction of a direction's known stroke (`[control] min_stroke`).
-#: A USM cannot cross 5 mm three times faster than it usually does; a sensor or a stamp can lie.
-MIN_STROKE_FRACTION = 0.3
 #: From the stop signal to the end of stop(): what is left of it after the drive is off, the
 #: server process gone and the records committed is what PostgreSQL shipping may still take;
 #: the rest ships at the next start. Keeps SIGTERM-to-exit within 100 ms with a database (the
@@ -95,11 +99,10 @@ def first_guesses(config: Config, daq: Daq) -> tuple[list[int], list[str]]:
     c = config.control
     nominals, sources = [], []
     for d in (Direction.ON, Direction.OFF):
-        known = None if c.nominal_given[d] else daq.expected_stroke_ns(d)
         if c.nominal_given[d]:
             nominals.append(c.nominal_for(d))
             sources.append("config")
-        elif known is not None:
+        elif (known := daq.expected_stroke_ns(d)) is not None:
             nominals.append(known)
             sources.append("rig model")
         else:
@@ -216,9 +219,10 @@ class Daemon:
                 int(d), cfg.control.warm_start, driver=daq.name, rig=cfg.daemon.rig
             )
             predictors[d].extend(samples)
-            known = statistics.median(samples) if samples else nominals[d]
-            min_stroke.append(cfg.control.min_stroke_ns or round(MIN_STROKE_FRACTION * known))
             first = "records" if samples else sources[d]
+            # The plausible floor from what is known; from a guess none (the first stroke sets it).
+            known = statistics.median(samples) if samples else nominals[d] if first != "guess" else 0
+            min_stroke.append(cfg.control.min_stroke_ns or round(MIN_STROKE_FRACTION * known))
             if first == "guess":
                 commissioning.append(d)
             self.log.info(

@@ -328,3 +328,19 @@ def test_an_edge_stamped_in_the_future_is_dropped_and_holds_nothing() -> None:
     loop.run_cycles(40 * MS, 20)
     assert daq.future_stamps == 1 and daq.out_of_order == 0 and daq.counters()["future_stamps"] == 1
     assert len(recs) == 22 and not any(r.flags & (Flag.STALL | Flag.FAULT) for r in recs)
+
+
+def test_on_a_rig_nothing_is_known_of_the_commissioning_stroke_sets_the_plausible_floor() -> None:
+    """A guessed nominal (10.5 ms) must not set the floor: a faster rig's first strokes would be
+    flagged IMPLAUSIBLE. With no floor given, each direction's commissioning stroke sets it."""
+    from usmswitch.daemon.loop import MIN_STROKE_FRACTION
+
+    loop, _, recs = make_loop(commissioning=[Direction.ON, Direction.OFF])
+    assert loop.min_stroke_ns == [0, 0]
+    loop.run_cycles(40 * MS, 4)
+    assert [bool(r.flags & Flag.COMMISSIONING) for r in recs] == [True, True, False, False]
+    for r in recs[:2]:
+        assert loop.min_stroke_ns[r.direction] == round(MIN_STROKE_FRACTION * r.operating_ns)
+    given, _, _ = make_loop(commissioning=[Direction.ON], min_stroke_ns=(1 * MS, 1 * MS))
+    given.run_cycles(40 * MS, 2)
+    assert given.min_stroke_ns == [1 * MS, 1 * MS]  # a floor given stays
