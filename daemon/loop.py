@@ -753,7 +753,8 @@ class ControlLoop:
     ) -> str:
         """Why a reported stroke is not physically one ("" when it is): the mover must leave the
         source after the start and reach the destination after leaving, in no less than the band's
-        floor. A mover that started midway (PARTIAL) has no source to leave."""
+        floor. A mover that started midway (PARTIAL) has no source to leave and a part of the way to go:
+        neither check applies (the stroke is kept from the predictor as PARTIAL anyway)."""
         operating = t_arrive - t_start
         src, dst = direction.source.name, direction.dest.name
         if not partial:
@@ -768,7 +769,7 @@ class ControlLoop:
                     f" from sensor {src} at +{format_ns(t_depart - t_start)}"
                 )
         floor = self.min_stroke_ns[direction]
-        if operating < floor:
+        if operating < floor and not partial:
             return f"operating time {format_ns(operating)} is below the plausible floor {format_ns(floor)}"
         return ""
 

@@ -344,3 +344,17 @@ def test_on_a_rig_nothing_is_known_of_the_commissioning_stroke_sets_the_plausibl
     given, _, _ = make_loop(commissioning=[Direction.ON], min_stroke_ns=(1 * MS, 1 * MS))
     given.run_cycles(40 * MS, 2)
     assert given.min_stroke_ns == [1 * MS, 1 * MS]  # a floor given stays
+
+
+def test_a_stroke_from_midway_is_partial_not_implausible() -> None:
+    """After a stall leaves the mover part-way, the next stroke is short by nature: flagged PARTIAL
+    (kept from the predictor), never IMPLAUSIBLE for being under the floor (`make bench BENCH=abuse`
+    met it: a 1.5 ms stroke from midway latched FAULT)."""
+    loop, _, recs = make_loop(faults={"schedule": {3: "stall"}}, min_stroke_ns=(7 * MS, 7 * MS))
+    loop.run_cycles(40 * MS, 6)
+    assert loop.state is State.FAULT and recs[-1].flags & Flag.STALL
+    loop.reset_fault()
+    loop.run_cycles(40 * MS, 3)
+    partial = [r for r in recs if r.flags & Flag.PARTIAL]
+    assert partial and partial[0].operating_ns is not None and partial[0].operating_ns < 7 * MS, recs[-4:]
+    assert not partial[0].flags & Flag.IMPLAUSIBLE and loop.state is not State.FAULT
