@@ -41,6 +41,8 @@ STROKES = 3000
 TARGET_NS = 12_000_000
 # The cycle the paper's reliability run implies: an on or off stroke every 2 T.
 PERIOD_NS = 2 * TARGET_NS
+#: The host pipeline's stroke spacing: a stroke's command to arrival (12.6 ms at most) fits in it.
+STEP_NS = 13_000_000
 # Host work per stroke must stay far below a stroke: 0.5 ms is 4 % of T.
 COST_TARGET_NS = 500_000
 
@@ -95,11 +97,14 @@ def _host_pipeline() -> tuple[list[int], list[int]]:
     full: list[int] = []
     peer: list[int] = []
     seq = 0
-    past_ns = daq.now_ns() - (STROKES + 10) * PERIOD_NS
+    begin_ns = daq.now_ns()
     for k in range(STROKES):
-        # A run of strokes every PERIOD, all in the past, so the debouncer's settle time has passed
-        # as it has on a real link when the frames come in. Built outside the timing.
-        data = _stroke_bytes(k, 1 + 7 * k, daq._to_raw_us(past_ns + k * PERIOD_NS))
+        # Strokes in real time, one every STEP_NS, each fed once its arrival is older than the
+        # debouncer's settle time, as on a real link (the driver rejects stamps far behind its clock).
+        base_ns = begin_ns + k * STEP_NS
+        while daq.now_ns() < base_ns + STEP_NS + 3_000_000:
+            time.sleep(0.0005)
+        data = _stroke_bytes(k, 1 + 7 * k, daq._to_raw_us(base_ns))
         t_a = time.perf_counter_ns()
         frames = daq._decoder.feed(data)
         with daq._state:
