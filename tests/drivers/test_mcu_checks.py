@@ -54,8 +54,11 @@ def test_a_device_clock_rate_far_off_is_refused_naming_it(tmp_path: Path) -> Non
         while ev is not None and ev.kind is not EventKind.FAULT:
             ev = daq.recv(500 * MS)
         assert ev is not None and ev.fault is FaultCode.DISCONNECT
-        said = r"the device clock runs at 1\.(09|10)\d+ us per us \(\+(9\.9|10\.0)\d* %\)"
-        assert re.search(said, ev.detail), ev.detail
+        # The rate is measured over a few heartbeat round trips, each with the host's scheduling
+        # jitter in it (CI read +9.856 % for the true +10 %): the message must name a rate near it.
+        said = re.search(r"the device clock runs at (\d\.\d+) us per us \(\+(\d+\.\d+) %\)", ev.detail)
+        assert said is not None, ev.detail
+        assert 1.08 < float(said.group(1)) < 1.12 and 8.0 < float(said.group(2)) < 12.0, ev.detail
         assert wait_for(lambda: daq.link_stats()["handshake_failures"] >= 1, 3.0)
         assert not daq.connected
         with pytest.raises(DaqError):
