@@ -45,6 +45,7 @@ GRID = (
     (0.8, 1.0),
     (0.6, 0.65),
     (0.3, 0.7),
+    (0.9, 0.2),
     (0.0, 0.0),
 )
 #: Forgetting of the filters' squared errors (memory ~ 1 / (1 - FORGET) strokes).
@@ -58,6 +59,17 @@ MU_STROKES = 200
 SUSPECT = 3.0
 #: The scale of the robust rule is the chosen filter's recent error: from this many strokes on.
 ROBUST_FROM = 10
+#: A suspect beyond BIG standard deviations is news the predictor learns from: was it a level shift
+#: (the next stroke confirmed it) or an outlier (the next stroke came back)? Gaussian noise reaches
+#: this once in ~150,000 strokes, so what crosses it is one of the two.
+BIG = 4.5
+#: The belief that a big suspect is a level shift starts at SHIFT_PRIOR / (SHIFT_PRIOR + 1): an
+#: outlier barely moves the next prediction (issue 24's outlier rule) until shifts have been seen.
+#: Each judged suspect's weight is forgotten by SHIFT_FORGET (memory ~ 20 of them): a rig's habits
+#: change.
+SHIFT_PRIOR = 0.05
+SHIFT_FORGET = 0.95
+LEAN = 4.5
 
 
 def _grid_step(
@@ -68,8 +80,8 @@ def _grid_step(
     phi + (1 - phi) = 1 the prediction moves by exactly that), then level = pr + K (z - pr) and
     score = FORGET score + (z - pr)^2. Written out with GRID's numbers: the loop over GRID costs
     2.5x as much, the most of a stroke (tests/predictor/test_kalman.py checks the two agree)."""
-    v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, _ = levels  # phi = 0: the mean alone
-    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10 = scores
+    v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, _ = levels  # phi = 0: the mean alone
+    s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10, s11 = scores
     p0 = v0 + moved
     p1 = v1 + moved
     p2 = v2 + moved
@@ -80,7 +92,8 @@ def _grid_step(
     p7 = 0.8 * v7 + 0.2 * mu + moved
     p8 = 0.6 * v8 + 0.4 * mu + moved
     p9 = 0.3 * v9 + 0.7 * mu + moved
-    p10 = mu + moved
+    p10 = 0.9 * v10 + 0.1 * mu + moved
+    p11 = mu + moved
     e0 = z - p0
     e1 = z - p1
     e2 = z - p2
@@ -92,6 +105,7 @@ def _grid_step(
     e8 = z - p8
     e9 = z - p9
     e10 = z - p10
+    e11 = z - p11
     return (
         [
             z,
@@ -104,7 +118,8 @@ def _grid_step(
             z,
             p8 + 0.65 * e8,
             p9 + 0.7 * e9,
-            p10,
+            p10 + 0.2 * e10,
+            p11,
         ],
         [
             0.99 * s0 + e0 * e0,
@@ -118,6 +133,7 @@ def _grid_step(
             0.99 * s8 + e8 * e8,
             0.99 * s9 + e9 * e9,
             0.99 * s10 + e10 * e10,
+            0.99 * s11 + e11 * e11,
         ],
     )
 
@@ -128,10 +144,17 @@ def _hold(levels: list[float], mu: float, moved: float) -> list[float]:
     return [phi * v + (1.0 - phi) * mu + moved for (phi, _), v in zip(GRID, levels, strict=True)]
 
 
+def _pending(v: Any) -> tuple[float, float, float]:
+    """State field `pending`: (innovation, ln t, lean); a state from before the lean has two."""
+    n = len(v) if isinstance(v, list | tuple) else 0
+    got = finite_numbers({"pending": v}, "pending", 2 if n == 2 else 3)
+    return (got[0], got[1], got[2] if n == 3 else 0.0)
+
+
 class KalmanPredictor(ConditionedPredictor):
     """AR(1) + noise Kalman filter on the log stroke time, (phi, K) chosen online by recent error."""
 
-    __slots__ = ("_best", "_level", "_mu", "_pending", "_score", "_zhat")
+    __slots__ = ("_best", "_judged", "_level", "_mu", "_pending", "_score", "_shifts", "_zhat")
 
     model = "kalman"
     STATE_FORMAT = STATE_FORMAT
@@ -145,8 +168,12 @@ class KalmanPredictor(ConditionedPredictor):
         self._mu = 0.0
         self._zhat = 0.0  # ln t_hat of the next stroke before its conditions' shift
         self._best = 0
-        # A suspect stroke not yet judged: (its innovation, its ln t), else None.
-        self._pending: tuple[float, float] | None = None
+        # A suspect stroke not yet judged: (its innovation, its ln t, what the belief in a shift added
+        # to the next prediction), else None.
+        self._pending: tuple[float, float, float] | None = None
+        # Big suspects judged, and of those the level shifts (forgotten sums): the belief in a shift.
+        self._judged = 0.0
+        self._shifts = 0.0
 
     # ---- the Predictor calls -------------------------------------------------------------------
 
@@ -174,7 +201,9 @@ class KalmanPredictor(ConditionedPredictor):
         mu = self._mu
         scores = self._score
         best = self._best
-        pb = self._zhat + moved  # the chosen filter's prediction of this stroke
+        pending = self._pending
+        # The chosen filter's prediction of this stroke, before the belief in a shift moved it.
+        pb = self._zhat + moved - (0.0 if pending is None else pending[2])
         e = z - pb  # its innovation
         if count >= ROBUST_FROM:
             # The chosen filter's recent error variance: its forgotten sum over its weights' sum.
@@ -182,11 +211,11 @@ class KalmanPredictor(ConditionedPredictor):
             var = scores[best] * ((1.0 - FORGET) / (1.0 - FORGET**m) if m < 2000 else 1.0 - FORGET)
             cap = SUSPECT * SUSPECT * var
             if e * e > cap:
-                pending = self._pending
                 if pending is not None and 0.5 <= e / pending[0] <= 2.0:
                     # Off on the same side as the suspect before, by half to twice as much: a level
                     # shift (an outlier after a suspect stroke is not one). Every filter restarts at the
                     # two strokes' mean, mu moves with them.
+                    self._judge(pending, var, shift=True)
                     new = 0.5 * (pending[1] + moved + z)
                     self._pending = None
                     self._level = [new] * len(GRID)
@@ -197,7 +226,8 @@ class KalmanPredictor(ConditionedPredictor):
                     return
                 # Suspect: its innovation's influence redescends from SUSPECT sds to none at 2.5x that
                 # (every filter's innovation scaled alike), every score takes the same bounded loss.
-                self._pending = (e, z)
+                if pending is not None:
+                    self._judge(pending, var, shift=False)
                 sd = math.sqrt(var)
                 w = max(0.0, (2.5 * SUSPECT * sd / abs(e) - 1.0) / 1.5)
                 levels = [
@@ -207,10 +237,19 @@ class KalmanPredictor(ConditionedPredictor):
                 self._level = levels
                 self._score = [FORGET * sc + cap for sc in scores]
                 self._mu = mu = mu + moved
-                self._zhat = mu + GRID[best][0] * (levels[best] - mu)
+                zhat = mu + GRID[best][0] * (levels[best] - mu)
+                # The next prediction leans toward this stroke by the belief that a big suspect is a
+                # level shift (learned from the big suspects before it); the filters do not.
+                lean = 0.0
+                if e * e > LEAN * LEAN * var:
+                    lean = (self._shifts + SHIFT_PRIOR) / (self._judged + SHIFT_PRIOR + 1.0) * (z - zhat)
+                self._pending = (e, z, lean)
+                self._zhat = zhat + lean
                 self._taken(t_ns, min(MAX_T_NS, max(1, round(math.exp(pb + w * e)))))  # the cold fit
                 return
-        self._pending = None
+        if pending is not None:
+            self._judge(pending, (1.0 - FORGET) * scores[best], shift=False)
+            self._pending = None
         levels, scores = _grid_step(self._level, scores, z, mu, moved)
         self._score = scores
         self._best = best = scores.index(min(scores))
@@ -224,6 +263,12 @@ class KalmanPredictor(ConditionedPredictor):
         self._zhat = zhat
         self._taken(t_ns)
 
+    def _judge(self, pending: tuple[float, float, float], var: float, *, shift: bool) -> None:
+        """Count a judged suspect in the belief in a shift, if it was big."""
+        if pending[0] * pending[0] > BIG * BIG * var:
+            self._judged = SHIFT_FORGET * self._judged + 1.0
+            self._shifts = SHIFT_FORGET * self._shifts + (1.0 if shift else 0.0)
+
     def predict(self, conditions: Conditions | None = None) -> float:
         """t_hat of the next stroke (ns) under its conditions (the last ones told when None)."""
         if self._cold is not None:
@@ -236,7 +281,13 @@ class KalmanPredictor(ConditionedPredictor):
         """Plain-typed state (msgpack-safe); `from_state` rebuilds one that predicts identically."""
         pending = None if self._pending is None else list(self._pending)
         return self._state(
-            level=list(self._level), score=list(self._score), mu=self._mu, best=self._best, pending=pending
+            level=list(self._level),
+            score=list(self._score),
+            mu=self._mu,
+            best=self._best,
+            pending=pending,
+            judged=self._judged,
+            shifts=self._shifts,
         )
 
     @classmethod
@@ -248,8 +299,13 @@ class KalmanPredictor(ConditionedPredictor):
         p._score = finite_numbers(d, "score", n)
         p._mu = mu = finite_number(d, "mu")
         p._best = best = check_int("best", d.get("best"), 0, n - 1)
-        p._pending = None if d.get("pending") is None else tuple(finite_numbers(d, "pending", 2))  # type: ignore[assignment]
-        p._zhat = mu + GRID[best][0] * (p._level[best] - mu)
+        p._pending = None if d.get("pending") is None else _pending(d["pending"])
+        # Absent from states written before the belief in a shift was kept: none seen.
+        p._judged = 0.0 if d.get("judged") is None else finite_number(d, "judged")
+        p._shifts = 0.0 if d.get("shifts") is None else finite_number(d, "shifts")
+        if not 0.0 <= p._shifts <= p._judged:
+            raise ValueError(f"predictor state: shifts {p._shifts} must be within 0..judged {p._judged}")
+        p._zhat = mu + GRID[best][0] * (p._level[best] - mu) + (0.0 if p._pending is None else p._pending[2])
         return p
 
     def __repr__(self) -> str:
