@@ -29,6 +29,10 @@ class Status(TypedDict):
     driver_counters: dict[str, int]  # what the driver dropped or repaired (bounces, link errors, ...)
     records: dict[str, Any]  # the record writer: path, backlog, dropped, rejected, writer_error, ...
     metrics_url: str | None  # the Prometheus page, None when not served
+    web_url: str | None  # the browser panel, without its token (usmswitchctl web-url adds it)
+    rig: str  # [daemon] rig
+    model: str  # [control] model
+    order: int | str  # [control] order: 1..8 or "auto"
     scheduling: str  # the loop thread's: "SCHED_FIFO 50", "SCHED_OTHER (... not permitted: ...)"
     ready: bool  # every part runs (the socket answers a moment before, while the rest starts)
 

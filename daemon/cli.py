@@ -78,6 +78,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="metrics.listen: serve the Prometheus page (a bare port: loopback)",
     )
     p.add_argument(
+        "--web",
+        metavar="[HOST:]PORT",
+        help="web.listen: serve the browser panel (a bare port: loopback); docs/panel.md",
+    )
+    p.add_argument(
         "--check-config", action="store_true", help="validate, print the merged config as JSON, exit"
     )
     return p

@@ -253,6 +253,13 @@ class MetricsConfig:
 
 
 @dataclass(frozen=True)
+class WebConfig:
+    """[web]: the browser panel (docs/panel.md)."""
+
+    listen: str = ""  # "" = no panel; "127.0.0.1:8790" (a bare port listens on loopback)
+
+
+@dataclass(frozen=True)
 class Config:
     """The whole configuration, one frozen dataclass per TOML section."""
 
@@ -266,6 +273,7 @@ class Config:
     modbus: ModbusConfig
     records: RecordsConfig = field(default_factory=RecordsConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
+    web: WebConfig = field(default_factory=WebConfig)
 
     @property
     def autostart(self) -> bool:
@@ -344,6 +352,7 @@ OVERRIDE_KEYS: dict[str, str] = {
     "priority": "realtime.sched_fifo_priority",
     "postgres": "records.postgres_url",
     "metrics": "metrics.listen",
+    "web": "web.listen",
     "baudrate": "driver.serial.baudrate",
 }
 
@@ -477,8 +486,12 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     # "" (off), "host:port", or a bare port (on loopback).
     metrics = MetricsConfig(listen=t.get("listen", listen_value, ""))
     t.done()
+    t = top.table("web")
+    # "" (off), "host:port", or a bare port (on loopback).
+    web = WebConfig(listen=t.get("listen", listen_value, ""))
+    t.done()
     top.done()
-    return Config(daemon, driver, sim, control, cycle, realtime, socket, modbus, records, metrics)
+    return Config(daemon, driver, sim, control, cycle, realtime, socket, modbus, records, metrics, web)
 
 
 def _control(t: Table) -> ControlConfig:
@@ -673,6 +686,7 @@ __all__ = [
     "SimConfig",
     "SocketConfig",
     "UsbConfig",
+    "WebConfig",
     "apply_overrides",
     "default_state_dir",
     "load_config",

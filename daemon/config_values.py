@@ -86,7 +86,7 @@ def parse_listen(text: str) -> tuple[str, int]:
 
 
 def listen_value(key: str, v: Any) -> str:
-    """[metrics] listen: "host:port", or a port alone (text or a TOML integer) on loopback; "" off."""
+    """[metrics] and [web] listen: "host:port", or a port alone (text or TOML integer) on loopback; "" off."""
     if isinstance(v, int) and not isinstance(v, bool):
         v = str(v)
     return checked_text(parse_listen)(key, v)

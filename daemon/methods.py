@@ -9,6 +9,7 @@ other call can hold up (`RpcServer`'s urgent channel).
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -20,6 +21,7 @@ import structlog
 from usmswitch.drivers import Daq, DaqError, Direction
 from usmswitch.fleet.metrics import FEEDS
 from usmswitch.protocol.record import CycleRecord, RunRecord
+from usmswitch.protocol.sockets import web_token_path
 from usmswitch.protocol.version import PACKAGE_VERSION
 from usmswitch.protocol.wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, estop_socket_path
 
@@ -29,6 +31,7 @@ from .estop_socket import EstopSocket
 from .loop import AUTOSTART_OWNER, ControlLoop, LoopError, Mode, State, TargetUnreachableError
 from .records import RecordStore
 from .rpc import RpcServer
+from .web_token import TokenFile
 
 log = structlog.get_logger("usmswitch.daemon")
 
@@ -111,6 +114,10 @@ class Methods:
             "target_off_ns": loop.targets[Direction.OFF],
             "open_delay_ns": loop.open_delay_ns,
             "metrics_url": self._metrics_url(),
+            "web_url": self._web_url(),
+            "rig": self.daemon.config.daemon.rig,
+            "model": self.daemon.config.control.model,
+            "order": self.daemon.config.control.order,
             "scheduling": loop.scheduling,
             "implausible_strokes": loop.implausible,
             "idle_edges": loop.idle_edges,
@@ -123,6 +130,10 @@ class Methods:
             return None
         host, port = address
         return f"http://[{host}]:{port}/metrics" if ":" in host else f"http://{host}:{port}/metrics"
+
+    def _web_url(self) -> str | None:
+        address = None if self.server is None else self.server.web_address
+        return None if address is None else web_url(address)
 
     def get_target(self, params: list[Any]) -> dict[str, int]:
         return self._targets()
@@ -408,11 +419,29 @@ def _resolve_all(batch: list[tuple[int, str, bool, Future[Any]]], fut: Future[An
             done.set_result(fut.result())
 
 
+def web_url(address: tuple[str, int], token: str | None = None) -> str:
+    """The panel's URL for people: a wildcard address shown as this host's loopback."""
+    host, port = address
+    host = {"0.0.0.0": "127.0.0.1", "::": "::1"}.get(host, host)
+    url = f"http://[{host}]:{port}/" if ":" in host else f"http://{host}:{port}/"
+    return url if token is None else f"{url}?token={token}"
+
+
+def _announce_panel(url: str, token: TokenFile) -> None:
+    """Say where the panel is: the URL with its token on a terminal (`make run`, as Jupyter does),
+    else without it (a journal is read by more people than the socket's group)."""
+    log.info("panel", url=url, token_file=str(token.path))
+    if sys.stderr.isatty():
+        print(f"usmswitchd: the panel: {url}?token={token.token}", file=sys.stderr, flush=True)
+
+
 def start_rpc(daemon: Daemon) -> RpcServer:
     """Bind the configured sockets, start the server process and hook it to the loop."""
     cfg = daemon.config.socket
     methods = Methods(daemon)
     cfg.path.parent.mkdir(parents=True, exist_ok=True)
+    # The panel's token, beside the socket and for the socket's group (daemon/web_token.py).
+    token = TokenFile(web_token_path(cfg.path), cfg.group or None) if daemon.config.web.listen else None
     server = RpcServer(
         methods.table(),
         unix_path=cfg.path,
@@ -428,13 +457,25 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         snapshot_finishers={"stats": "usmswitch.protocol.stats:finish_snapshot"},
         feeds=FEEDS if daemon.config.metrics.listen else (),
         metrics=parse_listen(daemon.config.metrics.listen) if daemon.config.metrics.listen else None,
+        web=parse_listen(daemon.config.web.listen) if token is not None else None,
+        web_token=None if token is None else token.token,
+        web_token_file=None if token is None else token.path,
         limits=Limits(max_connections=cfg.max_clients, max_tcp_connections=cfg.max_tcp_clients),
         log_format=daemon.config.daemon.log_format,
         log_level=daemon.config.daemon.log_level,
     )
     # Before the socket listens: `stats` answers (count 0) from the first connection on.
     server.snapshot("stats", daemon.loop.snapshot(raw=True))
-    server.start()
+    try:
+        server.start()
+    except BaseException:
+        if token is not None:
+            token.stop()
+        raise
+    if token is not None:
+        server.companions.append(token)
+        assert server.web_address is not None
+        _announce_panel(web_url(server.web_address), token)
     methods.server = server
     assert server.urgent_listener is not None
     estop = EstopSocket(server.urgent_listener, methods.urgent(), server.limits, gate=daemon.loop.wait_turn)

@@ -85,6 +85,8 @@ class RpcServer:
     `records_path` lets the server process answer `history` from the records file itself.
     `feeds` are snapshots the server process keeps for itself, never answered as methods (the
     metrics page's figures); `metrics` (host, port) binds the TCP socket it serves that page on.
+    `web` (host, port) binds the browser panel's (web/panel.py), whose controls need `web_token`
+    (kept by the daemon in `web_token_file`, which the panel names when it refuses a control).
     """
 
     def __init__(
@@ -105,6 +107,9 @@ class RpcServer:
         snapshot_finishers: Mapping[str, str] | None = None,
         feeds: Iterable[str] = (),
         metrics: tuple[str, int] | None = None,
+        web: tuple[str, int] | None = None,
+        web_token: str | None = None,
+        web_token_file: str | os.PathLike[str] | None = None,
         isolation: str = "process",
         nice: int = 5,
         max_restarts: int = 5,
@@ -149,6 +154,13 @@ class RpcServer:
         if metrics is not None and not self.feeds:
             raise ValueError("metrics needs the feeds its page is made from")
         self.metrics = metrics
+        if web is not None and (not isinstance(web_token, str) or len(web_token) < 16):
+            raise ValueError("web_token must be a string of at least 16 characters when web is set")
+        self.web = web
+        self.web_token = web_token
+        self.web_token_file = None if web_token_file is None else str(web_token_file)
+        #: Where the panel listens once started (the port resolved when 0 was asked).
+        self.web_address: tuple[str, int] | None = None
         #: Where the metrics page listens once started (the port resolved when 0 was asked).
         self.metrics_address: tuple[str, int] | None = None
         #: method -> "module:function" the server process applies to that snapshot before serving it.
@@ -213,6 +225,10 @@ class RpcServer:
                 msock = _bind_tcp(self.metrics, "metrics page")
                 self.metrics_address = msock.getsockname()[:2]
                 self._listeners.append((msock, "metrics"))
+            if self.web is not None:
+                wsock = _bind_tcp(self.web, "browser panel")
+                self.web_address = wsock.getsockname()[:2]
+                self._listeners.append((wsock, "web"))
             self._link = self._spawn()
         except BaseException:
             self._close_listeners()
@@ -352,6 +368,8 @@ class RpcServer:
             "feeds": sorted(self.feeds),
             "finishers": self.snapshot_finishers,
             "topics": list(self.topics),
+            "web_token": self.web_token if self.web is not None else None,
+            "web_token_file": self.web_token_file,
             "lost": self.lost,
             # Snapshots set so far are served from the first request (and after a restart).
             "snaps": {method: packb(value) for method, value in list(self._snaps.items())},

@@ -11,8 +11,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import concurrent.futures
+import csv
 import hmac
 import importlib
+import io
 import logging
 import os
 import signal
@@ -65,6 +67,8 @@ _TRUE = packb(True)
 _KINDS = ("unix", "tcp")
 #: The HTTP listener of the metrics page (web/metrics_page.py), also bound by the daemon.
 _METRICS = "metrics"
+#: The HTTP listener of the browser panel (web/panel.py), also bound by the daemon.
+_WEB = "web"
 # A refused or timed-out connection is half-closed and kept this long (at most this many at once)
 # so that the client reads the reason instead of a reset.
 _LINGER_S = 0.5
@@ -133,6 +137,28 @@ def _stats_reply(
             ErrorCode.INVALID_PARAMS, f"stats: last_cycle {last_cycle} is before first_cycle {first_cycle}"
         )
     return packb(stats_of_records(store.iter_records(first, last, run_id=run_id), run))
+
+
+def _export_csv(records_path: str, run_id: int, put: Callable[[bytes], None]) -> int:
+    """A run's records as CSV, handed to `put` a chunk at a time (a worker thread of the server
+    process; `put` waits while the browser is behind, so memory stays a few chunks)."""
+    from usmswitch.protocol.record_csv import CSV_HEADER, csv_row  # the panel's export only
+
+    store = _reader(records_path, "export")
+    run = _known_run(store, "export", run_id)
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(CSV_HEADER)
+    n = 0
+    for rec in store.iter_records(run.first_cycle, run.last_cycle, run_id=run_id):
+        writer.writerow(csv_row(rec.to_dict()))
+        n += 1
+        if n % _HISTORY_CHUNK == 0:
+            put(buf.getvalue().encode())
+            buf.seek(0)
+            buf.truncate()
+    put(buf.getvalue().encode())
+    return n
 
 
 #: Methods answered from the records file by a worker thread, and how.
@@ -627,6 +653,86 @@ class _Conn(asyncio.Protocol):
             self.hub.counts[self.kind] -= 1
 
 
+class _PanelConn(_Conn):
+    """The browser panel's way in (web/panel.py's Backend): its calls go through `handle` as a socket
+    client's requests do (the same checks, forwarded to the daemon over the channel, estop over the
+    urgent channel, reads from the records file), so there is no second way into the loop. It has
+    no transport: replies resolve the callers' futures, notifications go to the panel's listeners.
+    All open panels share it, and with it one connection's bound on calls in flight."""
+
+    def __init__(self, hub: _Hub) -> None:
+        super().__init__(hub, _WEB)
+        self.waiting: dict[int, asyncio.Future[Any]] = {}
+        self.msgid = 0
+        self.listeners: list[Callable[[str, Any], None]] = []
+
+    def call(self, method: str, params: list[Any]) -> asyncio.Future[Any]:
+        """A socket method; the future's result is the decoded reply, or it raises RpcError."""
+        self.msgid = self.msgid % MAX_MSGID + 1
+        fut: asyncio.Future[Any] = self.hub.loop.create_future()
+        self.waiting[self.msgid] = fut
+        reply = self.handle([REQUEST, self.msgid, method, params])
+        if reply is not None:
+            self.write(reply)
+        return fut
+
+    def listen(self, listener: Callable[[str, Any], None]) -> None:
+        self.listeners.append(listener)
+
+    async def export_csv(self, run_id: int, write: Callable[[bytes], Any]) -> int:
+        """A run as CSV, read by a worker thread and written as the browser takes it."""
+        if self.hub.reads is None or self.hub.records_path is None:
+            raise RpcError(ErrorCode.UNAVAILABLE, "export: this server has no records file")
+        loop = self.hub.loop
+        chunks: asyncio.Queue[bytes | None] = asyncio.Queue(maxsize=4)
+        gone = threading.Event()
+
+        def put(chunk: bytes) -> None:
+            if gone.is_set():
+                raise ConnectionError("the browser went away")
+            asyncio.run_coroutine_threadsafe(chunks.put(chunk), loop).result(timeout=60)
+
+        def produce() -> int:
+            try:
+                return _export_csv(cast(str, self.hub.records_path), run_id, put)
+            finally:
+                loop.call_soon_threadsafe(chunks.put_nowait, None)
+
+        job = loop.run_in_executor(self.hub.reads, produce)
+        try:
+            while (chunk := await chunks.get()) is not None:
+                await write(chunk)
+        finally:
+            gone.set()
+            while not chunks.empty():  # a producer waiting on a full queue goes on, and ends
+                chunks.get_nowait()
+        return await job
+
+    def write(self, data: bytes) -> None:
+        _, msgid, error, result = msgpack.unpackb(data, raw=False)
+        fut = self.waiting.pop(msgid, None)
+        if fut is None or fut.done():
+            return
+        if error is not None:
+            fut.set_exception(RpcError(error[0], error[1]))
+        else:
+            fut.set_result(result)
+
+    def notify(self, frame: bytes) -> None:
+        _, topic, (payload,) = msgpack.unpackb(frame, raw=False)
+        for listener in self.listeners:
+            listener(topic, payload)
+
+    def dropped(self, count: int) -> None:
+        for listener in self.listeners:
+            listener("dropped", {"count": count})
+
+    def fatal(self, code: int, message: str, msgid: int | None = None) -> None:
+        fut = None if msgid is None else self.waiting.pop(msgid, None)
+        if fut is not None and not fut.done():
+            fut.set_exception(RpcError(code, message))
+
+
 def _recv_exact(sock: socket.socket, n: int) -> bytes | None:
     buf = bytearray()
     while len(buf) < n:
@@ -656,6 +762,13 @@ async def _serve(
             from usmswitch.web.metrics_page import serve_metrics  # aiohttp, prometheus_client: only here
 
             servers.append(await serve_metrics(sock, lambda: (hub.snaps, hub.counts)))
+            continue
+        if kind == _WEB:
+            from usmswitch.web.panel import serve_panel  # aiohttp: only here
+
+            panel_conn = _PanelConn(hub)
+            servers.append(await serve_panel(sock, panel_conn, cfg["web_token"], cfg["web_token_file"]))
+            await panel_conn.call("subscribe", [["stroke", "state", "run"]])
             continue
         # create_server, not create_unix_server: the latter unlinks the path on close (3.13+),
         # and the socket file belongs to the daemon, which outlives this process.
@@ -724,7 +837,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--channel", type=int, required=True, help="fd of the socketpair to the daemon")
     parser.add_argument("--urgent-channel", type=int, required=True, help="fd of the estop socketpair")
     parser.add_argument(
-        "--listen", action="append", default=[], help="FD:unix, FD:tcp or FD:metrics, a listening socket"
+        "--listen",
+        action="append",
+        default=[],
+        help="FD:unix, FD:tcp, FD:metrics or FD:web, a listening socket",
     )
     parser.add_argument("--nice", type=int, default=0)
     parser.add_argument("--log-format", default="auto", help="as [daemon] log_format")
@@ -742,8 +858,8 @@ def main(argv: list[str] | None = None) -> int:
     listeners = []
     for spec in args.listen:
         fd, _, kind = spec.partition(":")
-        if kind not in (*_KINDS, _METRICS) or not fd.isdigit():
-            parser.error(f"--listen must be FD:unix, FD:tcp or FD:metrics, got {spec!r}")
+        if kind not in (*_KINDS, _METRICS, _WEB) or not fd.isdigit():
+            parser.error(f"--listen must be FD:unix, FD:tcp, FD:metrics or FD:web, got {spec!r}")
         listeners.append((int(fd), kind))
     serve(args.channel, args.urgent_channel, listeners, args.nice)
     return 0

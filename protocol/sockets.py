@@ -29,6 +29,7 @@ __all__ = [
     "describe_path",
     "rig_socket_path",
     "user_text",
+    "web_token_path",
 ]
 
 
@@ -142,3 +143,10 @@ def client_socket_paths(env: Mapping[str, str] | None = None) -> list[Path]:
     paths.append(default_socket_path(env))
     paths.append(SERVICE_RUNTIME_DIR / SOCKET_NAME)
     return list(dict.fromkeys(paths))
+
+
+def web_token_path(socket_path: str | os.PathLike[str]) -> Path:
+    """The browser panel's token beside the socket (`usmswitchd.sock` -> `usmswitchd.web-token`):
+    mode 0640 and the socket's group, so whoever may use the socket may act from the panel."""
+    p = Path(socket_path)
+    return p.with_name(f"{p.stem}.web-token")

@@ -3,22 +3,29 @@
 from __future__ import annotations
 
 import contextlib
-import csv
 import datetime
 import json
 import math
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import IO, Any
 
 from usmswitch.protocol.record import FIELDS, UNUSABLE, Flag
+from usmswitch.protocol.record_csv import (  # noqa: F401 (re-exported: the commands use them from here)
+    CSV_HEADER,
+    CSV_NAME_COLUMNS,
+    csv_row,
+    direction_name,
+    flag_names,
+    write_csv,
+)
 from usmswitch.protocol.stats import Running
 from usmswitch.protocol.units import format_elapsed, format_ns, is_instant_field
 
 from ..types import CycleRecord
-from .args import DIRECTION_NAMES, WATCH_HEADER_EVERY
+from .args import WATCH_HEADER_EVERY
 
 
 def show_ns(value: float | int | None) -> str:
@@ -26,20 +33,6 @@ def show_ns(value: float | int | None) -> str:
     if value is None or (isinstance(value, float) and not math.isfinite(value)):
         return "-"
     return format_ns(round(value))
-
-
-def flag_names(flags: int) -> str:
-    """Record flag bits as names ("LATE|WARMUP"), "-" for a clean stroke."""
-    names = [f.name for f in Flag if f.name is not None and flags & f]
-    unknown = flags & ~sum(Flag)
-    if unknown:
-        names.append(hex(unknown))
-    return "|".join(names) or "-"
-
-
-def direction_name(direction: int) -> str:
-    """A record's direction (0, 1) as the word the commands take."""
-    return DIRECTION_NAMES[direction] if direction in (0, 1) else str(direction)
 
 
 # -- output ----------------------------------------------------------------------------------------
@@ -468,41 +461,6 @@ def _isatty(stream: IO[str]) -> bool:
     with contextlib.suppress(AttributeError, ValueError):
         return stream.isatty()
     return False
-
-
-#: Columns a CSV export adds after the record's fields: the direction and flags as names beside
-#: their numbers (`on`/`off`, `LATE|CLAMPED`), for a person reading the sheet; readers that rebuild
-#: records (`CycleRecord.from_row`) ignore them.
-CSV_NAME_COLUMNS: tuple[str, ...] = ("direction_name", "flag_names")
-CSV_HEADER: tuple[str, ...] = (*FIELDS, *CSV_NAME_COLUMNS)
-
-
-def csv_row(rec: CycleRecord) -> list[Any]:
-    """One record as a CSV row in CSV_HEADER order: coefficients as JSON text, None as an empty cell."""
-    out: list[Any] = []
-    for name in FIELDS:
-        value = rec[name]  # type: ignore[literal-required]
-        if name == "coefficients":
-            value = json.dumps([float(c) for c in value])
-        elif value is None:
-            value = ""
-        elif isinstance(value, float):
-            value = repr(value)  # shortest text that reads back to the same float
-        out.append(value)
-    flags = flag_names(rec["flags"])
-    out += [direction_name(rec["direction"]), "" if flags == "-" else flags]
-    return out
-
-
-def write_csv(records: Iterable[CycleRecord], out: IO[str]) -> int:
-    """Write the header (CSV_HEADER) and the records; returns how many."""
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(CSV_HEADER)
-    n = 0
-    for rec in records:
-        writer.writerow(csv_row(rec))
-        n += 1
-    return n
 
 
 # -- runs ------------------------------------------------------------------------------------------

@@ -1,0 +1,459 @@
+"""The browser panel, served over HTTP by the socket's server process (daemon/rpc_process.py).
+
+The panel is a client of the server process like any socket client: its reads and controls are
+socket methods dispatched by the same code (`Backend.call`: the same parameter checks, calls
+forwarded to the daemon over the channel, estop over the urgent channel, history and runs read from
+the records file), and its live feed is one subscription to the `stroke`, `state` and `run`
+notifications, shared by every open panel. The loop's process never sees a browser.
+
+What a browser may do: read without a token (the page, the live feed, the runs and their CSV);
+act (start, stop, targets, mode, reset, estop) with the token the daemon writes beside its socket,
+mode 0640 and the socket's group (docs/panel.md). A control without it is refused with 403 and a
+message the page shows; a bad control is refused with 400 and what was wrong.
+
+Live updates: one ticker sends every open panel, at most TICK_S apart, the strokes it has not seen
+(JSON, one message per tick however many strokes landed), with the state and the run's statistics
+when they changed. A panel that does not read is skipped, never waited for, and catches up from the
+buffer of the last HISTORY_STROKES strokes (or is told it missed some).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import json
+import logging
+import socket
+import time
+from collections import deque
+from collections.abc import Awaitable, Callable
+from importlib import resources
+from typing import Any, Protocol
+
+from aiohttp import WSMsgType, web
+
+from usmswitch.protocol.wire import ErrorCode, RpcError
+
+log = logging.getLogger("usmswitch.web")
+
+TOKEN_HEADER = "X-Usmswitch-Token"
+#: Strokes kept for a panel that opens (a few seconds of history) or falls behind: ~10 s at 100/s.
+HISTORY_STROKES = 1000
+#: Live updates go out at most this often: 100 strokes a second are 10 per message.
+TICK_S = 0.1
+#: The daemon's status is asked at most this often (and at once when the state changes).
+STATUS_EVERY_S = 2.0
+#: Open live feeds at most; more are answered 503.
+MAX_PANELS = 32
+#: A panel whose unsent bytes exceed this is skipped until it reads (it catches up from the buffer).
+BEHIND_BYTES = 256 * 1024
+#: Runs the runs list shows, newest last; each ended run's statistics are kept (they never change).
+RUNS_SHOWN = 12
+MAX_BODY_BYTES = 4096
+
+#: Controls: name -> (socket method, the JSON fields it takes in order -> its params).
+CONTROLS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "start": ("start_cycling", ("period_ns", "count", "target_ns", "allow_late", "take_over")),
+    "stop": ("stop_cycling", ()),
+    "target": ("set_target", ("target_ns", "direction")),
+    "mode": ("set_mode", ("mode", "open_delay_ns")),
+    "reset": ("reset_fault", ()),
+    "estop": ("estop", ()),
+}
+#: The HTTP answer to a refused call, by the protocol's error code.
+_HTTP_OF_CODE = {
+    ErrorCode.INVALID_PARAMS: 400,
+    ErrorCode.UNKNOWN_METHOD: 400,
+    ErrorCode.FAULT: 409,
+    ErrorCode.STATE: 409,
+    ErrorCode.UNREACHABLE: 409,
+    ErrorCode.BUSY: 503,
+    ErrorCode.UNAVAILABLE: 503,
+    ErrorCode.TIMEOUT: 504,
+}
+_STATIC_TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/html", ".txt": "text/plain"}
+
+
+class Backend(Protocol):
+    """What the panel needs of the server process (daemon/rpc_process.py provides it)."""
+
+    def call(self, method: str, params: list[Any]) -> Awaitable[Any]:
+        """A socket method, dispatched as a socket client's request; raises RpcError when refused."""
+        ...
+
+    def listen(self, listener: Callable[[str, Any], None]) -> None:
+        """Call `listener(topic, payload)` for every stroke, state and run notification."""
+        ...
+
+    def export_csv(self, run_id: int, write: Callable[[bytes], Awaitable[None]]) -> Awaitable[int]:
+        """Write a run's records as CSV (protocol/record_csv.py) in chunks; returns how many."""
+        ...
+
+
+def compact(rec: dict[str, Any]) -> list[Any]:
+    """A stroke as the page plots it: [cycle, direction, operating, error, total, target, t_hat,
+    flags, run_id] (ns integers; None where the stroke has none, a stall's)."""
+    return [
+        rec["cycle"],
+        rec["direction"],
+        rec["operating_ns"],
+        rec["error_ns"],
+        rec["total_ns"],
+        rec["target_ns"],
+        rec["t_hat_ns"],
+        rec["flags"],
+        rec.get("run_id"),
+    ]
+
+
+class _Viewer:
+    """One open live feed."""
+
+    def __init__(self, ws: web.WebSocketResponse, transport: asyncio.Transport | None) -> None:
+        self.ws = ws
+        self.transport = transport
+        self.seq = 0  # the last stroke sent
+        self.sending: asyncio.Task[None] | None = None
+        self.stats_sent: object = None
+        self.status_sent: object = None
+
+    def busy(self) -> bool:
+        if self.sending is not None and not self.sending.done():
+            return True
+        return self.transport is not None and self.transport.get_write_buffer_size() > BEHIND_BYTES
+
+
+class Panel:
+    """The panel's state in the server process: the live buffer, the viewers, the latest figures."""
+
+    def __init__(self, backend: Backend, token: str | None, token_file: str | None) -> None:
+        self.backend = backend
+        self.token = token
+        self.token_file = token_file
+        self.strokes: deque[tuple[int, list[Any]]] = deque(maxlen=HISTORY_STROKES)
+        self.seq = 0
+        self.viewers: set[_Viewer] = set()
+        self.status: dict[str, Any] | None = None
+        self.status_at = 0.0
+        self.status_stale = True
+        self.stats: dict[str, Any] | None = None
+        self.runs_version = 0
+        self.dropped = 0
+        self.run_stats: dict[int, Any] = {}  # ended runs' statistics: they never change
+        self._status_task: asyncio.Task[None] | None = None
+        backend.listen(self.on_note)
+
+    # -- the feed ----------------------------------------------------------------------------------
+    def on_note(self, topic: str, payload: Any) -> None:
+        """A notification from the daemon (on the server process's event loop)."""
+        if topic == "stroke":
+            self.seq += 1
+            self.strokes.append((self.seq, compact(payload)))
+        elif topic == "state":
+            if self.status is not None:
+                self.status.update(payload)
+            self.status_stale = True
+        elif topic == "run":
+            self.runs_version += 1
+        elif topic == "dropped":
+            self.dropped += int(payload.get("count", 0)) if isinstance(payload, dict) else 0
+
+    async def refresh_status(self) -> None:
+        """The daemon's status, asked at most every STATUS_EVERY_S (at once after a state change)."""
+        try:
+            status = await self.backend.call("status", [])
+        except RpcError as exc:
+            log.warning("panel: status: %s", exc.message)
+            return
+        self.status = {k: status.get(k) for k in _STATUS_KEYS}
+        self.status_at = time.monotonic()
+
+    async def refresh_stats(self) -> None:
+        """The current (or last) run's statistics, from the snapshot the server process keeps."""
+        with contextlib.suppress(RpcError):
+            self.stats = await self.backend.call("stats", [])
+
+    def strokes_after(self, seq: int) -> tuple[list[list[Any]], bool]:
+        """The buffered strokes after `seq`, and whether some between were lost from the buffer."""
+        if not self.strokes or self.strokes[-1][0] <= seq:
+            return [], False
+        first = self.strokes[0][0]
+        if seq < first - 1:
+            return [row for _, row in self.strokes], seq > 0
+        return [row for s, row in self.strokes if s > seq], False
+
+    def hello(self) -> dict[str, Any]:
+        """What a panel gets when it opens: the state, the statistics, the strokes of the last seconds."""
+        return {
+            "type": "hello",
+            "status": self.status,
+            "stats": self.stats,
+            "strokes": [row for _, row in self.strokes],
+            "runs_version": self.runs_version,
+            "history_strokes": HISTORY_STROKES,
+        }
+
+    async def ticker(self) -> None:
+        """Every TICK_S: each viewer gets what it has not seen, in one message, unless it is behind."""
+        stats_at = 0.0
+        while True:
+            await asyncio.sleep(TICK_S)
+            if not self.viewers:
+                continue
+            now = time.monotonic()
+            if (self.status_stale or now - self.status_at > STATUS_EVERY_S) and (
+                self._status_task is None or self._status_task.done()
+            ):
+                self.status_stale = False
+                self._status_task = asyncio.create_task(self.refresh_status())
+            if now - stats_at > 0.5:
+                stats_at = now
+                await self.refresh_stats()
+            encoded: dict[tuple[int, bool, bool, int], str] = {}
+            for viewer in list(self.viewers):
+                if viewer.busy():
+                    continue
+                rows, gap = self.strokes_after(viewer.seq)
+                send_stats = viewer.stats_sent is not self.stats
+                send_status = viewer.status_sent is not self.status or send_stats
+                if not rows and not send_stats and not send_status:
+                    continue
+                key = (viewer.seq, send_stats, send_status, self.runs_version)
+                text = encoded.get(key)
+                if text is None:
+                    msg: dict[str, Any] = {"type": "tick", "strokes": rows, "gap": gap}
+                    msg["runs_version"] = self.runs_version
+                    if send_stats:
+                        msg["stats"] = self.stats
+                    if send_status:
+                        msg["status"] = self.status
+                    text = encoded[key] = json.dumps(msg, separators=(",", ":"))
+                viewer.seq = self.seq
+                viewer.stats_sent = self.stats
+                viewer.status_sent = self.status
+                viewer.sending = asyncio.create_task(_send(viewer, text))
+
+    # -- controls ------------------------------------------------------------------------------------
+    def authorized(self, request: web.BaseRequest) -> bool:
+        """Whether the request carries the daemon's token (constant-time comparison)."""
+        given = request.headers.get(TOKEN_HEADER, "")
+        return (
+            self.token is not None
+            and bool(given)
+            and hmac.compare_digest(given.encode(), self.token.encode())
+        )
+
+    def refusal(self) -> str:
+        where = f" (it is in {self.token_file}, readable by the socket's group)" if self.token_file else ""
+        return (
+            "read-only: this panel was opened without the daemon's token; open the URL that"
+            f" `usmswitchctl web-url` prints{where}"
+        )
+
+
+_STATUS_KEYS = (
+    "rig", "driver", "driver_ok", "state", "mode", "fault", "model", "order", "cycle",
+    "target_on_ns", "target_off_ns", "open_delay_ns", "version", "uptime_ns", "scheduling",
+)  # fmt: skip
+
+
+async def _send(viewer: _Viewer, text: str) -> None:
+    with contextlib.suppress(ConnectionError, RuntimeError, asyncio.CancelledError):
+        await viewer.ws.send_str(text)
+
+
+def _error(status: int, message: str, code: int | None = None) -> web.Response:
+    return web.json_response({"error": message, "code": code}, status=status)
+
+
+async def _no_icon() -> web.Response:
+    return web.Response(status=204)
+
+
+def _control_params(name: str, body: Any) -> tuple[str, list[Any]]:
+    """A control's JSON body -> (socket method, params); RpcError(INVALID_PARAMS) when malformed."""
+    method, names = CONTROLS[name]
+    if not isinstance(body, dict):
+        raise RpcError(
+            ErrorCode.INVALID_PARAMS, f"{name}: the body must be a JSON object, got {type(body).__name__}"
+        )
+    unknown = sorted(set(body) - set(names))
+    if unknown:
+        known = ", ".join(names) or "none"
+        raise RpcError(ErrorCode.INVALID_PARAMS, f"{name}: unknown field {unknown[0]!r} (known: {known})")
+    params: list[Any] = [body.get(k) for k in names]
+    while params and params[-1] is None:  # absent fields take the method's defaults
+        params.pop()
+    if method == "set_target":
+        params += [False]  # allow_late: never from the panel's target box
+        if len(params) == 2:
+            params[1:1] = ["both"]
+    if method == "start_cycling":
+        params += [None] * (5 - len(params))
+        params = [
+            p if p is not None else d for p, d in zip(params, (None, 0, None, False, False), strict=True)
+        ]
+        params.append("panel")  # the run's owner
+    return method, params
+
+
+def make_app(panel: Panel) -> web.Application:
+    """The panel's routes: the page and its assets, the live feed, the runs, the controls."""
+    app = web.Application(client_max_size=MAX_BODY_BYTES)
+    static = resources.files("usmswitch.web") / "static"
+
+    async def index(request: web.Request) -> web.StreamResponse:
+        return web.Response(
+            body=(static / "index.html").read_bytes(), content_type="text/html", charset="utf-8"
+        )
+
+    async def asset(request: web.Request) -> web.StreamResponse:
+        name = request.match_info["name"]
+        kind = next((t for ext, t in _STATIC_TYPES.items() if name.endswith(ext)), None)
+        item = static / name
+        if kind is None or "/" in name or name.startswith(".") or not item.is_file():
+            return _error(404, f"no asset {name!r}")
+        return web.Response(
+            body=item.read_bytes(),
+            content_type=kind,
+            charset="utf-8",
+            headers={"Cache-Control": "max-age=3600"},
+        )
+
+    async def session(request: web.Request) -> web.StreamResponse:
+        ok = panel.authorized(request)
+        return web.json_response({"control": ok, "message": None if ok else panel.refusal()})
+
+    async def live(request: web.Request) -> web.StreamResponse:
+        if len(panel.viewers) >= MAX_PANELS:
+            return _error(503, f"too many open panels (max {MAX_PANELS}); close one")
+        ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=4096)
+        await ws.prepare(request)
+        if panel.status is None or time.monotonic() - panel.status_at > STATUS_EVERY_S:
+            await panel.refresh_status()
+        if panel.stats is None:
+            await panel.refresh_stats()
+        viewer = _Viewer(ws, request.transport)  # type: ignore[arg-type]
+        hello = panel.hello()
+        viewer.seq, viewer.stats_sent, viewer.status_sent = panel.seq, panel.stats, panel.status
+        await ws.send_str(json.dumps(hello, separators=(",", ":")))
+        panel.viewers.add(viewer)
+        try:
+            async for msg in ws:  # the page sends nothing; reading keeps pings answered
+                if msg.type == WSMsgType.ERROR:
+                    break
+        finally:
+            panel.viewers.discard(viewer)
+        return ws
+
+    async def runs(request: web.Request) -> web.StreamResponse:
+        try:
+            listed = await panel.backend.call("runs", [RUNS_SHOWN])
+            stats = await panel.backend.call("stats", [])
+        except RpcError as exc:
+            return _error(_HTTP_OF_CODE.get(exc.code, 500), exc.message, exc.code)
+        current = (stats or {}).get("run") or {}
+        out = []
+        for run in listed:
+            rid = run["run_id"]
+            if run.get("end_reason") is None and current.get("run_id") == rid:
+                run["stats"] = stats
+            elif run.get("end_reason") is not None:
+                if rid not in panel.run_stats:
+                    with contextlib.suppress(RpcError):
+                        panel.run_stats[rid] = await panel.backend.call("stats", [rid, None, None])
+                    while len(panel.run_stats) > 4 * RUNS_SHOWN:
+                        panel.run_stats.pop(min(panel.run_stats))
+                run["stats"] = panel.run_stats.get(rid)
+            out.append(run)
+        return web.json_response({"runs": out})
+
+    async def run_csv(request: web.Request) -> web.StreamResponse:
+        text = request.match_info["run"]
+        if not text.isdigit() or not 0 < int(text) < 2**62:
+            return _error(400, f"run must be a run id (1, 2, ...), got {text!r}")
+        run_id = int(text)
+        # Asked first, so an unknown run is a 404 before any byte of the file goes out.
+        try:
+            listed = await panel.backend.call("runs", [1])
+        except RpcError as exc:
+            return _error(_HTTP_OF_CODE.get(exc.code, 500), exc.message, exc.code)
+        last = listed[-1]["run_id"] if listed else 0
+        if run_id > last:
+            have = f"runs are 1..{last}" if last else "no run has been recorded yet"
+            return _error(404, f"no run {run_id} ({have})")
+        resp = web.StreamResponse(
+            headers={
+                "Content-Type": "text/csv; charset=utf-8",
+                "Content-Disposition": f'attachment; filename="run-{run_id}.csv"',
+            }
+        )
+        await resp.prepare(request)
+        try:
+            await panel.backend.export_csv(run_id, resp.write)
+        except RpcError as exc:  # the headers are out: say so in the body, as the last line
+            await resp.write(f"# export failed: {exc.message}\n".encode())
+        await resp.write_eof()
+        return resp
+
+    async def control(request: web.Request) -> web.StreamResponse:
+        name = request.match_info["name"]
+        if not panel.authorized(request):
+            return _error(403, panel.refusal())
+        if name not in CONTROLS:
+            return _error(400, f"unknown control {name[:40]!r}; known: {', '.join(CONTROLS)}")
+        raw = await request.read()
+        try:
+            body = json.loads(raw) if raw.strip() else {}
+        except (ValueError, UnicodeDecodeError) as exc:
+            return _error(400, f"{name}: the body is not JSON: {exc}")
+        try:
+            method, params = _control_params(name, body)
+            result = await panel.backend.call(method, params)
+        except RpcError as exc:
+            return _error(_HTTP_OF_CODE.get(exc.code, 500), exc.message, exc.code)
+        panel.status_stale = True
+        return web.json_response({"ok": True, "result": result})
+
+    async def too_large(request: web.Request, handler: Any) -> web.StreamResponse:
+        try:
+            return await handler(request)
+        except web.HTTPRequestEntityTooLarge:
+            return _error(413, f"a control's body is at most {MAX_BODY_BYTES} bytes")
+
+    app.middlewares.append(web.middleware(too_large))
+    app.router.add_get("/", index)
+    app.router.add_get("/favicon.ico", lambda request: _no_icon())
+    app.router.add_get("/static/{name}", asset)
+    app.router.add_get("/api/session", session)
+    app.router.add_get("/api/live", live)
+    app.router.add_get("/api/runs", runs)
+    app.router.add_get("/api/runs/{run}.csv", run_csv)
+    app.router.add_post("/api/control/{name}", control)
+    return app
+
+
+class PanelServer:
+    """The running panel: its aiohttp runner and ticker; `close()` ends both."""
+
+    def __init__(self, runner: web.AppRunner, ticker: asyncio.Task[None], panel: Panel) -> None:
+        self.runner = runner
+        self.ticker = ticker
+        self.panel = panel
+
+    def close(self) -> None:
+        """Stop serving (from the event loop's thread); open feeds are dropped with the process."""
+        self.ticker.cancel()
+        asyncio.get_running_loop().create_task(self.runner.cleanup())
+
+
+async def serve_panel(
+    sock: socket.socket, backend: Backend, token: str | None, token_file: str | None = None
+) -> PanelServer:
+    """Serve the panel on a listening TCP socket the daemon bound (the server process's event loop)."""
+    panel = Panel(backend, token, token_file)
+    runner = web.AppRunner(make_app(panel), access_log=None, handle_signals=False)
+    await runner.setup()
+    await web.SockSite(runner, sock).start()
+    return PanelServer(runner, asyncio.create_task(panel.ticker()), panel)
