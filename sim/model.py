@@ -255,27 +255,38 @@ class UsmSwitchModel:
         return float(voltage_vpp)
 
     def _dynamics(self, frequency_hz: float) -> _Dynamics:
+        """Table 1 at a drive frequency, cold (at the reference temperature); cached per frequency."""
         dyn = self._dyn_cache.get(frequency_hz)
         if dyn is None:
-            p = self.params
-            f = p.table_frequency_hz
-            i = min(max(bisect_right(f, frequency_hz) - 1, 0), len(f) - 2)
-            w = (frequency_hz - f[i]) / (f[i + 1] - f[i])
-
-            def lerp(col: tuple[float, ...]) -> float:
-                return col[i] + w * (col[i + 1] - col[i])
-
-            dyn = _Dynamics(lerp(p.table_wn2), lerp(p.table_2xi_wn), lerp(p.table_k_wn))
-            self._dyn_cache[frequency_hz] = dyn
+            dyn = self._dyn_cache[frequency_hz] = self._table(frequency_hz)
         return dyn
 
-    def _reach(self, direction: Direction, dyn: _Dynamics, voltage_vpp: float, temperature_c: float) -> float:
+    def _table(self, frequency_hz: float) -> _Dynamics:
+        """Table 1 interpolated (extrapolated along its end rows beyond its span)."""
+        p = self.params
+        f = p.table_frequency_hz
+        i = min(max(bisect_right(f, frequency_hz) - 1, 0), len(f) - 2)
+        w = (frequency_hz - f[i]) / (f[i + 1] - f[i])
+
+        def lerp(col: tuple[float, ...]) -> float:
+            return col[i] + w * (col[i + 1] - col[i])
+
+        return _Dynamics(lerp(p.table_wn2), lerp(p.table_2xi_wn), lerp(p.table_k_wn))
+
+    def _dynamics_at(self, frequency_hz: float, temperature_c: float) -> _Dynamics:
+        """The motor's dynamics driven at `frequency_hz` at `temperature_c`: the cold motor's at the
+        drive's distance from the resonance that warming moved (`resonance_hz_per_c`). Not cached
+        off the reference temperature: the temperature is continuous."""
+        p = self.params
+        shift = p.resonance_hz_per_c * (temperature_c - p.reference_temperature_c)
+        return self._dynamics(frequency_hz) if shift == 0.0 else self._table(frequency_hz - shift)
+
+    def _reach(self, direction: Direction, dyn: _Dynamics, voltage_vpp: float) -> float:
         """Steady-speed reach (mm per table unit) at these conditions."""
         p = self.params
         volt = (voltage_vpp - p.voltage_deadzone_vpp) / (p.reference_voltage_vpp - p.voltage_deadzone_vpp)
-        temp = 1.0 - p.temp_speed_coeff_per_c * (temperature_c - p.reference_temperature_c)
         side = 1.0 if direction is Direction.ON else p.off_speed_ratio
-        return self._gain_per_kwn * dyn.v_ss * volt * max(temp, 0.05) * side
+        return self._gain_per_kwn * dyn.v_ss * volt * side
 
     def dead_time_ns(self, direction: Direction) -> int:
         """Drive-on to first motion for a direction (the stator's build-up)."""
@@ -300,8 +311,8 @@ class UsmSwitchModel:
         d = self.params.stroke_mm if distance_mm is None else float(distance_mm)
         if d <= 0.0:
             raise ValueError(f"distance_mm must be > 0, got {distance_mm!r}")
-        dyn = self._dynamics(f)
-        return dyn.crossing(d / self._reach(direction, dyn, v, t_c)) * self._unit
+        dyn = self._dynamics_at(f, t_c)
+        return dyn.crossing(d / self._reach(direction, dyn, v)) * self._unit
 
     def nominal_operating_ns(self, direction: Direction, **conditions: float) -> int:
         """Dead time plus `motion_ns`: a full stroke's operating time with no friction or noise."""
@@ -460,8 +471,8 @@ class UsmSwitchModel:
         self.strokes[i] += 1
         f = self.frequency_hz
         v = self.voltage_vpp
-        dyn = self._dyn_cache.get(f) or self._dynamics(f)
-        reach = self._reach(direction, dyn, v, temp_c)
+        dyn = self._dynamics_at(f, temp_c)
+        reach = self._reach(direction, dyn, v)
         dead = p.dead_time_on_ns if i == 0 else p.dead_time_off_ns
         if jam_fraction is None:
             end = d

@@ -77,10 +77,13 @@ class RigParams:
     voltage_max_vpp: float = 700.0
 
     # -- temperature (Fig. 9) and the thermal state ----------------------------------------------
-    #: Fig. 9: speed differs visibly between 25, 27.5 and 30 C. assumption: warmer is slower,
-    #: by 1.2 % of speed per C (the stator's resonance falls as it warms, moving away from a
-    #: drive frequency above resonance, which Table 1 shows is slower).
-    temp_speed_coeff_per_c: float = 0.012
+    #: Fig. 9: speed differs between 25, 27.5 and 30 C. The stator's resonance falls as it warms
+    #: (its elastic moduli soften), by this much per C: a drive above resonance, as Table 1 shows
+    #: this rig's is, is then further from it, and the motor moves as the cold motor would at
+    #: frequency + 10 Hz per C over reference (Table 1: slower). Size: an electro-thermal USM model
+    #: validated on a motor retunes its drive about 10 Hz per C (J. Intell. Mater. Syst. Struct.,
+    #: 2025, doi 10.1177/1045389X251327239); docs/sim.md.
+    resonance_hz_per_c: float = -10.0
     #: assumption: the lab's ambient equals the reference temperature.
     ambient_c: float = 25.0
     #: assumption: the stator (a few grams of piezo ceramic and metal) heats and cools with a
@@ -153,7 +156,6 @@ class RigParams:
             "dead_time_on_ns",
             "dead_time_off_ns",
             "voltage_deadzone_vpp",
-            "temp_speed_coeff_per_c",
             "thermal_rise_full_duty_c",
             "white_std",
             "bounce_gap_min_ns",
@@ -199,8 +201,9 @@ class RigParams:
             self.glitch_width_max_ns < self.glitch_width_min_ns
         ):
             raise ValueError("bounce gap and glitch width ranges must have min <= max")
-        # Keep the temperature factor positive up to 50 C above reference.
-        if self.temp_speed_coeff_per_c * 50.0 >= 1.0:
+        # Within Table 1's span (2 kHz) over 50 C: beyond it the table is extrapolated.
+        if not -40.0 <= self.resonance_hz_per_c <= 40.0:
             raise ValueError(
-                f"temp_speed_coeff_per_c {self.temp_speed_coeff_per_c!r} is too large (must be < 0.02 per C)"
+                f"resonance_hz_per_c {self.resonance_hz_per_c!r} is outside -40..40 Hz per C "
+                "(a stator's resonance moves tens of Hz per C at most)"
             )

@@ -9,7 +9,7 @@ stroke) and the stroke's innovation floor: the std of the part no predictor can 
 | name | what differs from the default rig |
 |---|---|
 | default | nothing: the calibrated rig at 40 kHz, 500 Vpp, 25 C ambient |
-| temperature | the ambient rises 20 C over the run (the motor slows 1.2 %/C) |
+| temperature | the ambient rises 20 C over the run (the resonance falls 10 Hz/C: ~0.15 %/C slower) |
 | frequency-step | the drive steps 40 -> 40.5 kHz half way |
 | voltage-step | the drive steps 500 -> 450 Vpp half way |
 | shift-noise4 | the far sensor moves 0.2 mm (4 %, unreported) half way, and white noise x4 |
