@@ -142,6 +142,7 @@ class Panel:
         self.dropped = 0
         self.run_stats: dict[int, Any] = {}  # ended runs' statistics: they never change
         self._status_task: asyncio.Task[None] | None = None
+        self.seeding: asyncio.Task[None] | None = None
         backend.listen(self.on_note)
 
     # -- the feed ----------------------------------------------------------------------------------
@@ -158,6 +159,27 @@ class Panel:
             self.runs_version += 1
         elif topic == "dropped":
             self.dropped += int(payload.get("count", 0)) if isinstance(payload, dict) else 0
+
+    async def seed(self) -> None:
+        """The buffer filled from the records file at start: a panel opened at once (or after the
+        server process restarted) still shows the last seconds."""
+        try:
+            records = await self.backend.call("history", [HISTORY_STROKES])
+        except RpcError as exc:
+            log.warning("panel: history: %s", exc.message)
+            return
+        first = self.strokes[0][1][0] if self.strokes else None
+        older = [compact(r) for r in records if first is None or r["cycle"] < first]
+        older = older[-(HISTORY_STROKES - len(self.strokes)) :] if len(self.strokes) < HISTORY_STROKES else []
+        # Sequence numbers below the live ones: a viewer's cursor (0 at open) is before them all.
+        base = (self.strokes[0][0] if self.strokes else self.seq + 1) - len(older)
+        rows = [(base + i, row) for i, row in enumerate(older)]
+        if base < 1:  # renumber everything so that sequence numbers stay positive
+            shift = 1 - base
+            self.strokes = deque(((s + shift, r) for s, r in (*rows, *self.strokes)), maxlen=HISTORY_STROKES)
+            self.seq += shift
+        else:
+            self.strokes.extendleft(reversed(rows))
 
     async def refresh_status(self) -> None:
         """The daemon's status, asked at most every STATUS_EVERY_S (at once after a state change)."""
@@ -456,4 +478,5 @@ async def serve_panel(
     runner = web.AppRunner(make_app(panel), access_log=None, handle_signals=False)
     await runner.setup()
     await web.SockSite(runner, sock).start()
+    panel.seeding = asyncio.create_task(panel.seed())
     return PanelServer(runner, asyncio.create_task(panel.ticker()), panel)

@@ -9,12 +9,14 @@ from collections.abc import Callable
 from typing import Any
 
 from usmswitch.protocol.record import UNUSABLE
+from usmswitch.protocol.sockets import web_token_path
 
 from ..connection import Client
 from .args import (
     EXIT_FAULT,
     EXIT_INTERRUPTED,
     EXIT_OK,
+    EXIT_REFUSED,
     PROG,
     UsageError,
     positive_duration_arg,
@@ -275,6 +277,36 @@ def cmd_drive(client: Client, args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_web_url(client: Client, args: argparse.Namespace) -> int:
+    """The browser panel's URL with its token (as Jupyter prints one): read from the token file beside
+    the socket, which only the socket's group may read, so whoever may use the socket may act."""
+    url = client.status().get("web_url")
+    if not url:
+        print(
+            f"{PROG}: the daemon serves no panel: start it with --web [HOST:]PORT or set [web] listen",
+            file=sys.stderr,
+        )
+        return EXIT_REFUSED
+    if client.family != "unix":
+        raise UsageError("web-url reads the token beside the daemon's Unix socket; use --socket, not TCP")
+    token_file = web_token_path(client.address)
+    try:
+        token = token_file.read_text().strip()
+    except PermissionError:
+        raise UsageError(
+            f"cannot read the panel's token {token_file}: it is for the socket's group (mode 0640);"
+            " join that group, or open the URL read-only: " + url
+        ) from None
+    except FileNotFoundError:
+        raise UsageError(f"no panel token at {token_file}: is the daemon serving the panel?") from None
+    full = f"{url}?token={token}"
+    if args.json:
+        print_json({"url": full, "token_file": str(token_file)})
+    else:
+        print(full)
+    return EXIT_OK
+
+
 COMMANDS: dict[str, Callable[[Client, argparse.Namespace], int]] = {
     "ping": cmd_ping,
     "status": cmd_status,
@@ -290,4 +322,5 @@ COMMANDS: dict[str, Callable[[Client, argparse.Namespace], int]] = {
     "reset": cmd_reset,
     "estop": cmd_estop,
     "drive": cmd_drive,
+    "web-url": cmd_web_url,
 }

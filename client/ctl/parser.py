@@ -104,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     command("ping", "check that the daemon answers")
     command("status", "state, mode, fault, targets, versions (exit 4 when FAULT is latched)")
+    command("web-url", "the browser panel's URL with its token (docs/panel.md)")
     c = command("stats", "statistics of a run (default: the current or last) per direction, as a table")
     c.add_argument("--run", type=int, help="this run's (see `runs`)")
     c.add_argument("--first", type=int, help="statistics of cycles --first..--last instead of a run")
