@@ -33,8 +33,9 @@ STATE_FORMAT = "usmswitch.predictor.kalman/2"
 #: two slowly mean-reverting filters, and three for a stationary process around its mean (phi 0.6, 0.3
 #: and the mean itself, phi 0: issue 24's AR(1) with phi 0.1-0.6 plus noise, where the six filters of
 #: the first grid were 1.03-1.08x the floor), and (0.9, 0.2) for a mean-reverting friction under much
-#: noise (the level-shifts class between its jumps). Fewer candidates means less chance of picking one by luck;
-#: each member here was measured to pay for itself on some class of process (docs/predictor.md).
+#: noise (the level-shifts class between its jumps). Fewer candidates means less chance of picking
+#: one by luck; each member here was measured to pay for itself on some class of process
+#: (docs/predictor.md).
 GRID = (
     (1.0, 1.0),
     (1.0, 0.85),
