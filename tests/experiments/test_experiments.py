@@ -313,4 +313,6 @@ def test_fig_9s_trend_is_the_temperatures_on_every_seed(everything: Path) -> Non
     assert means[0] < means[1] < means[2]
     assert len(t["slopes_ms_per_c"]) == 5 and t["every_seed_slower_when_warmer"]
     assert t["slope_spread_ms_per_c"] < 0.25 * min(t["slopes_ms_per_c"])
+    # The size docs/sim.md cites: the resonance falls 10 Hz per C, ~12 us per C at 40 kHz.
+    assert all(0.008 < slope < 0.016 for slope in t["slopes_ms_per_c"]), t["slopes_ms_per_c"]
     assert "slower when warmer on every seed" in (everything / "report.md").read_text()
