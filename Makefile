@@ -12,8 +12,10 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[test,plot,postgres]'
 	touch $(STAMP)
 
+# The browser panel on loopback (docs/panel.md): the daemon prints its URL, with the token, at start.
+WEB ?= 8790
 run: $(STAMP)
-	$(VENV)/bin/usmswitchd --sim
+	$(VENV)/bin/usmswitchd --sim --web $(WEB)
 
 test: $(STAMP)
 	$(PY) -m pytest

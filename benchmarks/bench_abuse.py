@@ -12,6 +12,7 @@ RSS of the daemon and of its socket-server process is sampled at the end of each
 bounded under unread pipelined reads).
 
 The daemon serves its Prometheus page all along (`--metrics`): one load hammers it with scrapers.
+It serves the browser panel too (`--web`): one load is 10 open panels, each reading the live feed.
 With PostgreSQL 15 installed (tests/pgserver.py), the daemon also ships to a database that is down
 until the last load, and its records file starts with a backlog of BENCH_ABUSE_BACKLOG synthetic
 strokes: the last load starts the server, and the window runs while the shipper catches up.
@@ -187,6 +188,37 @@ def load_scrapes(path: str, stop: Any, url: str = "", keep_alive: bool = True) -
             s, buf = None, b""
 
 
+def load_panel(path: str, stop: Any, web_url: str = "") -> None:
+    """One open browser panel: the page and its assets, the runs list, then the live feed read as
+    it comes (every message decoded, as the page does), the runs list again every 5 s."""
+    import asyncio
+    import json
+
+    import aiohttp
+
+    async def panel() -> None:
+        async with aiohttp.ClientSession() as http:
+            for part in ("", "static/panel.js", "static/uPlot.iife.min.js", "api/session", "api/runs"):
+                async with http.get(web_url + part) as resp:
+                    await resp.read()
+            async with http.ws_connect(web_url + "api/live") as ws:
+                next_runs = time.monotonic() + 5
+                while not stop.is_set():
+                    try:
+                        msg = await ws.receive(timeout=0.5)
+                    except TimeoutError:
+                        continue
+                    if msg.type != aiohttp.WSMsgType.TEXT:
+                        return
+                    json.loads(msg.data)
+                    if time.monotonic() > next_runs:
+                        next_runs += 5
+                        async with http.get(web_url + "api/runs") as resp:
+                            await resp.read()
+
+    asyncio.run(panel())
+
+
 LOADS: list[tuple[str, Callable[..., None] | None, int, dict[str, Any]]] = [
     ("idle", load_stats, 0, {}),
     ("8 clients hammering stats", load_stats, 8, {}),
@@ -200,6 +232,8 @@ LOADS: list[tuple[str, Callable[..., None] | None, int, dict[str, Any]]] = [
     # The url is filled in at start.
     ("4 Prometheus scrapers hammering /metrics", load_scrapes, 4, {}),
     ("4 scrapers hammering /metrics, a connection each", load_scrapes, 4, {"keep_alive": False}),
+    # The web_url is filled in at start.
+    ("10 open panels (live feed, runs)", load_panel, 10, {}),
 ]
 
 
@@ -373,7 +407,7 @@ def main() -> int:
         sys.executable, "-m", "usmswitch.daemon.cli", "--sim", "--state-dir", str(tmp / "state"),
         "--socket", str(sock), "--log-format", "json", "--log-level", "warning", "--target", "12ms",
         "--period", f"{PERIOD_MS}ms", "--priority", str(PRIORITY if fifo else 0),
-        "--metrics", "127.0.0.1:0", "--rig", "bench",
+        "--metrics", "127.0.0.1:0", "--web", "127.0.0.1:0", "--rig", "bench",
     ]  # fmt: skip
     if pg is not None:
         cmd += ["--postgres", pg[1]]
@@ -400,8 +434,10 @@ def main() -> int:
         time.sleep(1.0)
         policy = "SCHED_FIFO" if fifo else "SCHED_OTHER"
         print(f"policy {policy}; window {WINDOW_S:g} s; {ESTOPS} estops per load")
-        url = control.status()["metrics_url"]
+        status = control.status()
+        url, web_url = status["metrics_url"], status["web_url"]
         loads = [(n, b, k, {**kw, "url": url} if b is load_scrapes else kw) for n, b, k, kw in LOADS]
+        loads = [(n, b, k, {**kw, "web_url": web_url} if b is load_panel else kw) for n, b, k, kw in loads]
         if pg is not None:
             loads.append(("shipper catching up a backlog", None, 0, {}))
         loads = [x for x in loads if not ONLY or x[0] == "idle" or any(w in x[0] for w in ONLY)]

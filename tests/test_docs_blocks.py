@@ -1,5 +1,5 @@
 """Every `python` and `sh` block of README.md and docs/*.md, run verbatim against the daemon as
-`make run` starts it (`usmswitchd --sim`, its default socket and state directory).
+`make run` starts it (`usmswitchd --sim --web PORT`, its default socket and state directory).
 
 The blocks run in document order (README first, then docs/ by name), in one working directory, with
 the venv's bin first on PATH (README: `. .venv/bin/activate`), as a reader who types them in would.
@@ -113,7 +113,7 @@ def shell_script(block: Block) -> str:
 
 @pytest.fixture(scope="module")
 def make_run_daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[dict[str, str], Path]]:
-    """`usmswitchd --sim` as `make run` starts it, in a home of its own; (its env, the work dir)."""
+    """`usmswitchd --sim --web` as `make run` starts it, in a home of its own; (its env, the work dir)."""
     home = tmp_path_factory.mktemp("reader")
     env = {
         **{k: v for k, v in os.environ.items() if not k.startswith(("USMSWITCH_", "XDG_"))},
@@ -127,7 +127,8 @@ def make_run_daemon(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[
     work = home / "work"
     work.mkdir()
     proc = subprocess.Popen(
-        [str(BIN / "usmswitchd"), "--sim"],
+        # The panel as `make run` serves it, on a free port (a reader's own `make run` may hold 8790).
+        [str(BIN / "usmswitchd"), "--sim", "--web", "127.0.0.1:0"],
         env=env,
         cwd=work,
         stdin=subprocess.DEVNULL,
