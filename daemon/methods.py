@@ -463,6 +463,7 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         limits=Limits(max_connections=cfg.max_clients, max_tcp_connections=cfg.max_tcp_clients),
         log_format=daemon.config.daemon.log_format,
         log_level=daemon.config.daemon.log_level,
+        nice=0,  # raised by the service if the loop is refused SCHED_FIFO
     )
     # Before the socket listens: `stats` answers (count 0) from the first connection on.
     server.snapshot("stats", daemon.loop.snapshot(raw=True))

@@ -284,6 +284,28 @@ class RpcServer:
         link = self._link
         return link.proc.pid if link is not None and link.proc is not None else None
 
+    def lower_priority(self, nice: int) -> bool:
+        """Run the server process `nice` above the daemon from now on, and after a restart: every
+        thread of the running one (Linux's nice is per thread). Lowering one's own processes'
+        priority is always permitted; False (and a warning) if it was refused all the same."""
+        if isinstance(nice, bool) or not isinstance(nice, int) or not self.nice <= nice <= 19:
+            raise ValueError(f"nice must be an integer in [{self.nice}, 19], got {nice!r}")
+        self.nice = nice
+        pid = self.server_pid
+        if pid is None:
+            return True
+        target = os.getpriority(os.PRIO_PROCESS, 0) + nice
+        try:
+            for tid in os.listdir(f"/proc/{pid}/task"):
+                with contextlib.suppress(ProcessLookupError):  # a thread that just ended
+                    os.setpriority(
+                        os.PRIO_PROCESS, int(tid), max(target, os.getpriority(os.PRIO_PROCESS, int(tid)))
+                    )
+        except (FileNotFoundError, PermissionError) as e:
+            log.warning("the socket's server process kept its priority: %s", e)
+            return False
+        return True
+
     def stop(self) -> None:
         """Stop serving: close every connection, end the server process, remove the socket file."""
         if not self._started or self._stopping:

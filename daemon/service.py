@@ -63,6 +63,8 @@ STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 CLOSE_TIMEOUT_NS = 10_000_000_000
 CLOSE_TIMEOUT_FAILING_NS = 3_000_000_000
 SWITCH_INTERVAL_S = 0.0002
+#: The socket's server process's nice above the daemon's when the loop runs at SCHED_OTHER.
+SERVER_NICE_UNDER_OTHER = 5
 #: From the stop signal to the end of stop(): what is left of it after the drive is off, the
 #: server process gone and the records committed is what PostgreSQL shipping may still take;
 #: the rest ships at the next start. Keeps SIGTERM-to-exit within 100 ms with a database (the
@@ -349,6 +351,11 @@ class Daemon:
         priority, not_permitted = resolve_priority(rt.sched_fifo_priority)
         got = apply_realtime(priority, rt.cpu_affinity, rt.mlockall)
         self.loop.scheduling = scheduling_text(got, priority, not_permitted)
+        if "sched_fifo_priority" not in got.applied and self.rpc is not None and self.rpc.server_pid:
+            # A loop at SCHED_OTHER shares the CPU with the socket's server process by nice: the
+            # server steps back. At SCHED_FIFO the loop preempts it whatever its nice, and at the
+            # daemon's nice the server keeps up with bare asyncio at 8 clients (docs/protocol.md).
+            self.rpc.lower_priority(SERVER_NICE_UNDER_OTHER)
         if "sched_fifo_priority" in got.applied and priority > 1:
             lifted = lift_helpers(priority - 1)
             self.log.info("helper threads below the loop", priority=priority - 1, threads=lifted)
