@@ -44,7 +44,7 @@ from usmswitch.protocol.wire import (
 
 from .logsetup import configure_logging
 from .process_exit import exit_now
-from .realtime import renice
+from .realtime import drop_realtime, renice
 
 log = logging.getLogger("usmswitch.rpc")
 
@@ -846,6 +846,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--log-format", default="auto", help="as [daemon] log_format")
     parser.add_argument("--log-level", default="info", help="as [daemon] log_level")
     args = parser.parse_args(argv)
+    # Started again by the daemon's reader thread, which runs SCHED_FIFO when the loop does: the
+    # server (and every thread it starts) belongs at SCHED_OTHER, below everything of the rig's.
+    drop_realtime()
     configure_logging(args.log_format, args.log_level, sys.stderr)
     # The daemon owns shutdown: a Ctrl-C to the terminal's process group or systemd's SIGTERM to the
     # cgroup must not kill the server under it mid-stop. It ends when the daemon's channel closes.

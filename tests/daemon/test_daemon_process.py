@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import os
@@ -268,5 +269,17 @@ def test_the_server_process_steps_back_only_when_the_loop_is_refused_sched_fifo(
             while _nices(server) != expected and time.monotonic() < end:
                 time.sleep(0.05)
             assert _nices(server) == expected, (scheduling, daemon_nice)
+            # Restarted by a thread of the daemon that runs at SCHED_FIFO with the loop: the new
+            # server is back at SCHED_OTHER, at the nice of the one before.
+            os.kill(server, signal.SIGKILL)
+            again, end = server, time.monotonic() + 10
+            while again == server and time.monotonic() < end:
+                time.sleep(0.05)
+                with contextlib.suppress(AssertionError):  # none, while the old one is reaped
+                    again = daemonproc.child_pid(proc, "usmswitch.daemon.rpc_process")
+            assert again != server
+            daemonproc.wait_serving(tmp_path / "d.sock", proc)
+            assert os.sched_getscheduler(again) == os.SCHED_OTHER
+            assert _nices(again) == expected
     finally:
         daemonproc.stop(proc)
