@@ -154,6 +154,12 @@ def test_tcp_with_token(idle: Rig) -> None:
     assert r.returncode == 2 and "token" in r.stderr
 
 
+def test_web_url_without_a_panel_says_how_to_serve_one(idle: Rig) -> None:
+    r = run(idle, "web-url")
+    assert r.returncode == 1 and r.stdout == ""
+    assert "serves no panel: start it with --web [HOST:]PORT or set [web] listen" in r.stderr
+
+
 def test_switch_prints_the_record(idle: Rig) -> None:
     r = run(idle, "switch", "on")
     assert r.returncode == 0, r.stderr

@@ -382,6 +382,18 @@ def test_postgres_url_and_metrics_listen_from_file_and_flags(tmp_path: Path):
     assert parse_listen("[::1]:9817") == ("::1", 9817) and parse_listen("0.0.0.0:0") == ("0.0.0.0", 0)
 
 
+def test_web_listen_from_file_and_flag(tmp_path: Path):
+    assert load_config(None, env=ENV).web.listen == ""  # no panel unless asked
+    cfg = load_config(write(tmp_path, "[web]\nlisten = 8790\n"), env=ENV)
+    assert cfg.web.listen == "8790" and parse_listen(cfg.web.listen) == ("127.0.0.1", 8790)
+    assert load_config(None, {"web": "[::1]:0"}, env=ENV).web.listen == "[::1]:0"
+    assert apply_overrides(cfg) == cfg and cfg.to_dict()["web"] == {"listen": "8790"}
+    with pytest.raises(ConfigError, match=r"web.listen: 'localhost' is not host:port"):
+        load_config(write(tmp_path, '[web]\nlisten = "localhost"\n'), env=ENV)
+    with pytest.raises(ConfigError, match=r"web.port: unknown key \(known in \[web\]: listen\)"):
+        load_config(write(tmp_path, "[web]\nport = 8790\n"), env=ENV)
+
+
 def test_explicit_autostart_wins_over_the_driver_rule():
     cfg = load_config(None, {"autostart": False}, env=ENV)
     assert cfg.driver.kind == "sim" and not cfg.autostart
