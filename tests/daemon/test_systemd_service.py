@@ -95,7 +95,10 @@ class Unit:
         cfg = self.root / config.lstrip("/")
         text = cfg.read_text()
         assert 'kind = "serial"' in text
-        cfg.write_text(text.replace('kind = "serial"', 'kind = "sim"', 1))
+        text = text.replace('kind = "serial"', 'kind = "sim"', 1)
+        # The panel on loopback, as docs/panel.md's "As a service" says to set it.
+        assert "[web]" in text and '\nlisten = ""                # e.g. "8790"' in text
+        cfg.write_text(text.replace('\nlisten = ""                # e.g. "8790"', '\nlisten = "8790"  #'))
         # The drop-in `systemctl edit` would write: ExecStart only, at this venv.
         shipped = (repo / "systemd" / self.file).read_text()
         exec_line = re.search(r"^ExecStart=/usr/bin/usmswitchd (.*)$", shipped, re.M)
@@ -157,6 +160,20 @@ with Client(rig=rig_name) as rig:
     print(json.dumps({"run": run.run_id, "cycles": cycles, "end": run.info["end_reason"]}))
 """
 
+# The panel under the unit's sandbox: its URL from status, its token from the file beside the socket
+# (readable by group usmswitch), the page, and the token accepted.
+PANEL = """
+import urllib.request
+from usmswitch.protocol.sockets import web_token_path
+with Client(rig=rig_name) as rig:
+    url = rig.status()["web_url"]
+    token = web_token_path(rig.address).read_text().strip()
+page = urllib.request.urlopen(url, timeout=10).read()
+ask = urllib.request.Request(url + "api/session", headers={"X-Usmswitch-Token": token})
+session = json.load(urllib.request.urlopen(ask, timeout=10))
+print(json.dumps({"url": url, "page": b'id="estop"' in page, **session}))
+"""
+
 # Prints each stroke as it is published (after its commit), until the daemon goes.
 RUN_UNTIL_KILLED = """
 try:
@@ -187,6 +204,13 @@ def test_the_shipped_unit_runs_stops_restarts_and_is_watched(
     assert proc.returncode == 0, err
     result = json.loads(out.strip().splitlines()[-1])
     assert len(result["cycles"]) == 200 and result["end"] == "done", result
+
+    # The panel is served under the sandbox, and a member of the socket's group may act from it.
+    proc = unit.script(PANEL)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    panel = json.loads(out.strip().splitlines()[-1])
+    assert panel == {"url": "http://127.0.0.1:8790/", "page": True, "control": True, "message": None}
 
     # Stopped: inactive, result success, every stroke of the run in the file.
     systemd.systemctl("stop", unit.name)
