@@ -289,6 +289,16 @@ def _error(status: int, message: str, code: int | None = None) -> web.Response:
     return web.json_response({"error": message, "code": code}, status=status)
 
 
+def same_origin(request: web.BaseRequest) -> bool:
+    """No Origin (a script, curl) or the page's own: a page of another site open in the same browser
+    may not read the feed over WebSocket (which browsers let cross origins open) or post controls."""
+    origin = request.headers.get("Origin")
+    if origin is None:
+        return True
+    host = origin.partition("://")[2]
+    return bool(host) and host == request.headers.get("Host", "")
+
+
 async def _no_icon() -> web.Response:
     return web.Response(status=204)
 
@@ -348,6 +358,8 @@ def make_app(panel: Panel) -> web.Application:
         return web.json_response({"control": ok, "message": None if ok else panel.refusal()})
 
     async def live(request: web.Request) -> web.StreamResponse:
+        if not same_origin(request):
+            return _error(403, "the live feed is for the panel's own page (another site's Origin)")
         if len(panel.viewers) >= MAX_PANELS:
             return _error(503, f"too many open panels (max {MAX_PANELS}); close one")
         ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=4096)
@@ -421,6 +433,8 @@ def make_app(panel: Panel) -> web.Application:
 
     async def control(request: web.Request) -> web.StreamResponse:
         name = request.match_info["name"]
+        if not same_origin(request):
+            return _error(403, "a control comes from the panel's own page, not another site's")
         if not panel.authorized(request):
             return _error(403, panel.refusal())
         if name not in CONTROLS:

@@ -123,6 +123,27 @@ def test_bad_controls_get_a_clear_400_and_change_nothing(rig: dict[str, Any]) ->
         assert c.get_target() == before
 
 
+def test_another_sites_page_may_not_read_the_feed_or_act(rig: dict[str, Any]) -> None:
+    async def feed(origin: str) -> int:
+        async with aiohttp.ClientSession() as http:
+            try:
+                async with http.ws_connect(f"{rig['url']}api/live", headers={"Origin": origin}):
+                    return 101
+            except aiohttp.WSServerHandshakeError as exc:
+                return exc.status
+
+    assert asyncio.run(feed("http://evil.example")) == 403
+    assert asyncio.run(feed(rig["url"].rstrip("/"))) == 101
+    req = urllib.request.Request(f"{rig['url']}api/control/estop", data=b"{}", method="POST")
+    req.add_header(TOKEN_HEADER, rig["token"])
+    req.add_header("Origin", "http://evil.example")
+    with pytest.raises(urllib.error.HTTPError) as info:
+        urllib.request.urlopen(req, timeout=10)
+    assert info.value.code == 403 and "another site" in json.loads(info.value.read())["error"]
+    with Client(str(rig["sock"])) as c:
+        assert c.status()["state"] != "fault"
+
+
 def test_the_live_feed_opens_with_history_and_keeps_up(rig: dict[str, Any]) -> None:
     async def feed() -> tuple[dict[str, Any], int]:
         async with aiohttp.ClientSession() as http, http.ws_connect(f"{rig['url']}api/live") as ws:
