@@ -40,8 +40,8 @@ import msgpack
 from benchmarks.bench_loop import PRIORITY, fifo_allowed, percentiles
 from benchmarks.table import print_table
 from usmswitch.client import Client, ConnectionClosed, RpcError
-from usmswitch.daemon.children import wait_exit
 from usmswitch.protocol.wire import estop_socket_path
+from usmswitch.runtime.children import wait_exit
 
 ROOT = Path(__file__).resolve().parents[1]
 MS = 1_000_000

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from benchmarks.table import print_table
-from usmswitch.daemon.rpc import RpcServer
+from usmswitch.server.rpc import RpcServer
 
 DURATION_NS = 2_000_000_000
 ROUNDS = 3

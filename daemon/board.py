@@ -16,9 +16,9 @@ import structlog
 
 from usmswitch.drivers import Conditions
 from usmswitch.drivers.modbus_board import BoardError, ModbusBoard, RegisterMap
+from usmswitch.runtime.realtime import drop_realtime
 
 from .config import ModbusConfig
-from .realtime import drop_realtime
 
 
 def board_spec(cfg: ModbusConfig) -> str:

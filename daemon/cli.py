@@ -16,9 +16,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 from usmswitch.predictor import DEFAULT_MODEL, MODELS
 from usmswitch.protocol.version import version_text
 from usmswitch.protocol.wire import PROTOCOL_VERSION
+from usmswitch.runtime.process_exit import exit_now
 
 from .config import ConfigError, load_config
-from .process_exit import exit_now
 
 EXIT_CONFIG = 2  # a bad config or flag: nothing was started
 # A part could not start: driver missing, socket in use, state dir unwritable or in use by another

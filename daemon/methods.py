@@ -24,13 +24,13 @@ from usmswitch.protocol.record import CycleRecord, RunRecord
 from usmswitch.protocol.sockets import web_token_path
 from usmswitch.protocol.version import PACKAGE_VERSION
 from usmswitch.protocol.wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, estop_socket_path
+from usmswitch.server.estop_socket import EstopSocket
+from usmswitch.server.rpc import RpcServer
 
 from .config import Config
 from .config_values import parse_host_port, parse_listen
-from .estop_socket import EstopSocket
 from .loop import AUTOSTART_OWNER, ControlLoop, LoopError, Mode, State, TargetUnreachableError
 from .records import RecordStore
-from .rpc import RpcServer
 from .web_token import TokenFile
 
 log = structlog.get_logger("usmswitch.daemon")
@@ -452,6 +452,7 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         urgent=methods.urgent(),
         urgent_path=estop_socket_path(cfg.path),
         records_path=daemon.store.path,
+        records_reader="usmswitch.daemon.records:open_reader",
         topics=("stroke", "state", "run"),
         snapshot_methods=("stats",),
         snapshot_finishers={"stats": "usmswitch.protocol.stats:finish_snapshot"},

@@ -48,8 +48,7 @@ from usmswitch.protocol.records_schema import (
     SELECT_CYCLES,
     UPSERT_RUN,
 )
-
-from .realtime import drop_realtime
+from usmswitch.runtime.realtime import drop_realtime
 
 log = structlog.get_logger("usmswitch.records")
 
@@ -746,3 +745,12 @@ class RecordStore:
         except sqlite3.Error as exc:
             log.warning("record file checkpoint at close failed", path=str(self.path), error=str(exc))
         conn.close()
+
+
+def open_reader(path: str) -> RecordStore:
+    """A read-only store on the records file, for the socket's server process, which imports this
+    by name (`RpcServer(records_reader=...)`); a file it cannot open is an OSError saying why."""
+    try:
+        return RecordStore(path, readonly=True)
+    except RecordStoreError as exc:
+        raise OSError(str(exc)) from None

@@ -30,11 +30,12 @@ from usmswitch.fleet.hooks import Fleet
 from usmswitch.predictor import AR_MODELS, Predictor, make_predictors
 from usmswitch.protocol.record import CycleRecord, Flag, RunRecord
 from usmswitch.protocol.units import format_ns
+from usmswitch.runtime.logsetup import configure_logging
+from usmswitch.runtime.realtime import apply_realtime, lift_helpers, resolve_priority, scheduling_text
 
 from .board import BoardPoller
 from .config import Config, ConfigError
 from .daqfactory import make_daq
-from .logsetup import configure_logging
 from .loop import (
     AUTOSTART_OWNER,
     MIN_STROKE_FRACTION,
@@ -44,7 +45,6 @@ from .loop import (
     direction_from_levels,
 )
 from .methods import start_rpc
-from .realtime import apply_realtime, lift_helpers, resolve_priority, scheduling_text
 from .records import RecordStore, RecordStoreError
 from .rig_memory import RigMemory
 from .sdnotify import Notifier

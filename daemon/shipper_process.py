@@ -34,9 +34,8 @@ from typing import Any
 import structlog
 
 from usmswitch.fleet.pg_schema import redact_url
-
-from .children import KILLED_REAP_S, end_child, wait_exit
-from .process_exit import exit_now
+from usmswitch.runtime.children import KILLED_REAP_S, end_child, wait_exit
+from usmswitch.runtime.process_exit import exit_now
 
 log = structlog.get_logger("usmswitch.shipper")
 
@@ -180,9 +179,8 @@ def main() -> int:
     import signal
 
     from usmswitch.fleet.shipper import serve
-
-    from .logsetup import configure_logging
-    from .realtime import drop_realtime, renice
+    from usmswitch.runtime.logsetup import configure_logging
+    from usmswitch.runtime.realtime import drop_realtime, renice
 
     # Started again by the daemon's watcher thread, which runs SCHED_FIFO when the loop does: the
     # child (and every thread it starts) belongs at SCHED_OTHER, below everything of the rig's.

@@ -67,7 +67,7 @@ def stop_timed(proc: subprocess.Popen[bytes], timeout_s: float = 20.0) -> tuple[
 
 
 def child_pid(proc: subprocess.Popen[bytes], module: str) -> int:
-    """The pid of the daemon's one child running `module` (usmswitch.daemon.rpc_process, ...)."""
+    """The pid of the daemon's one child running `module` (usmswitch.server.rpc_process, ...)."""
     found = subprocess.run(
         ["pgrep", "-P", str(proc.pid), "-f", module], capture_output=True, text=True, check=False
     ).stdout.split()

@@ -17,6 +17,8 @@ ALLOWED: dict[str, set[str] | None] = {
     "predictor": set(),
     "fleet": {"protocol"},
     "web": {"protocol", "fleet"},
+    "runtime": {"protocol"},
+    "server": {"protocol", "web", "fleet", "runtime"},
     "client": {"protocol", "fleet"},
 }
 #: Arrows no room may draw, whatever it may otherwise import.
@@ -27,6 +29,8 @@ FORBIDDEN = {
     ("drivers", "sim"),
     ("fleet", "daemon"),
     ("web", "daemon"),
+    ("server", "daemon"),
+    ("runtime", "daemon"),
 }
 #: The only modules of client that may import fleet: those that read PostgreSQL.
 CLIENT_FLEET_READERS = {"usmswitch.client.pgrecords", "usmswitch.client.sources"}
@@ -89,5 +93,17 @@ def test_the_client_reads_fleet_only_to_read_postgresql():
 
 def test_the_rules_see_every_room():
     rooms = {_room(m) for m in _modules()}
-    assert {"protocol", "fleet", "web", "daemon", "client", "predictor", "drivers", "sim"} <= rooms
+    expected = {
+        "protocol",
+        "fleet",
+        "web",
+        "server",
+        "runtime",
+        "daemon",
+        "client",
+        "predictor",
+        "drivers",
+        "sim",
+    }
+    assert expected <= rooms
     assert any(_room(m) == "client" and _room(d) == "protocol" for m, d in ARROWS)  # the walk finds arrows

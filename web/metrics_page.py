@@ -1,4 +1,4 @@
-"""The Prometheus page, served over HTTP by the socket's server process (daemon/rpc_process.py).
+"""The Prometheus page, served over HTTP by the socket's server process (server/rpc_process.py).
 
 The daemon sends two snapshots over its channel, as it sends `stats`: `metrics_strokes` (counts and
 histograms of committed strokes, fleet/metrics.py, from the record writer's thread) and

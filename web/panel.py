@@ -1,4 +1,4 @@
-"""The browser panel, served over HTTP by the socket's server process (daemon/rpc_process.py).
+"""The browser panel, served over HTTP by the socket's server process (server/rpc_process.py).
 
 The panel is a client of the server process like any socket client: its reads and controls are
 socket methods dispatched by the same code (`Backend.call`: the same parameter checks, calls
@@ -76,7 +76,7 @@ _STATIC_TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/ht
 
 
 class Backend(Protocol):
-    """What the panel needs of the server process (daemon/rpc_process.py provides it)."""
+    """What the panel needs of the server process (server/rpc_process.py provides it)."""
 
     def call(self, method: str, params: list[Any]) -> Awaitable[Any]:
         """A socket method, dispatched as a socket client's request; raises RpcError when refused."""

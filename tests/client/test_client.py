@@ -18,8 +18,8 @@ import pytest
 from usmswitch.client import Client, ConnectionClosed
 from usmswitch.client.api import run_owner
 from usmswitch.client.connection import parse_address
-from usmswitch.daemon.rpc import RpcServer
 from usmswitch.protocol.wire import ErrorCode, Limits, RpcError
+from usmswitch.server.rpc import RpcServer
 
 TOKEN = "client-test-token-0123"
 METHODS = (

@@ -207,7 +207,7 @@ def test_a_frozen_server_process_does_not_hold_the_exit(tmp_path: Path) -> None:
         with wait_for_socket(tmp_path, proc) as client:
             while client.status()["cycle"] < 5:
                 time.sleep(0.02)
-        server = daemonproc.child_pid(proc, "usmswitch.daemon.rpc_process")
+        server = daemonproc.child_pid(proc, "usmswitch.server.rpc_process")
         os.kill(server, signal.SIGSTOP)
         err, took = daemonproc.stop_timed(proc)
     finally:
@@ -259,7 +259,7 @@ def test_the_server_process_steps_back_only_when_the_loop_is_refused_sched_fifo(
             while scheduling.startswith("not yet set"):
                 time.sleep(0.02)
                 scheduling = client.status()["scheduling"]
-            server = daemonproc.child_pid(proc, "usmswitch.daemon.rpc_process")
+            server = daemonproc.child_pid(proc, "usmswitch.server.rpc_process")
             daemon_nice = os.getpriority(os.PRIO_PROCESS, proc.pid)
             fifo_granted = scheduling.startswith("SCHED_FIFO")
             assert fifo_granted is False or fifo == "auto"
@@ -276,7 +276,7 @@ def test_the_server_process_steps_back_only_when_the_loop_is_refused_sched_fifo(
             while again == server and time.monotonic() < end:
                 time.sleep(0.05)
                 with contextlib.suppress(AssertionError):  # none, while the old one is reaped
-                    again = daemonproc.child_pid(proc, "usmswitch.daemon.rpc_process")
+                    again = daemonproc.child_pid(proc, "usmswitch.server.rpc_process")
             assert again != server
             daemonproc.wait_serving(tmp_path / "d.sock", proc)
             assert os.sched_getscheduler(again) == os.SCHED_OTHER

@@ -1,4 +1,4 @@
-"""The socket server process (`python -m usmswitch.daemon.rpc_process`), spawned by `RpcServer`.
+"""The socket server process (`python -m usmswitch.server.rpc_process`), spawned by `RpcServer`.
 
 It serves the Unix and TCP sockets the daemon bound: decodes, validates and bounds every request,
 answers ping/auth/subscribe, `stats` from the daemon's snapshots (finished here) and `history` from
@@ -41,10 +41,9 @@ from usmswitch.protocol.wire import (
     packb,
     unpacker,
 )
-
-from .logsetup import configure_logging
-from .process_exit import exit_now
-from .realtime import drop_realtime, renice
+from usmswitch.runtime.logsetup import configure_logging
+from usmswitch.runtime.process_exit import exit_now
+from usmswitch.runtime.realtime import drop_realtime, renice
 
 log = logging.getLogger("usmswitch.rpc")
 
@@ -77,15 +76,19 @@ _HISTORY_CHUNK = 200
 _readers = threading.local()
 
 
+#: What opens a read-only store on the records file: the daemon names it (`records_reader`), so
+#: that this process serves the records without knowing the service that writes them.
+_open_records: Callable[[str], Any] | None = None
+
+
 def _reader(records_path: str, method: str) -> Any:
     """This worker thread's read-only store on the records file (opened once per thread)."""
-    from .records import RecordStore, RecordStoreError  # the server process only
-
     store = getattr(_readers, "store", None)
     if store is None or str(store.path) != records_path:
+        assert _open_records is not None
         try:
-            store = _readers.store = RecordStore(records_path, readonly=True)
-        except RecordStoreError as exc:
+            store = _readers.store = _open_records(records_path)
+        except OSError as exc:
             raise RpcError(ErrorCode.UNAVAILABLE, f"{method}: {exc}") from None
     return store
 
@@ -207,6 +210,9 @@ class _Hub:
         # History is read from the records file here, not in the daemon: the loop's process never
         # reads or packs a large reply. The pool bounds how many reads run at once.
         self.records_path: str | None = cfg["records_path"]
+        if self.records_path:
+            global _open_records
+            _open_records = _import(cfg["records_reader"])
         self.reads = (
             concurrent.futures.ThreadPoolExecutor(self.limits.max_reads, thread_name_prefix="rpc-read")
             if self.records_path
@@ -833,7 +839,7 @@ def serve(chan_fd: int, urgent_fd: int, listeners: list[tuple[int, str]], nice: 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry of the server process the daemon spawns (not a command for people)."""
-    parser = argparse.ArgumentParser(prog="usmswitch.daemon.rpc_process", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="usmswitch.server.rpc_process", description=__doc__.splitlines()[0])
     parser.add_argument("--channel", type=int, required=True, help="fd of the socketpair to the daemon")
     parser.add_argument("--urgent-channel", type=int, required=True, help="fd of the estop socketpair")
     parser.add_argument(

@@ -11,7 +11,7 @@ import re
 import pytest
 import structlog
 
-from usmswitch.daemon.logsetup import configure_logging, human_units, journal_stream, resolve_format
+from usmswitch.runtime.logsetup import configure_logging, human_units, journal_stream, resolve_format
 
 
 @pytest.fixture(autouse=True)

@@ -1,7 +1,7 @@
 """The daemon's side of the msgpack-RPC socket: binds, spawns the server process, runs the handlers.
 
 Architecture (docs/protocol.md, "Architecture"): the sockets are served by a separate server process
-(`python -m usmswitch.daemon.rpc_process`), never by a thread of the control loop's process, because any
+(`python -m usmswitch.server.rpc_process`), never by a thread of the control loop's process, because any
 CPU-bound Python in the loop's process holds the GIL for up to the switch interval (5 ms) and lands
 directly in the loop's start lateness. The daemon binds the listening sockets itself (so bind and
 permission errors surface in `RpcServer.start`) and hands their descriptors to the child with a
@@ -43,8 +43,8 @@ from usmswitch.protocol.wire import (
     note_frame,
     packb,
 )
+from usmswitch.runtime.children import end_child
 
-from .children import end_child
 from .rpc_process import serve
 
 log = logging.getLogger("usmswitch.rpc")
@@ -82,7 +82,9 @@ class RpcServer:
     no other call, however many or slow, is ahead of it, and no call limit refuses it. It must
     return its result directly. `urgent_path` binds a socket that takes only these and ping, with
     its own connection limit, so a flood on the main socket cannot lock an estop out.
-    `records_path` lets the server process answer `history` from the records file itself.
+    `records_path` lets the server process answer `history` from the records file itself, through
+    `records_reader` ("package.module:function", path -> a read-only store; OSError naming why it
+    cannot be opened), which the server process imports by name: the daemon's store.
     `feeds` are snapshots the server process keeps for itself, never answered as methods (the
     metrics page's figures); `metrics` (host, port) binds the TCP socket it serves that page on.
     `web` (host, port) binds the browser panel's (web/panel.py), whose controls need `web_token`
@@ -97,6 +99,7 @@ class RpcServer:
         urgent: Mapping[str, Callable[[list[Any]], object]] | None = None,
         urgent_path: str | os.PathLike[str] | None = None,
         records_path: str | os.PathLike[str] | None = None,
+        records_reader: str | None = None,
         mode: int = 0o660,
         group: str | int | None = None,
         tcp: tuple[str, int] | None = None,
@@ -170,6 +173,11 @@ class RpcServer:
         self.unix_path = Path(unix_path)
         self.urgent_path = None if urgent_path is None else Path(urgent_path)
         self.records_path = None if records_path is None else Path(records_path)
+        if records_path is not None and (not isinstance(records_reader, str) or ":" not in records_reader):
+            raise ValueError(
+                f"records_path needs records_reader 'package.module:function', got {records_reader!r}"
+            )
+        self.records_reader = records_reader
         self.mode = mode
         self.gid = _resolve_group(group)
         self.tcp = tcp
@@ -215,7 +223,7 @@ class RpcServer:
             self._listeners.append((self._bind_unix(self.unix_path), "unix"))
             if self.urgent_path is not None:
                 # Bound here (mode, group, stale-socket checks as the main one); served in this
-                # process by daemon/estop_socket.py, which the daemon starts on it.
+                # process by server/estop_socket.py, which the daemon starts on it.
                 self.urgent_listener = self._bind_unix(self.urgent_path)
             if self.tcp is not None:
                 tsock = socket.create_server(self.tcp, backlog=128)
@@ -386,6 +394,7 @@ class RpcServer:
             "handlers": sorted(self.handlers),
             "urgent": sorted(self.urgent),
             "records_path": None if self.records_path is None else str(self.records_path),
+            "records_reader": self.records_reader,
             "snapshot_methods": sorted(self.snapshot_methods),
             "feeds": sorted(self.feeds),
             "finishers": self.snapshot_finishers,
@@ -407,7 +416,7 @@ class RpcServer:
                 cmd = [
                     sys.executable,
                     "-m",
-                    "usmswitch.daemon.rpc_process",
+                    "usmswitch.server.rpc_process",
                     "--channel",
                     str(theirs.fileno()),
                 ]

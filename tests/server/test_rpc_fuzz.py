@@ -16,8 +16,8 @@ import msgpack
 import pytest
 
 from usmswitch.client import Client
-from usmswitch.daemon.rpc import RpcServer
 from usmswitch.protocol.wire import ErrorCode, Limits
+from usmswitch.server.rpc import RpcServer
 
 GOOD = [
     [0, 1, "ping", []],

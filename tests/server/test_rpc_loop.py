@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 
 from usmswitch.client import Client
-from usmswitch.daemon import rpc_process
-from usmswitch.daemon.rpc import RpcServer
 from usmswitch.protocol.wire import RpcError
+from usmswitch.server import rpc_process
+from usmswitch.server.rpc import RpcServer
 
 LOOPS = ["asyncio"] + (["uvloop"] if rpc_process._loop_factory() is not None else [])
 

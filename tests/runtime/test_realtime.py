@@ -12,12 +12,12 @@ import textwrap
 
 import pytest
 
-from usmswitch.daemon.realtime import apply_realtime
+from usmswitch.runtime.realtime import apply_realtime
 
 CHILD = textwrap.dedent(
     """
     import json, os, threading
-    from usmswitch.daemon.realtime import apply_realtime, drop_realtime
+    from usmswitch.runtime.realtime import apply_realtime, drop_realtime
     cpu = min(os.sched_getaffinity(0))
     result = apply_realtime(sched_fifo_priority=50, cpu_affinity=[cpu], mlockall=True)
     helper = {}

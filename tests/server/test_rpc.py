@@ -20,9 +20,9 @@ from typing import Any
 import pytest
 from rawsock import Raw
 
-from usmswitch.daemon.rpc import RpcServer
 from usmswitch.protocol.rpc_params import check_params
 from usmswitch.protocol.wire import ErrorCode, Limits, RpcError
+from usmswitch.server.rpc import RpcServer
 
 TOKEN = "t0ken-of-twenty-chars"
 
