@@ -12,6 +12,7 @@ back on SCHED_OTHER.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import ctypes.util
 import errno
@@ -110,6 +111,31 @@ def renice(increment: int, process: str, cost: str) -> bool:
             cost=cost,
         )
         return False
+
+
+def renice_child(pid: int, nice: int, process: str, cost: str) -> bool:
+    """Every thread of child `pid` (Linux's nice is per thread) to this process's nice + `nice`,
+    never raising one; a refusal is the warning `renice` gives. Lowering the priority of one's own
+    children is permitted, but a service manager's syscall filter may deny it all the same."""
+    target = os.getpriority(os.PRIO_PROCESS, 0) + nice
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            with contextlib.suppress(ProcessLookupError):  # a thread that just ended
+                now = os.getpriority(os.PRIO_PROCESS, int(tid))
+                if now < target:
+                    os.setpriority(os.PRIO_PROCESS, int(tid), target)
+    except FileNotFoundError:  # the child just ended: its restart starts at `nice`
+        return True
+    except OSError as exc:
+        log.warning(
+            "nice refused, carrying on at the inherited priority",
+            process=process,
+            nice=nice,
+            reason=_describe(exc),
+            cost=cost,
+        )
+        return False
+    return True
 
 
 #: The loop's SCHED_FIFO priority when the config says "auto" and the process may use it: above

@@ -44,6 +44,7 @@ from usmswitch.protocol.wire import (
     packb,
 )
 from usmswitch.runtime.children import end_child
+from usmswitch.runtime.realtime import renice_child
 
 from .rpc_process import serve
 
@@ -300,19 +301,8 @@ class RpcServer:
             raise ValueError(f"nice must be an integer in [{self.nice}, 19], got {nice!r}")
         self.nice = nice
         pid = self.server_pid
-        if pid is None:
-            return True
-        target = os.getpriority(os.PRIO_PROCESS, 0) + nice
-        try:
-            for tid in os.listdir(f"/proc/{pid}/task"):
-                with contextlib.suppress(ProcessLookupError):  # a thread that just ended
-                    os.setpriority(
-                        os.PRIO_PROCESS, int(tid), max(target, os.getpriority(os.PRIO_PROCESS, int(tid)))
-                    )
-        except (FileNotFoundError, PermissionError) as e:
-            log.warning("the socket's server process kept its priority: %s", e)
-            return False
-        return True
+        cost = "the socket's clients compete with the loop for CPU at the loop's nice"
+        return pid is None or renice_child(pid, nice, "server", cost)
 
     def stop(self) -> None:
         """Stop serving: close every connection, end the server process, remove the socket file."""
