@@ -1,7 +1,9 @@
 """The panel in a real browser: Debian's chromium, headless, driven through chromedriver by Selenium,
 against a real daemon on the simulated rig. It loads, strokes arrive, a run started from the page
 ends, the estop pressed with the token latches FAULT in the daemon within 100 ms, and the page
-without the token is refused. The screenshots are docs/panel.md's (docs/img/)."""
+without the token is refused. The screenshots it takes are docs/panel.md's: written to docs/img/
+when USMSWITCH_SCREENSHOTS=1 (to refresh the docs' images), else beside the test's own files, so
+that `make test` leaves the tree as it found it."""
 
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ from usmswitch.client import Client
 from usmswitch.protocol.sockets import web_token_path
 
 ROOT = Path(__file__).resolve().parents[2]
-IMG = ROOT / "docs" / "img"
+DOCS_IMG = ROOT / "docs" / "img"
 CHROMIUM = "/usr/bin/chromium"
 CHROMEDRIVER = "/usr/bin/chromedriver"
 
@@ -32,6 +34,12 @@ def _require_browser() -> None:
             if os.environ.get("CI") == "true":
                 pytest.fail(why, pytrace=False)
             pytest.skip(why)
+
+
+@pytest.fixture(scope="module")
+def shots(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Where the screenshots go (module docstring)."""
+    return DOCS_IMG if os.environ.get("USMSWITCH_SCREENSHOTS") == "1" else tmp_path_factory.mktemp("shots")
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +108,7 @@ def test_the_panel_loads_and_strokes_arrive(rig: dict[str, Any], browser: Any) -
     assert not errors, errors
 
 
-def test_a_run_started_from_the_page_ends(rig: dict[str, Any], browser: Any) -> None:
+def test_a_run_started_from_the_page_ends(rig: dict[str, Any], browser: Any, shots: Path) -> None:
     for element_id, value in (("run-count", "40"), ("run-period", "15"), ("run-target", "12.5")):
         box = browser.find_element("id", element_id)
         box.clear()
@@ -124,11 +132,10 @@ def test_a_run_started_from_the_page_ends(rig: dict[str, Any], browser: Any) -> 
         wait_for("cycling again", lambda: c.status()["state"] == "cycling")
     start = int(body(browser, "strokes"))
     wait_for("a screenful of strokes", lambda: int(body(browser, "strokes")) >= start + 250, 15)
-    IMG.mkdir(parents=True, exist_ok=True)
-    browser.save_screenshot(str(IMG / "panel-live.png"))
+    browser.save_screenshot(str(shots / "panel-live.png"))
 
 
-def test_without_the_token_the_page_is_refused(rig: dict[str, Any], browser: Any) -> None:
+def test_without_the_token_the_page_is_refused(rig: dict[str, Any], browser: Any, shots: Path) -> None:
     browser.execute_script("sessionStorage.clear()")
     browser.get(rig["url"])
     wait_for("the read-only badge", lambda: body(browser, "control") == "no")
@@ -143,7 +150,7 @@ def test_without_the_token_the_page_is_refused(rig: dict[str, Any], browser: Any
     wait_for("the refusal shown", lambda: "read-only" in text(browser, "notice"))
     with Client(str(rig["sock"])) as c:
         assert c.status()["state"] == "cycling"
-    browser.save_screenshot(str(IMG / "panel-readonly.png"))
+    browser.save_screenshot(str(shots / "panel-readonly.png"))
 
 
 def test_the_estop_with_the_token_latches_fault_within_100_ms(rig: dict[str, Any], browser: Any) -> None:
