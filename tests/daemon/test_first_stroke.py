@@ -42,7 +42,8 @@ def test_a_fresh_sim_run_is_within_5_percent_of_t_from_its_first_stroke(tmp_path
         log = daemonproc.stop(proc)
     assert not any(r["flags"] & Flag.COMMISSIONING for r in recs)
     assert stats["all"]["strokes"] == 200 and stats["all"]["commissioning"] == []
-    assert stats["all"]["max_abs_error_pct"] <= 5.0, stats["all"]
+    worst = sorted(recs, key=lambda r: -abs(r["error_ns"] or 0))[:3]
+    assert stats["all"]["max_abs_error_pct"] <= 5.0, (stats["all"], worst)
     warm = warm_start_lines(log)
     assert [w["first_prediction"] for w in warm] == ["rig model", "rig model"]
     # The start-up run, the first strokes the daemon ever made, is as good.
