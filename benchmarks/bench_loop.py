@@ -107,6 +107,13 @@ def run_daemon(strokes: int, fifo: bool, clients: int) -> dict[str, float]:
         for h in hammers:
             h.start()
         with Client(str(sock), timeout=10) as c:
+            # The start-up run begins once the daemon's loop has run its first slack: the socket
+            # may answer before it (state idle, then cycling), so wait for it, then for its end.
+            begun = time.monotonic() + 10
+            while c.status()["state"] != "cycling" and c.status()["cycle"] == 0:
+                if time.monotonic() > begun:
+                    raise RuntimeError("the daemon's start-up run did not begin within 10 s")
+                time.sleep(0.01)
             while c.status()["state"] == "cycling":
                 time.sleep(0.2)
         cpu1, t1 = thread_cpu_s(proc.pid), time.monotonic()
