@@ -103,14 +103,7 @@ def renice(increment: int, process: str, cost: str) -> bool:
         os.nice(increment)
         return True
     except OSError as exc:
-        log.warning(
-            "nice refused, carrying on at the inherited priority",
-            process=process,
-            nice=increment,
-            reason=_describe(exc),
-            cost=cost,
-        )
-        return False
+        return _nice_refused(process, increment, exc, cost)
 
 
 def renice_child(pid: int, nice: int, process: str, cost: str) -> bool:
@@ -127,15 +120,19 @@ def renice_child(pid: int, nice: int, process: str, cost: str) -> bool:
     except FileNotFoundError:  # the child just ended: its restart starts at `nice`
         return True
     except OSError as exc:
-        log.warning(
-            "nice refused, carrying on at the inherited priority",
-            process=process,
-            nice=nice,
-            reason=_describe(exc),
-            cost=cost,
-        )
-        return False
+        return _nice_refused(process, nice, exc, cost)
     return True
+
+
+def _nice_refused(process: str, nice: int, exc: OSError, cost: str) -> bool:
+    log.warning(
+        "nice refused, carrying on at the inherited priority",
+        process=process,
+        nice=nice,
+        reason=_describe(exc),
+        cost=cost,
+    )
+    return False
 
 
 #: The loop's SCHED_FIFO priority when the config says "auto" and the process may use it: above

@@ -239,15 +239,18 @@ class _Hub:
             return None
         return snap
 
+    def _too_many(self, conn: _Conn, msgid: int, method: str) -> bytes:
+        return error_frame(
+            msgid,
+            ErrorCode.BUSY,
+            f"{method}: {conn.outstanding} requests outstanding on this connection "
+            f"(max {self.limits.max_outstanding}); read the responses first",
+        )
+
     def forward(self, conn: _Conn, msgid: int, method: str, params: list[Any]) -> bytes | None:
         """Send a call to the daemon, or return an error response when a bound says no."""
         if conn.outstanding >= self.limits.max_outstanding:
-            return error_frame(
-                msgid,
-                ErrorCode.BUSY,
-                f"{method}: {conn.outstanding} requests outstanding on this connection "
-                f"(max {self.limits.max_outstanding}); read the responses first",
-            )
+            return self._too_many(conn, msgid, method)
         if len(self.pending) >= self.limits.max_forwarded:
             return error_frame(
                 msgid, ErrorCode.BUSY, f"{method}: daemon busy, {len(self.pending)} calls in flight"
@@ -275,12 +278,7 @@ class _Hub:
         """A read (history, runs, a past run's stats) served from the records file by a worker
         thread of this process."""
         if conn.outstanding >= self.limits.max_outstanding:
-            return error_frame(
-                msgid,
-                ErrorCode.BUSY,
-                f"{method}: {conn.outstanding} requests outstanding on this connection "
-                f"(max {self.limits.max_outstanding}); read the responses first",
-            )
+            return self._too_many(conn, msgid, method)
         assert self.reads is not None and self.records_path is not None
         conn.outstanding += 1
         fut = self.loop.run_in_executor(self.reads, _FILE_READS[method], self.records_path, *params)
