@@ -61,6 +61,14 @@ TIMER5_OVF_vect:
 TIMER5_COMPA_vect:
     reti
 
+/* OC4A (the drive) cleared on a forced compare: the pin is low at the end of this. Uses r24. */
+.macro DRIVE_OFF_NOW
+    ldi r24, _BV(COM4A1)
+    sts _SFR_MEM_ADDR(TCCR4A), r24
+    ldi r24, _BV(FOC4A)
+    sts _SFR_MEM_ADDR(TCCR4C), r24 /* OC4A low now */
+.endm
+
 /* The arrival's cut. Each sensor's line is also on an external interrupt pin (A: INT4, PE4, D2;
  * B: INT5, PE5, D3), falling edge: the sensor goes active. Vectors 5 and 6 outrank every other, so
  * only an interrupts-off stretch already running holds one back, never another handler's turn.
@@ -72,10 +80,7 @@ TIMER5_COMPA_vect:
     lds r24, stop_mask
     sbrs r24, \maskbit
     rjmp 1f
-    ldi r24, _BV(COM4A1)
-    sts _SFR_MEM_ADDR(TCCR4A), r24
-    ldi r24, _BV(FOC4A)
-    sts _SFR_MEM_ADDR(TCCR4C), r24 /* OC4A low now */
+    DRIVE_OFF_NOW
 1:  pop r24
     reti
 .endm
@@ -100,10 +105,7 @@ INT5_vect:
     lds r24, stop_mask
     sbrs r24, \maskbit
     rjmp 1f
-    ldi r24, _BV(COM4A1)
-    sts _SFR_MEM_ADDR(TCCR4A), r24
-    ldi r24, _BV(FOC4A)
-    sts _SFR_MEM_ADDR(TCCR4C), r24 /* OC4A low now */
+    DRIVE_OFF_NOW
 1:  pop r24
     jmp \tail
 .endm
