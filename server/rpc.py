@@ -588,11 +588,10 @@ class RpcServer:
                 error = result = None
                 try:
                     result = self.urgent[method](params)
-                except RpcError as exc:
-                    error = exc.to_wire()
                 except Exception as exc:
-                    log.exception("rpc: urgent handler %s failed", method)
-                    error = [int(ErrorCode.INTERNAL), f"{method}: internal error: {type(exc).__name__}"]
+                    if not isinstance(exc, RpcError):
+                        log.exception("rpc: urgent handler %s failed", method)
+                    error = _wire_error(method, exc, detail=False)
                 try:
                     link.urgent.sendall(packer.pack(["resp", fid, error, packer.pack(result)]))
                 except OSError:
@@ -602,11 +601,10 @@ class RpcServer:
         error = result = None
         try:
             result = self.handlers[method](params)
-        except RpcError as exc:
-            error = exc.to_wire()
         except Exception as exc:
-            log.exception("rpc: handler %s failed", method)
-            error = [int(ErrorCode.INTERNAL), f"{method}: internal error: {type(exc).__name__}: {exc}"]
+            if not isinstance(exc, RpcError):
+                log.exception("rpc: handler %s failed", method)
+            error = _wire_error(method, exc)
         if isinstance(result, Future):
             result.add_done_callback(lambda fut: self._finish(gen, fid, method, fut))
             return
@@ -617,13 +615,19 @@ class RpcServer:
         if fut.cancelled():
             error = [int(ErrorCode.UNAVAILABLE), f"{method}: cancelled"]
         elif (exc := fut.exception()) is not None:
-            if isinstance(exc, RpcError):
-                error = exc.to_wire()
-            else:
-                error = [int(ErrorCode.INTERNAL), f"{method}: internal error: {type(exc).__name__}: {exc}"]
+            error = _wire_error(method, exc)
         else:
             result = fut.result()
         self._out.put(("resp", gen, fid, error, result))
+
+
+def _wire_error(method: str, exc: BaseException, detail: bool = True) -> list[Any]:
+    """A handler's exception as the wire's [code, message]: an RpcError as it is, anything else an
+    internal error naming its type (and its text when `detail`)."""
+    if isinstance(exc, RpcError):
+        return exc.to_wire()
+    text = f"{method}: internal error: {type(exc).__name__}"
+    return [int(ErrorCode.INTERNAL), f"{text}: {exc}" if detail else text]
 
 
 def _bind_tcp(address: tuple[str, int], what: str) -> socket.socket:
