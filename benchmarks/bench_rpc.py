@@ -27,6 +27,7 @@ DURATION_NS = 2_000_000_000
 ROUNDS = 3
 PERIOD_NS = 10_500_000
 SPIN_NS = 1_000_000
+WARM_UP = 200  # calls each client makes before the window
 
 # A stats result of realistic size (the loop's snapshot: two directions and the combined one).
 _DIR = {
@@ -81,46 +82,66 @@ asyncio.run(main())
 CLIENT = """
 import json, sys, time
 from usmswitch.client import Client
-path, start_ns, end_ns = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+path, start_ns, end_ns, warm_up = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
 c = Client(path)
-for _ in range(200):
+for _ in range(warm_up):
     c.call("stats")
 while time.monotonic_ns() < start_ns:
     time.sleep(0.001)
 lat = []
 clock = time.perf_counter_ns
-t0 = clock()
+t0, cpu0 = clock(), time.process_time_ns()
 while time.monotonic_ns() < end_ns:
     a = clock()
     c.call("stats")
     lat.append(clock() - a)
-elapsed = clock() - t0
+elapsed, cpu = clock() - t0, time.process_time_ns() - cpu0
 lat.sort()
 p50, p99 = lat[len(lat) // 2], lat[int(len(lat) * 0.99)]
-print(json.dumps({"n": len(lat), "elapsed_ns": elapsed, "p50": p50, "p99": p99}))
+print(json.dumps({"n": len(lat), "elapsed_ns": elapsed, "cpu_ns": cpu, "p50": p50, "p99": p99}))
 """
 
 
-def run_clients(path: str, n: int, duration_ns: int) -> dict[str, float]:
-    """Start n client processes against path; total req/s and the worst client's p50/p99."""
+def process_cpu_s(pid: int) -> float:
+    """CPU seconds (user and system) of every thread of `pid` so far."""
+    ticks = 0
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{tid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        ticks += int(fields[11]) + int(fields[12])
+    return ticks / os.sysconf("SC_CLK_TCK")
+
+
+def run_clients(path: str, n: int, duration_ns: int, server_pid: int | None = None) -> dict[str, float]:
+    """Start n client processes against path; total req/s, the worst client's p50/p99, and the
+    CPU each request cost the clients and (with `server_pid`) the server."""
     start = time.monotonic_ns() + 1_500_000_000 + n * 100_000_000
     end = start + duration_ns
     procs = [
         subprocess.Popen(
-            [sys.executable, "-c", CLIENT, path, str(start), str(end)], stdout=subprocess.PIPE, text=True
+            [sys.executable, "-c", CLIENT, path, str(start), str(end), str(WARM_UP)],
+            stdout=subprocess.PIPE,
+            text=True,
         )
         for _ in range(n)
     ]
     results = []
+    cpu0 = process_cpu_s(server_pid) if server_pid is not None else 0.0
     for p in procs:
         out, _ = p.communicate(timeout=60)
         if p.returncode != 0:
             raise RuntimeError(f"a benchmark client failed (exit {p.returncode})")
         results.append(json.loads(out))
+    calls = sum(r["n"] for r in results)
+    # The server's CPU is read over the clients' whole life (their warm-up and start included):
+    # a little high, alike for both servers.
+    server_cpu = process_cpu_s(server_pid) - cpu0 if server_pid is not None else float("nan")
     return {
         "rate": sum(r["n"] / (r["elapsed_ns"] / 1e9) for r in results),
         "p50_us": max(r["p50"] for r in results) / 1000,
         "p99_us": max(r["p99"] for r in results) / 1000,
+        "client_cpu_us": sum(r["cpu_ns"] for r in results) / calls / 1000,
+        "server_cpu_us": server_cpu / (calls + WARM_UP * n) * 1e6,
     }
 
 
@@ -194,22 +215,27 @@ def main() -> int:
         for n in (1, 8):
             rounds: dict[str, list[dict[str, float]]] = {}
             for _ in range(ROUNDS):
-                for name, path in (
-                    ("bare asyncio (peer)", bare_path),
-                    ("RpcServer", str(servers["process"].unix_path)),
+                for name, path, pid in (
+                    ("bare asyncio (peer)", bare_path, bare.pid),
+                    ("RpcServer", str(servers["process"].unix_path), servers["process"].server_pid),
                 ):
-                    rounds.setdefault(name, []).append(run_clients(path, n, DURATION_NS))
+                    rounds.setdefault(name, []).append(run_clients(path, n, DURATION_NS, pid))
             for name, runs in rounds.items():
-                r = {k: statistics.median(x[k] for x in runs) for k in ("rate", "p50_us", "p99_us")}
+                keys = ("rate", "p50_us", "p99_us", "server_cpu_us", "client_cpu_us")
+                r = {k: statistics.median(x[k] for x in runs) for k in keys}
                 measured[(name, n)] = r
                 peer = measured.get(("bare asyncio (peer)", n), r)
                 ratio = f"{r['rate'] / peer['rate']:.2f}"
-                rows.append([name, n, f"{r['rate']:.0f}", ratio, f"{r['p50_us']:.0f}", f"{r['p99_us']:.0f}"])
+                cpu = (f"{r['server_cpu_us']:.1f}", f"{r['client_cpu_us']:.1f}")
+                rows.append(
+                    [name, n, f"{r['rate']:.0f}", ratio, f"{r['p50_us']:.0f}", f"{r['p99_us']:.0f}", *cpu]
+                )
         print_table(
-            ["server", "clients", "req/s", "x peer", "p50 us", "p99 us"],
+            ["server", "clients", "req/s", "x peer", "p50 us", "p99 us", "server CPU us", "client CPU us"],
             rows,
             title=f"stats over the Unix socket, {os.cpu_count()} CPUs, median of {ROUNDS} rounds of "
-            f"{DURATION_NS / 1e9:g} s, ours and the peer's in turn",
+            f"{DURATION_NS / 1e9:g} s, ours and the peer's in turn; CPU per request, the server's "
+            "process and the clients' (ours busy-polls while a core is spare: docs/protocol.md)",
         )
         mine1, mine8 = measured[("RpcServer", 1)], measured[("RpcServer", 8)]
         peer1, peer8 = measured[("bare asyncio (peer)", 1)], measured[("bare asyncio (peer)", 8)]

@@ -27,6 +27,7 @@ from usmswitch.predictor import DEFAULT_MODEL, MAX_ORDER, MODELS, check_stroke_n
 from usmswitch.predictor.factory import OPTIONS as PREDICTOR_OPTIONS
 from usmswitch.protocol.sockets import default_socket_path
 from usmswitch.protocol.units import format_ns
+from usmswitch.server.busy_poll import DEFAULT_WINDOW_NS
 from usmswitch.sim import FaultPlan
 
 from .config_values import (
@@ -71,6 +72,7 @@ SIM_STATE_SUBDIR = "sim"
 # Bounds that match the socket's checks (docs/protocol.md): a target or a delay past 10 s is a typo.
 MAX_TARGET_NS = 10_000_000_000
 MAX_DEBOUNCE_NS = 10_000_000
+MAX_BUSY_POLL_NS = 10_000_000  # past a script's pace between calls: a core polled for nothing
 # Modbus RTU parity (the serial line spec's default is even) and the request timeout's bounds,
 # the driver's own (drivers/modbus_board.py: timeout_ms 10..10000).
 MODBUS_PARITIES = ("E", "O", "N")
@@ -220,6 +222,7 @@ class SocketConfig:
     tcp_token: str = ""  # required with tcp
     max_clients: int = 64  # Unix socket connections served at once
     max_tcp_clients: int = 8  # TCP connections (authenticated or not) served at once, apart from Unix
+    busy_poll_ns: int = DEFAULT_WINDOW_NS  # poll this long after a request while a core is spare; 0 = off
 
 
 @dataclass(frozen=True)
@@ -603,6 +606,7 @@ def _socket(t: Table, env: Mapping[str, str]) -> SocketConfig:
         tcp_token=token,
         max_clients=table_int(t, "max_clients", SocketConfig.max_clients, 1, 4096),
         max_tcp_clients=table_int(t, "max_tcp_clients", SocketConfig.max_tcp_clients, 1, 1024),
+        busy_poll_ns=t.get("busy_poll", duration_at_most(MAX_BUSY_POLL_NS), SocketConfig.busy_poll_ns),
     )
     t.done()
     return cfg

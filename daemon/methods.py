@@ -465,6 +465,7 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         log_format=daemon.config.daemon.log_format,
         log_level=daemon.config.daemon.log_level,
         nice=0,  # raised by the service if the loop is refused SCHED_FIFO
+        busy_poll_ns=cfg.busy_poll_ns,
     )
     # Before the socket listens: `stats` answers (count 0) from the first connection on.
     server.snapshot("stats", daemon.loop.snapshot(raw=True))

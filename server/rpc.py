@@ -45,6 +45,7 @@ from usmswitch.protocol.wire import (
 )
 from usmswitch.runtime.children import end_child
 from usmswitch.runtime.realtime import renice_child
+from usmswitch.server.busy_poll import DEFAULT_WINDOW_NS
 
 from .rpc_process import serve
 
@@ -116,6 +117,7 @@ class RpcServer:
         web_token_file: str | os.PathLike[str] | None = None,
         isolation: str = "process",
         nice: int = 5,
+        busy_poll_ns: int = DEFAULT_WINDOW_NS,
         max_restarts: int = 5,
         log_format: str = "auto",
         log_level: str = "info",
@@ -145,6 +147,8 @@ class RpcServer:
             raise ValueError(f"isolation must be 'process' or 'thread', got {isolation!r}")
         if isinstance(nice, bool) or not isinstance(nice, int) or not 0 <= nice <= 19:
             raise ValueError(f"nice must be an integer in [0, 19], got {nice!r}")
+        if isinstance(busy_poll_ns, bool) or not isinstance(busy_poll_ns, int) or busy_poll_ns < 0:
+            raise ValueError(f"busy_poll_ns must be an integer >= 0 (0: off), got {busy_poll_ns!r}")
         self.topics = tuple(topics)
         for topic in self.topics:
             if type(topic) is not str or topic in SERVER_TOPICS:
@@ -186,6 +190,7 @@ class RpcServer:
         self.limits = limits or Limits()
         self.isolation = isolation
         self.nice = nice
+        self.busy_poll_ns = busy_poll_ns
         self.log_settings = (log_format, log_level)
         self.max_restarts = max_restarts
         #: Where TCP listens once started (the port resolved when 0 was asked).
@@ -392,6 +397,8 @@ class RpcServer:
             "web_token": self.web_token if self.web is not None else None,
             "web_token_file": self.web_token_file,
             "lost": self.lost,
+            # In a thread of the daemon's process, polling would hold the GIL against the loop.
+            "busy_poll_ns": self.busy_poll_ns if self.isolation == "process" else 0,
             # Snapshots set so far are served from the first request (and after a restart).
             "snaps": {method: packb(value) for method, value in list(self._snaps.items())},
         }

@@ -44,6 +44,7 @@ from usmswitch.protocol.wire import (
 from usmswitch.runtime.logsetup import configure_logging
 from usmswitch.runtime.process_exit import exit_now
 from usmswitch.runtime.realtime import drop_realtime, renice
+from usmswitch.server.busy_poll import BusyPoll, usable_cpus
 
 log = logging.getLogger("usmswitch.rpc")
 
@@ -207,6 +208,8 @@ class _Hub:
         self.channel: _Channel | None = None
         self.urgent_channel: _Channel | None = None
         self.done: asyncio.Future[None] = loop.create_future()
+        window = cfg["busy_poll_ns"]
+        self.busy = BusyPoll(loop, window, usable_cpus()) if window else None
         # History is read from the records file here, not in the daemon: the loop's process never
         # reads or packs a large reply. The pool bounds how many reads run at once.
         self.records_path: str | None = cfg["records_path"]
@@ -440,6 +443,8 @@ class _Conn(asyncio.Protocol):
     def connection_lost(self, exc: Exception | None) -> None:
         self.closed = True
         self._uncount()
+        if self.hub.busy is not None:
+            self.hub.busy.forget(self)
         for topic in self.topics:
             self.hub.subs[topic].discard(self)
 
@@ -498,7 +503,9 @@ class _Conn(asyncio.Protocol):
             return self._bad(msg)
         if type(method) is not str or type(params) is not list:
             return self._bad(msg, msgid)
-        self.last_req_ns = time.monotonic_ns()
+        self.last_req_ns = now = time.monotonic_ns()
+        if self.hub.busy is not None:
+            self.hub.busy.request(self, now)
         if not self.authed and method != "auth":
             self.fatal(ErrorCode.UNAUTHORIZED, "this TCP connection must send auth [token] first", msgid)
             return None

@@ -68,6 +68,7 @@ def test_defaults_run_the_simulated_rig_closed_loop_at_12_ms():
     )
     assert cfg.daemon.rig == socket.gethostname()
     assert (cfg.socket.max_clients, cfg.socket.max_tcp_clients) == (64, 8)
+    assert cfg.socket.busy_poll_ns == 200_000
     assert cfg.socket.path == Path("/run/user/1000/usmswitch/usmswitchd.sock")
     with pytest.raises(dataclasses.FrozenInstanceError):
         cfg.control.window = 3  # type: ignore[misc]
@@ -221,6 +222,8 @@ def test_file_values_and_units(tmp_path: Path):
         ("[socket]\nmax_clients = 1.5", "socket.max_clients: expected an integer, got 1.5 (float)"),
         ("[socket]\nmax_tcp_clients = true", "socket.max_tcp_clients: expected an integer, got True"),
         ("[socket]\nmax_tcp_clients = 0", "socket.max_tcp_clients: 0 is outside the allowed range"),
+        ("[socket]\nbusy_poll = 200", 'socket.busy_poll: 200 has no unit: write "200ms"'),
+        ('[socket]\nbusy_poll = "11ms"', "socket.busy_poll: 11ms is longer than the limit 10ms"),
         ('[sim]\nseed = "7"', "sim.seed: expected an integer, got '7' (str)"),
         ("[realtime]\ncpu_affinity = [999]", "realtime.cpu_affinity: CPU 999 does not exist on this machine"),
         ('[realtime]\ncpu_affinity = "0"', "realtime.cpu_affinity: expected a list of CPU numbers"),
@@ -289,12 +292,14 @@ def test_bounds_at_the_limit_and_tight_socket_modes_are_accepted(tmp_path: Path)
         mode = "0600"
         max_clients = 100
         max_tcp_clients = 2
+        busy_poll = "0us"
         """,
     )
     cfg = load_config(p, env=ENV)
     assert cfg.control.target_on_ns == cfg.control.open_delay_ns == 10_000_000_000
     assert cfg.driver.debounce_ns == 10_000_000 and cfg.daemon.rig == "bench-3"
     assert (cfg.socket.mode, cfg.socket.max_clients, cfg.socket.max_tcp_clients) == (0o600, 100, 2)
+    assert cfg.socket.busy_poll_ns == 0
     for mode in (0o640, 0o620, 0o660):
         assert load_config(None, {"socket.mode": mode}, env=ENV).socket.mode == mode
     # Zero needs no unit (nothing is ambiguous about it).
