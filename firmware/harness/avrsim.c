@@ -103,6 +103,7 @@ static uint32_t clock_start_us;
 static uint16_t clock_ovf_addr;
 static avr_cycle_count_t origin_cycle; /* cycle of the firmware's TCNT4 = 0 */
 static avr_cycle_count_t max_lag, max_lag_at; /* the worst lag behind the wall clock, and when */
+static double max_unread_s; /* the longest the pty went unread while the chip ran (wall time) */
 static int origin_set;
 
 /* ---- what the harness measures of the firmware ("stats", and at exit on stderr) ----
@@ -613,9 +614,33 @@ static uint8_t from_avr[65536];
 static size_t from_avr_len;
 static unsigned long dropped_bytes; /* the firmware's bytes the pty would not take, or past the buffer */
 
+/* Each host byte reaches the chip no earlier than the emulated instant it was sent at: a byte
+ * read from the pty while the chip is behind the wall clock waits for the chip to get there, as
+ * a byte on a wire waits for nothing but arrives when it was sent. Read early, its answer (a
+ * PONG, a START) would carry a stamp from before the question, a clock no crystal has, which a
+ * host that checks its device's clock rejects (issue 29). */
+static avr_cycle_count_t to_avr_at[65536];
+
+static void feed_uart(void);
+
+static avr_cycle_count_t feed_timer(avr_t *a, avr_cycle_count_t when, void *param)
+{
+    (void)a;
+    (void)when;
+    (void)param;
+    feed_uart();
+    return 0;
+}
+
 static void feed_uart(void)
 {
     while (xon && to_avr_len) {
+        avr_cycle_count_t at = to_avr_at[to_avr_head];
+        if (at > avr->cycle) {
+            avr_cycle_timer_cancel(avr, feed_timer, NULL);
+            avr_cycle_timer_register(avr, at - avr->cycle, feed_timer, NULL);
+            return;
+        }
         uint8_t b = to_avr[to_avr_head];
         to_avr_head = (to_avr_head + 1) % sizeof to_avr;
         to_avr_len--;
@@ -623,10 +648,13 @@ static void feed_uart(void)
     }
 }
 
-static void queue_to_avr(const uint8_t *b, size_t n)
+/* `at`: the emulated cycle the bytes were sent at (now, for bytes of a lockstep command). */
+static void queue_to_avr(const uint8_t *b, size_t n, avr_cycle_count_t at)
 {
     for (size_t i = 0; i < n && to_avr_len < sizeof to_avr; i++) {
-        to_avr[(to_avr_head + to_avr_len) % sizeof to_avr] = b[i];
+        size_t slot = (to_avr_head + to_avr_len) % sizeof to_avr;
+        to_avr[slot] = b[i];
+        to_avr_at[slot] = at;
         to_avr_len++;
     }
     feed_uart();
@@ -676,6 +704,16 @@ static uint8_t r_udr0(avr_t *a, avr_io_addr_t addr, void *param)
 
 /* ---- pty ---- */
 static int pty_master = -1, pty_slave = -1;
+/* The pacing: emulated cycle pace_c0 is wall time pace_w0 (set when the pty run starts). */
+static double pace_w0;
+static avr_cycle_count_t pace_c0;
+static double wall_s(void);
+
+/* The emulated cycle the wall clock is at now. */
+static avr_cycle_count_t wall_cycle(void)
+{
+    return pace_c0 + (avr_cycle_count_t)((wall_s() - pace_w0) * f_eff());
+}
 static char link_path[1024];
 
 static void pty_plug(void)
@@ -718,9 +756,19 @@ static void pty_unplug(void)
     to_avr_len = 0;
 }
 
-/* Behind the wall clock by more than this, the harness catches up before it reads the host's
- * bytes (200 us of emulated time: what one look at the pty used to run at most). */
+/* Behind the wall clock by more than this (200 us of emulated time), the harness catches up in
+ * chunks this long, looking at the pty once every CATCH_UP_LOOK_S of wall time. */
 #define CATCH_UP_CYCLES 3200
+#define CATCH_UP_LOOK_S 0.001
+
+/* How far behind the wall clock the chip is, at worst (printed at the end). */
+static void note_lag(avr_cycle_count_t target)
+{
+    if (target > avr->cycle && target - avr->cycle > max_lag) {
+        max_lag = target - avr->cycle;
+        max_lag_at = avr->cycle;
+    }
+}
 
 static void pty_io(void)
 {
@@ -731,7 +779,7 @@ static void pty_io(void)
     uint8_t buf[4096];
     ssize_t n;
     while ((n = read(pty_master, buf, sizeof buf)) > 0)
-        queue_to_avr(buf, (size_t)n);
+        queue_to_avr(buf, (size_t)n, wall_cycle());
     size_t off = 0;
     while (off < from_avr_len) {
         n = write(pty_master, from_avr + off, from_avr_len - off);
@@ -872,7 +920,7 @@ static int stdin_command(char *line)
                 break;
             b[n++] = (uint8_t)v;
         }
-        queue_to_avr(b, n);
+        queue_to_avr(b, n, avr->cycle);
     } else if (sscanf(line, "run %llu", &us) == 1 || sscanf(line, "runto %llu", &cyc) == 1) {
         if (lockstep) {
             run_until(line[3] == 't' ? (avr_cycle_count_t)cyc : avr->cycle + (avr_cycle_count_t)(us * 16));
@@ -1091,32 +1139,34 @@ int main(int argc, char **argv)
     } else {
         pty_plug();
         fcntl(0, F_SETFL, O_NONBLOCK);
-        double w0 = wall_s();
-        avr_cycle_count_t c0 = avr->cycle;
+        pace_w0 = wall_s();
+        pace_c0 = avr->cycle;
         size_t stdin_len = 0;
         int stdin_open = 1;
         while (!stopping) {
-            double now = wall_s();
-            avr_cycle_count_t target = c0 + (avr_cycle_count_t)((now - w0) * f_eff());
-            /* How far behind the wall clock the chip is, at worst (printed at the end). */
-            if (target > avr->cycle && target - avr->cycle > max_lag) {
-                max_lag = target - avr->cycle;
-                max_lag_at = avr->cycle;
-            }
+            avr_cycle_count_t target = wall_cycle();
+            note_lag(target);
             /* Behind the wall clock (this process was not run for a while, or the machine's
-             * clock jumped): catch up in one go before the pty is looked at. Read while behind, a
-             * byte the host wrote at wall time t would reach the chip at an emulated time before
-             * t, and its answer (a PONG, a START) would carry a stamp from before the question: a
-             * clock no crystal has, which a host that checks its device's clock rejects (issue
-             * 29). Caught up first, the byte arrives late, as on a slow line, and the chip's clock
-             * stays one steady crystal. In one go, because the pty's system calls between 200 us
-             * chunks slowed the catching up to about the wall clock's pace: the chip was deaf to
-             * the host for 100 ms at times. */
+             * clock jumped): catch up in chunks of CATCH_UP_CYCLES, and look at the pty only once
+             * a millisecond of wall time: the pty's system calls after every 200 us chunk slowed
+             * the catching up to about the wall clock's pace, so a lag lasted 100 ms. Caught up
+             * in one go instead, with no look at the pty until then, the chip was deaf to the
+             * host for 100-940 ms at times (the emulation barely outruns the wall clock on a
+             * loaded machine): COMMANDs went unanswered. Bytes read meanwhile wait for their
+             * emulated instant (queue_to_avr). */
+            double looked = wall_s();
             while (target > avr->cycle + CATCH_UP_CYCLES) {
-                run_until(target);
-                target = c0 + (avr_cycle_count_t)((wall_s() - w0) * f_eff());
+                run_until(avr->cycle + CATCH_UP_CYCLES);
+                if (wall_s() - looked >= CATCH_UP_LOOK_S) {
+                    pty_io();
+                    looked = wall_s();
+                }
+                target = wall_cycle();
+                note_lag(target);
             }
             run_until(target);
+            if (wall_s() - looked > max_unread_s)
+                max_unread_s = wall_s() - looked;
             pty_io();
             struct pollfd pf[2] = {{stdin_open ? 0 : -1, POLLIN, 0}, {pty_master, POLLIN, 0}};
             if (avr->cycle >= target) {
@@ -1147,8 +1197,10 @@ int main(int argc, char **argv)
         }
         pty_unplug();
         /* How far emulated time fell behind the wall clock at worst (a slow or starved host). */
-        fprintf(stderr, "usmswitch-avrsim: max lag %.0f us (at %.3f s of emulated time), %lu bytes dropped\n",
-                (double)max_lag * 1e6 / f_eff(), (double)max_lag_at / f_eff(), dropped_bytes);
+        fprintf(stderr,
+                "usmswitch-avrsim: max lag %.0f us (at %.3f s of emulated time), pty unread for %.1f ms at "
+                "most, %lu bytes dropped\n",
+                (double)max_lag * 1e6 / f_eff(), (double)max_lag_at / f_eff(), max_unread_s * 1e3, dropped_bytes);
     }
     print_stats(stderr, "usmswitch-avrsim: ");
     if (truth)
