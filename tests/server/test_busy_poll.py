@@ -4,9 +4,8 @@ that need every core, and an idle daemon, find it asleep."""
 from __future__ import annotations
 
 import os
-import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -95,15 +94,6 @@ def test_the_server_refuses_a_negative_window():
 
 
 # -- the server process: what the kernel counts ----------------------------------------------------
-@pytest.fixture
-def sockdir() -> Iterator[Path]:
-    d = Path(tempfile.mkdtemp(prefix="usmpoll-", dir="/tmp"))
-    yield d
-    for p in d.iterdir():
-        p.unlink()
-    d.rmdir()
-
-
 def _sleeps_and_cpu(pid: int) -> tuple[int, float]:
     """Voluntary context switches (each a sleep in epoll) and CPU seconds of every thread of pid."""
     sleeps, ticks = 0, 0

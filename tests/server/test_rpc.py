@@ -9,7 +9,6 @@ import socket
 import stat
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Iterator
@@ -94,18 +93,6 @@ class Rig:
 
     def broken(self, params: list[Any]) -> None:
         raise ZeroDivisionError("division by zero")
-
-
-@pytest.fixture
-def sockdir() -> Iterator[Path]:
-    # Short and world-traversable: AF_UNIX paths are limited to ~107 bytes, and the permission test
-    # connects as another user.
-    d = Path(tempfile.mkdtemp(prefix="usmrpc-", dir="/tmp"))
-    d.chmod(0o755)
-    yield d
-    for p in d.iterdir():
-        p.unlink()
-    d.rmdir()
 
 
 def make_server(sockdir: Path, rig: Rig, **kw: Any) -> RpcServer:

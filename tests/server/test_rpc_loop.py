@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import sys
-import tempfile
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -15,15 +13,6 @@ from usmswitch.server import rpc_process
 from usmswitch.server.rpc import RpcServer
 
 LOOPS = ["asyncio"] + (["uvloop"] if rpc_process._loop_factory() is not None else [])
-
-
-@pytest.fixture
-def sockdir() -> Iterator[Path]:
-    d = Path(tempfile.mkdtemp(prefix="usmloop-", dir="/tmp"))
-    yield d
-    for p in d.iterdir():
-        p.unlink()
-    d.rmdir()
 
 
 def test_without_uvloop_the_factory_is_asyncios(monkeypatch: pytest.MonkeyPatch) -> None:
