@@ -7,7 +7,7 @@ awake and polling, as Linux's own `net.core.busy_poll` does for network cards.
 
 Polling takes a core. It is done only while fewer clients are active than there are cores
 beside the server's: with more, the clients need every core to build their next request, and a
-polling server would slow them (8 clients on 2 cores: 0.87x the throughput). The loop of the
+polling server would slow them (8 clients on 2 cores: 0.89-0.93x the throughput, p99 2.2 ms). The loop of the
 rig runs at SCHED_FIFO and preempts the polling at once; after the window the server sleeps as
 before, so an idle daemon costs nothing.
 """
