@@ -592,26 +592,14 @@ class RpcServer:
                 if msg[0] != "call":
                     continue
                 _, fid, method, params = msg
-                error = result = None
-                try:
-                    result = self.urgent[method](params)
-                except Exception as exc:
-                    if not isinstance(exc, RpcError):
-                        log.exception("rpc: urgent handler %s failed", method)
-                    error = _wire_error(method, exc, detail=False)
+                result, error = _run_handler(self.urgent[method], method, params, urgent=True)
                 try:
                     link.urgent.sendall(packer.pack(["resp", fid, error, packer.pack(result)]))
                 except OSError:
                     return
 
     def _call(self, gen: int, fid: int, method: str, params: list[Any]) -> None:
-        error = result = None
-        try:
-            result = self.handlers[method](params)
-        except Exception as exc:
-            if not isinstance(exc, RpcError):
-                log.exception("rpc: handler %s failed", method)
-            error = _wire_error(method, exc)
+        result, error = _run_handler(self.handlers[method], method, params)
         if isinstance(result, Future):
             result.add_done_callback(lambda fut: self._finish(gen, fid, method, fut))
             return
@@ -626,6 +614,19 @@ class RpcServer:
         else:
             result = fut.result()
         self._out.put(("resp", gen, fid, error, result))
+
+
+def _run_handler(
+    handler: Callable[[list[Any]], Any], method: str, params: list[Any], urgent: bool = False
+) -> tuple[Any, list[Any] | None]:
+    """(result, None), or (None, the wire's error) when the handler raised; anything but an RpcError
+    is a bug, logged with its traceback. An urgent reply names only the exception's type."""
+    try:
+        return handler(params), None
+    except Exception as exc:
+        if not isinstance(exc, RpcError):
+            log.exception("rpc: %shandler %s failed", "urgent " if urgent else "", method)
+        return None, _wire_error(method, exc, detail=not urgent)
 
 
 def _wire_error(method: str, exc: BaseException, detail: bool = True) -> list[Any]:
