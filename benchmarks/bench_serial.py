@@ -104,11 +104,11 @@ def _host_pipeline() -> tuple[list[int], list[int]]:
         base_ns = begin_ns + k * STEP_NS
         while daq.now_ns() < base_ns + STEP_NS + 3_000_000:
             time.sleep(0.0005)
-        data = _stroke_bytes(k, 1 + 7 * k, daq._to_raw_us(base_ns))
+        data = _stroke_bytes(k, 1 + 7 * k, daq.timeline.to_raw_us(base_ns))
         t_a = time.perf_counter_ns()
         frames = daq._decoder.feed(data)
         with daq._state:
-            daq._ctx_new(k & 0xFFFF, Direction(k % 2))
+            daq.strokes.begin(k & 0xFFFF, Direction(k % 2))
             for s, msg in frames:
                 daq._handle(s, msg, t_a)
         t_start = t_arr = None

@@ -27,6 +27,7 @@ from usmswitch.protocol.stats import DirectionStats
 from usmswitch.protocol.units import format_ns
 
 from .plan import Mode, Plan, direction_from_levels, drive_of, flags_for_failure, predictor_conditions
+from .stroke_events import StrokeEvents, await_report, disagreement, read_stroke
 
 log = structlog.get_logger("usmswitch.loop")
 
@@ -49,15 +50,6 @@ class State(StrEnum):
 
 #: The owner of the run the daemon starts by itself (`[cycle] autostart`): a client's run takes it over.
 AUTOSTART_OWNER = "autostart"
-
-
-#: Driver faults that end the stroke in progress, with the name its FAULT is latched under.
-STROKE_FAULTS = {
-    FaultCode.DISCONNECT: "disconnect",
-    FaultCode.STALL: "stall",
-    FaultCode.DRIVE: "drive",
-    FaultCode.SEQUENCE: "edge order",
-}
 
 
 #: The plausible band's floor as a fraction of a direction's known stroke (`[control] min_stroke`).
@@ -137,6 +129,11 @@ class ControlLoop:
         self.min_stroke_ns = [check_ns("min_stroke_ns", m) for m in min_stroke_ns]
         #: Strokes the hardware side reported that were not physically strokes (flag IMPLAUSIBLE).
         self.implausible = 0
+        #: Strokes whose stamps the device's own account did not bear out (flag MISMATCH).
+        self.mismatched = 0
+        #: Edges per sensor (A, B) that no stroke explains, seen by the loop during strokes (the
+        #: driver's debouncer counts the chatter it absorbed: `Daq.noise`).
+        self.noise = [0, 0]
         self.overruns = 0
         self.stale_events = 0  # driver events read and dropped outside a stroke (idle, a fault reset)
         #: Sensor edges reported while no stroke was going (the mover moved by hand, a sensor chatters).
@@ -471,6 +468,8 @@ class ControlLoop:
             "target_off_ns": self.targets[Direction.OFF],
             "spurious_edges": self.spurious_edges,
             "implausible": self.implausible,
+            "mismatched": self.mismatched,
+            "noise": self.noise_by_sensor(),
             "overruns": self.overruns,
             "driver_bounces": self.daq.bounces,
             "driver": self.daq.counters(),
@@ -495,7 +494,25 @@ class ControlLoop:
             out[name] = s
         return out
 
+    def noise_by_sensor(self) -> dict[str, int]:
+        """Edges per sensor that no stroke explains: chatter the debouncer absorbed, spurious edges
+        during strokes and edges while idle are apart (`idle_edges`)."""
+        return {ch: self.noise[i] + self.daq.noise[i] for i, ch in enumerate(("A", "B"))}
+
     # -- internals ----------------------------------------------------------------------------------
+    def _check_with_device(self, got: StrokeEvents, direction: Direction) -> str:
+        """Hold an arrived stroke's stamps against the device's own account ("" when they agree):
+        a stroke it disagrees with is counted and logged, and never learned from."""
+        daq = self.daq
+        if not daq.reports_strokes:
+            return ""
+        await_report(daq, got, slice_ns=RECV_SLICE_NS, halted=self._estop.is_set)
+        doubt = disagreement(got, direction, daq.levels())
+        if doubt:
+            self.mismatched += 1
+            log.warning("stroke not learned: the device's account disagrees", cycle=self.cycle, why=doubt)
+        return doubt
+
     def _require_no_fault(self) -> None:
         if self.state is State.FAULT:
             raise LoopError(f"FAULT latched ({self.fault_reason}): reset_fault first")
@@ -646,57 +663,26 @@ class ControlLoop:
         finally:
             self._helpers_may_run.set()  # started (or not at all): the rest is waiting for edges
         t_start = cmd.t_start_ns
-        lateness = cmd.lateness_ns
         deadline = (cmd.t_cmd_ns + cmd.delay_ns if t_start is None else t_start) + self.stroke_timeout_ns
-        t_depart = t_arrive = early_arrive = None
-        fault = ""
         flags = plan.flags
-        src, dst = direction.source, direction.dest
-        while True:
-            now = self.clock.now_ns()
-            if now >= deadline:
-                break
-            try:
-                ev = daq.recv(min(RECV_SLICE_NS, deadline - now))
-            except DaqError as exc:
-                fault = f"driver: {exc}"
-                break
-            if ev is None:
-                if self._estop.is_set() or self._shutdown.is_set():
-                    break
-                continue
-            kind = ev.kind
-            if kind is EventKind.EDGE:
-                if t_start is None or ev.t_ns <= t_start:
-                    self.spurious_edges += 1
-                elif ev.channel is dst and ev.level == 1:
-                    if t_depart is None and not partial:
-                        # Not yet left: a glitch, or a sensor that lies. The stroke goes on; if
-                        # nothing better comes, it ends IMPLAUSIBLE with this stamp.
-                        self.spurious_edges += 1
-                        early_arrive = early_arrive or ev.t_ns
-                        continue
-                    t_arrive = ev.t_ns
-                    break
-                elif ev.channel is src and ev.level == 0 and t_depart is None:
-                    t_depart = ev.t_ns
-                else:
-                    self.spurious_edges += 1
-            elif kind is EventKind.START:
-                if t_start is None:
-                    t_start = ev.t_ns
-                    lateness = ev.lateness_ns
-                    deadline = t_start + self.stroke_timeout_ns
-            elif (
-                kind is EventKind.FAULT
-                and ev.fault in STROKE_FAULTS
-                and ev.t_ns >= cmd.t_cmd_ns  # not one left over from before this command
-            ):
-                name = STROKE_FAULTS[ev.fault]
-                fault = f"{name}: {ev.detail}" if ev.detail else name
-                break
-            elif kind is EventKind.STOP and (self._estop.is_set() or self._shutdown.is_set()):
-                break  # the halt's own stop: nothing will arrive
+        noise_before = list(daq.noise)
+        got = read_stroke(
+            daq,
+            direction,
+            cmd.t_cmd_ns,
+            t_start,
+            cmd.lateness_ns,
+            deadline,
+            self.stroke_timeout_ns,
+            partial=partial,
+            slice_ns=RECV_SLICE_NS,
+            halted=lambda: self._estop.is_set() or self._shutdown.is_set(),
+        )
+        t_start, lateness, t_depart, t_arrive = got.t_start, got.lateness, got.t_depart, got.t_arrive
+        early_arrive, fault = got.early_arrive, got.fault
+        if got.earlier_drive_fault and not fault:
+            # The device restarted (its watchdog, a brown-out) between strokes: latched as it is idle.
+            fault = got.earlier_drive_fault
         implausible = ""
         halted = self._estop.is_set() or self._shutdown.is_set()
         if t_arrive is None and early_arrive is not None and t_start is not None and not fault and not halted:
@@ -720,9 +706,12 @@ class ControlLoop:
             # and this stroke's update (an AIC re-selection may take a millisecond) comes after it.
             self._next_dir = direction.opposite
             self._arm_or_defer(self._next_dir)  # the timing path ends here
+            doubt = self._check_with_device(got, direction)
+            if doubt:
+                flags |= Flag.MISMATCH  # the device's account disagrees: kept, never learned
             if partial:
                 flags |= Flag.PARTIAL  # a part of a stroke would teach the predictor nonsense
-            else:
+            elif not doubt:
                 try:
                     self.predictors[direction].update(operating, told)
                 except ValueError as exc:  # a stamp the model cannot take: keep it out, say so
@@ -739,11 +728,19 @@ class ControlLoop:
                 fault = fault or daq.halt_reason or "emergency stop"
             elif not fault:
                 flags |= Flag.STALL
-                fault = f"stall: no arrival within {self.stroke_timeout_ns} ns of the start"
+                fault = f"stall: no arrival within {format_ns(self.stroke_timeout_ns)} of the start"
+            elif got.stalled:
+                flags |= Flag.STALL
             flags |= Flag.FAULT
             self._latch_fault(fault)
         if daq.bounces != bounces_before:
             flags |= Flag.BOUNCE
+        for ch in (0, 1):
+            n = got.spurious[ch] + daq.noise[ch] - noise_before[ch]
+            if n:
+                self.noise[ch] += got.spurious[ch]
+                self.spurious_edges += got.spurious[ch]
+                flags |= Flag.NOISE
         if lateness is not None and lateness > self.late_margin_ns:
             flags |= Flag.LATE  # started past its instant: the stroke cannot meet T
         return self._finish(plan, cmd.t_cmd_ns, t_start, t_depart, t_arrive, operating, lateness, flags)

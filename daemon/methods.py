@@ -120,6 +120,8 @@ class Methods:
             "order": self.daemon.config.control.order,
             "scheduling": loop.scheduling,
             "implausible_strokes": loop.implausible,
+            "mismatched_strokes": loop.mismatched,
+            "noise": loop.noise_by_sensor(),
             "idle_edges": loop.idle_edges,
             "ready": self.daemon.ready,
         }

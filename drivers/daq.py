@@ -71,6 +71,12 @@ class Daq(ABC):
     delivery_latency_ns: int = 0
     #: Hardware-timed: how far ahead of its instant a command is sent (the device waits).
     command_lead_ns: int = 0
+    #: True when the driver ends each stroke with a REPORT event (the device's own account of it).
+    reports_strokes: bool = False
+    #: How long past a stroke's end (its arrival or its timeout) the device's account of it may
+    #: still be on its way; the loop reads that long before it declares a stall (0: the driver's
+    #: events are the truth as they come, as the simulated rig's are).
+    report_wait_ns: int = 0
 
     def __init__(self, *, clock: Clock, debounce_ns: int = DEFAULT_DEBOUNCE_NS) -> None:
         self.clock = clock
@@ -95,6 +101,8 @@ class Daq(ABC):
         self.out_of_order = 0
         #: Events stamped ahead of the driver's clock by more than a link can explain (dropped).
         self.future_stamps = 0
+        #: Sensor edges per channel (A, B) that the debouncer absorbed: chatter and glitches.
+        self.noise = [0, 0]
 
     # -- lifecycle ---------------------------------------------------------------------------
     def open(self) -> None:
@@ -152,6 +160,11 @@ class Daq(ABC):
     def levels(self) -> tuple[int, int] | None:
         """Limit-sensor levels (A, B) now, when this driver knows them: where the mover rests."""
         return None
+
+    def limits(self) -> dict[str, int]:
+        """What the device can do, for the daemon to refuse the rest at the call (`max_delay_ns`,
+        `min_stroke_timeout_ns`, `max_stroke_timeout_ns`; a key missing: no limit known)."""
+        return {}
 
     def arm(self, direction: Direction, delay_ns: int) -> None:
         """Set the next stroke: its direction and the start delay after its command."""
@@ -274,6 +287,12 @@ class Daq(ABC):
                         self._settle()
                         continue
                     return None
+            if ev.kind is EventKind.REPORT:
+                # An account, not an instant: after what the stroke's edges held, never ordered.
+                if hold is not None:
+                    hold.behind.append(ev)
+                    continue
+                return ev
             if ev.t_ns > self.clock.now_ns() + self.delivery_latency_ns + MAX_STAMP_AHEAD_NS:
                 # From the future: a corrupt or confused stamp. Held, it would hold every event
                 # behind it (the debouncer waits for its sensor to settle) and set the order check
@@ -300,6 +319,7 @@ class Daq(ABC):
                 if ev.kind is EventKind.EDGE and ev.channel == hold.edge.channel:
                     hold.level = ev.level
                     hold.changes += 1
+                    self.noise[ev.channel] += 1
                     hold.until_ns = ev.t_ns + self.debounce_ns
                 else:
                     hold.behind.append(ev)
@@ -320,6 +340,7 @@ class Daq(ABC):
                 self.bounces += 1
         else:
             self.glitches += 1
+            self.noise[hold.edge.channel] += 1
         self._ready.extend(hold.behind)
 
     def _push(self, ev: Event) -> None:

@@ -42,6 +42,7 @@ class EventKind(IntEnum):
     START = 1  # the drive was switched on for a stroke (actual instant)
     STOP = 2  # the drive was switched off (end of stroke, stop or emergency stop)
     FAULT = 3  # the driver or device reports a fault
+    REPORT = 4  # the device's own account of the stroke that just ended (drivers that report)
 
 
 class FaultCode(IntEnum):
@@ -50,6 +51,23 @@ class FaultCode(IntEnum):
     WIRE = 3  # corrupt or lost frames on the link
     DRIVE = 4  # the drive board reports an error or stopped answering
     SEQUENCE = 5  # events out of order or inconsistent with the stroke in progress
+
+
+@dataclass(frozen=True, slots=True)
+class StrokeReport:
+    """A device's own account of a stroke, for the host to hold its stamps against.
+
+    Stamps are on the driver's clock (None: the device did not say, or said something not to be
+    believed); `detail` is what the driver's own checks found wrong with the device's account ("":
+    nothing)."""
+
+    t_start_ns: int | None = None
+    t_depart_ns: int | None = None
+    t_arrive_ns: int | None = None
+    arrived: bool = False
+    #: The device stamped the stroke itself (a STROKE report); else only the driver's checks speak.
+    has_stamps: bool = False
+    detail: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,6 +82,7 @@ class Event:
     fault: FaultCode | None = None  # FAULT
     detail: str = ""
     lateness_ns: int | None = None  # START from a hardware-timed device: how late it fired
+    report: StrokeReport | None = None  # REPORT
 
     @classmethod
     def edge(cls, t_ns: int, channel: Channel, level: int) -> Event:
@@ -76,6 +95,10 @@ class Event:
     @classmethod
     def stop(cls, t_ns: int, direction: Direction | None = None, detail: str = "") -> Event:
         return cls(EventKind.STOP, t_ns, direction=direction, detail=detail)
+
+    @classmethod
+    def report_event(cls, t_ns: int, report: StrokeReport) -> Event:
+        return cls(EventKind.REPORT, t_ns, report=report)
 
     @classmethod
     def fault_event(cls, t_ns: int, fault: FaultCode, detail: str = "") -> Event:

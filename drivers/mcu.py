@@ -11,11 +11,9 @@ handshake finds its clock started again) ends the stroke in progress and is hand
 restart by its hardware watchdog (the firmware hung) or a brown-out is reported as FAULT DRIVE, any
 other restart (power, the reset pin) as FAULT DISCONNECT, each with the cause in its detail.
 
-The driver's clock is the device's timeline mapped onto the host: device stamps (32-bit us,
-unwrapped) become `base_ns + (us - base_us) * 1000`, where the base is fixed at each handshake so
-the timeline starts near `time.monotonic_ns()` and never goes back across reconnects; `now_ns()` is
-`time.monotonic_ns() + offset_ns`, the offset re-estimated from each heartbeat round trip (the
-sample with the smallest round trip of the last eight), which tracks the crystals' drift.
+This module is the link and the session (handshake, requests and their ACKs, heartbeats,
+reconnects); the device's clock is `mcu_clock.DeviceTimeline`, the stroke in progress and its
+checks `mcu_stroke.StrokeAssembler`.
 """
 
 from __future__ import annotations
@@ -27,7 +25,8 @@ from collections import deque
 from dataclasses import dataclass, field
 
 from .daq import DEFAULT_DEBOUNCE_NS, Daq, DaqDisconnected, DaqError, check_ns
-from .events import Channel, Direction, Event, EventKind, FaultCode
+from .events import Direction, Event, EventKind, FaultCode
+from .mcu_clock import STAMP_AHEAD_NS, DeviceTimeline, fmt_ns
 from .mcu_link import DeviceClock, LinkStats, Transport, TransportLost
 from .mcu_protocol import (
     PROTOCOL_MAJOR,
@@ -40,7 +39,6 @@ from .mcu_protocol import (
     Boot,
     Caps,
     Command,
-    DeviceFault,
     Edge,
     Fault,
     FrameDecoder,
@@ -59,9 +57,9 @@ from .mcu_protocol import (
     Stopped,
     StopReason,
     Stroke,
-    StrokeFlags,
     encode_frame,
 )
+from .mcu_stroke import REPORT_WAIT_NS, StrokeAssembler
 
 log = logging.getLogger(__name__)
 
@@ -73,27 +71,15 @@ DEFAULT_RETRIES = 3
 DEFAULT_STROKE_TIMEOUT_NS = 100_000_000
 DEFAULT_RECONNECT_MIN_NS = 50_000_000
 DEFAULT_RECONNECT_MAX_NS = 2_000_000_000
-# A stroke whose frames went missing waits this long for its STROKE report before it is given up.
-REPORT_WAIT_NS = 150_000_000
 _READ_SLICE_NS = 10_000_000
-_OFFSET_WINDOW = 8
-# A device whose clock at a new handshake is this far from where the last session's clock would
-# be now (plus twice the worst round trip seen, and 1000 ppm of the time between) has restarted
-# since: a restart less than this after the one before is told by its BOOT alone.
-_CLOCK_CONTINUITY_NS = 10_000_000
-#: A device stamp is believed only inside this band around the device clock as the heartbeat tracks
-#: it (plus the clock's uncertainty, half the round trip of its best sample): a frame is stamped
-#: before it is sent, so never much ahead; and it arrives within the link timeout, so never much
-#: behind (a STROKE report's stamps may be as old as the stroke timeout besides).
-STAMP_AHEAD_NS = 5_000_000
 #: Events queued between the link thread and the loop: beyond it the oldest are dropped, counted
 #: (`events_dropped`), and a stroke in progress ends with a FAULT SEQUENCE saying so.
 MAX_QUEUED_EVENTS = 8192
-#: How far the device's clock may run from 1 us per us (a crystal is within 0.01 %, a ceramic
-#: resonator 0.5 %); judged over heartbeats, past their round trips.
-MAX_CLOCK_RATE_ERROR_PPM = 5_000
-#: A sample whose round trip is longer than this is too coarse to judge the clock rate against.
-_RATE_REF_RTT_NS = 10_000_000
+#: The device's own stall limit (ARM timeout_us) spans 1 ms to 10 s (docs/mcu-protocol.md).
+MIN_STROKE_TIMEOUT_NS = 1_000_000
+MAX_STROKE_TIMEOUT_NS = 10_000_000_000
+
+__all__ = ["MAX_QUEUED_EVENTS", "MAX_STROKE_TIMEOUT_NS", "REPORT_WAIT_NS", "STAMP_AHEAD_NS", "McuDaq"]
 
 
 @dataclass
@@ -105,24 +91,6 @@ class _Waiter:
     done: threading.Event = field(default_factory=threading.Event)
     ack: Ack | None = None
     lost: str = ""
-
-
-@dataclass
-class _StrokeCtx:
-    """What the host has delivered of the stroke in progress, to rebuild it if frames go missing."""
-
-    stroke: int
-    direction: Direction
-    started: bool = False
-    departed: bool = False
-    arrived: bool = False
-    stopped: bool = False
-    reported: bool = False
-    #: Why a START for this stroke was rejected (another stroke's id, its stamp), "" if none was.
-    start_rejected: str = ""
-    gap: bool = False
-    hold_until_ns: int = 0
-    held: list[Event] = field(default_factory=list)
 
 
 class McuDaq(Daq):
@@ -157,7 +125,14 @@ class McuDaq(Daq):
         super().__init__(clock=DeviceClock(), debounce_ns=debounce_ns)
         self.clock: DeviceClock
         self.transport = transport
-        self.stroke_timeout_ns = check_ns("stroke_timeout_ns", stroke_timeout_ns, minimum=1_000_000)
+        self.stroke_timeout_ns = check_ns(
+            "stroke_timeout_ns", stroke_timeout_ns, minimum=MIN_STROKE_TIMEOUT_NS
+        )
+        if self.stroke_timeout_ns > MAX_STROKE_TIMEOUT_NS:
+            raise ValueError(
+                f"stroke_timeout_ns {fmt_ns(stroke_timeout_ns)} is longer than the device's longest stall"
+                f" limit, {fmt_ns(MAX_STROKE_TIMEOUT_NS)} (ARM timeout_us, docs/mcu-protocol.md)"
+            )
         self.heartbeat_ns = check_ns("heartbeat_ns", heartbeat_ns, minimum=1_000_000)
         self.link_timeout_ns = check_ns("link_timeout_ns", link_timeout_ns, minimum=2 * self.heartbeat_ns)
         if (
@@ -189,10 +164,23 @@ class McuDaq(Daq):
         self.stats = LinkStats()
         #: What the device announced at the last handshake.
         self.device: HelloAck | None = None
-        #: How late the device fired the last start against its scheduled instant (START late_us).
-        self.last_start_late_ns: int | None = None
-        # Sensor levels (A, B) as the device last told them (PONG snapshot, then each EDGE).
-        self._levels: list[int] | None = None
+        self.timeline = DeviceTimeline(
+            self.clock,
+            self.stats,
+            name=self.name,
+            heartbeat_ns=self.heartbeat_ns,
+            link_timeout_ns=self.link_timeout_ns,
+        )
+        self.strokes = StrokeAssembler(
+            self.timeline,
+            self.stats,
+            self._deliver,
+            self._host_stamp,
+            lambda: self._last_stamp_ns,
+            name=self.name,
+            stroke_timeout_ns=self.stroke_timeout_ns,
+            link_timeout_ns=self.link_timeout_ns,
+        )
 
         self._wlock = threading.Lock()  # frames go out whole, in sequence order
         self._state = threading.Condition()  # guards everything below; link thread <-> callers
@@ -204,24 +192,14 @@ class McuDaq(Daq):
         self._tx_seq = 0
         self._rx_seq = SeqTracker()
         self._decoder = FrameDecoder()
-        self._session_wraps = 0
-        self._clock_basis = (0, 0)  # (round trip, host instant) of the sample the clock stands on
-        self._clock_jumps = 0
-        self._rate_ref: tuple[int, int, int] | None = None
-        self._rate_off = 0
-        self._rate_refusal = ""  # the device's clock rate was refused: its next handshakes are too
         self._refuse_why = ""  # set by the link thread: drop the link, saying why
-        self._bad_stamp_said_ns = -1_000_000_000
         self._overflow_said = False
-        self._base_us = 0
-        self._base_ns = 0
         self._last_stamp_ns = 0
         self._stroke_id = 0
         self._armed_msg: Arm | None = None
-        self._ctx: _StrokeCtx | None = None
+        self._arm_waiter: _Waiter | None = None
         self._pings: dict[int, int] = {}
         self._ping_token = 0
-        self._offsets: deque[tuple[int, int, int]] = deque(maxlen=_OFFSET_WINDOW)
         self._last_rx_ns = 0
         self._next_ping_ns = 0
         self._dev_errors_base = (0, 0)
@@ -229,9 +207,6 @@ class McuDaq(Daq):
         self._decoder_totals = (0, 0, 0)
         self._lost_total = 0
         self._resets_total = 0
-        self._wraps_total = 0
-        # The device clock as last heard (raw us, host monotonic ns), to tell a restart at handshake.
-        self._dev_heard: tuple[int, int] | None = None
         self._boot_reported = False  # a BOOT reported the restart the next handshake will meet
         self._resync_why = ""
 
@@ -269,9 +244,35 @@ class McuDaq(Daq):
     def levels(self) -> tuple[int, int] | None:
         """Sensor levels (A, B) from the device's last PONG and the edges since; None when offline."""
         with self._state:
-            if not self._connected or self._levels is None:
+            levels = self.strokes.levels
+            if not self._connected or levels is None:
                 return None
-            return self._levels[0], self._levels[1]
+            return levels[0], levels[1]
+
+    #: Every stroke ends with a REPORT: the device's STROKE report held against the stroke's frames,
+    #: or, from a device without reports (caps lacking STROKE_REPORT), its STOPPED and the checks.
+    reports_strokes = True
+
+    @property
+    def report_wait_ns(self) -> int:  # type: ignore[override]
+        """How long past a stroke's end (its arrival, or its timeout) the device's account of it
+        may still be on its way: a report held for lost frames waits REPORT_WAIT_NS, and frames
+        take the link's delivery latency besides."""
+        return REPORT_WAIT_NS + 2 * self.delivery_latency_ns + self.reply_timeout_ns
+
+    def limits(self) -> dict[str, int]:
+        """What this device can do, for the daemon to refuse what it cannot before a stroke:
+        the longest start delay (HELLO_ACK max_delay_us) and the stall limit's range."""
+        dev = self.device
+        out = {"min_stroke_timeout_ns": MIN_STROKE_TIMEOUT_NS, "max_stroke_timeout_ns": MAX_STROKE_TIMEOUT_NS}
+        if dev is not None:
+            out["max_delay_ns"] = dev.max_delay_us * 1000
+        return out
+
+    @property
+    def last_start_late_ns(self) -> int | None:
+        """How late the device fired the last start against its commanded instant."""
+        return self.strokes.last_start_late_ns
 
     @property
     def connected(self) -> bool:
@@ -290,126 +291,9 @@ class McuDaq(Daq):
             s.format_errors = self._decoder_totals[2] + self._decoder.format_errors
             s.lost_frames = self._lost_total + self._rx_seq.lost
             s.seq_resets = self._resets_total + self._rx_seq.resets
-            s.wraps = self._session_wraps + self._wraps_total
+            s.wraps = self.timeline.session_wraps + self.timeline.wraps_total
             s.halts_cleared = getattr(self.transport, "halts_cleared", 0)
             return s.as_dict()
-
-    # -- the clock ---------------------------------------------------------------------------
-    def _dev_us(self, raw_us: int) -> int:
-        """The unwrapped count of a raw 32-bit stamp: the one nearest the device clock now, as the
-        heartbeat tracks it. Stateless: no frame moves a reference that later frames are read by."""
-        now_us = self._base_us + (self.clock.now_ns() - self._base_ns) // 1000
-        d = (raw_us - now_us) % U32_MOD
-        if d >= U32_MOD // 2:
-            d -= U32_MOD
-        return now_us + d
-
-    def _dev_ns(self, raw_us: int) -> int:
-        return self._base_ns + (self._dev_us(raw_us) - self._base_us) * 1000
-
-    def _to_raw_us(self, t_ns: int) -> int:
-        return (self._base_us + (t_ns - self._base_ns) // 1000) % U32_MOD
-
-    def _clock_err_ns(self, now_ns: int) -> int:
-        """How far the driver's clock may be from the device's: half the round trip of the sample
-        it stands on, and what the worst tolerated crystal drifts since."""
-        rtt, t_ns = self._clock_basis
-        return rtt // 2 + max(0, now_ns - t_ns) * MAX_CLOCK_RATE_ERROR_PPM // 1_000_000
-
-    def _stamp(self, raw_us: int, what: str, behind_ns: int | None = None) -> int | None:
-        """A device stamp on the driver's clock, or None when it is not believable: further ahead of
-        the device clock than its uncertainty and STAMP_AHEAD_NS, or further behind than the link
-        timeout (`behind_ns`). A rejected stamp is counted and logged (once a second), and leaves
-        nothing behind."""
-        host_now = time.monotonic_ns()
-        now = host_now + self.clock.offset_ns
-        t = self._dev_ns(raw_us)
-        err = self._clock_err_ns(host_now)
-        behind = self.link_timeout_ns if behind_ns is None else behind_ns
-        if now - behind - err <= t <= now + err + STAMP_AHEAD_NS:
-            u = self._dev_us(raw_us)
-            if u // U32_MOD > self._session_wraps:
-                self._session_wraps = u // U32_MOD
-            return t
-        self.stats.bad_stamps += 1
-        off = t - now
-        if host_now - self._bad_stamp_said_ns >= 1_000_000_000:
-            self._bad_stamp_said_ns = host_now
-            log.warning(
-                "%s: %s stamped %s %s the device clock rejected (%d so far)",
-                self.name,
-                what,
-                _fmt_ns(abs(off)),
-                "ahead of" if off > 0 else "behind",
-                self.stats.bad_stamps,
-            )
-        return None
-
-    def _anchor(self, raw_us: int, host_mid_ns: int, rtt_ns: int) -> None:
-        """Start a device session's timeline at `host_mid_ns` on the driver clock, never going back."""
-        self._wraps_total += self._session_wraps
-        self._session_wraps = 0
-        self._base_us = raw_us
-        self._base_ns = max(host_mid_ns + self.clock.offset_ns, self._last_stamp_ns + 1)
-        self.clock.offset_ns = self._base_ns - host_mid_ns
-        self._clock_basis = (rtt_ns, host_mid_ns)
-        self._offsets.clear()
-        self._clock_jumps = 0
-        self._rate_off = 0
-        # The rate is judged against a precise sample of this session (the handshake's, if quick).
-        self._rate_ref = (host_mid_ns, self._base_ns, rtt_ns) if rtt_ns <= _RATE_REF_RTT_NS else None
-
-    def _clock_sample(self, raw_us: int, t_send_ns: int, t_recv_ns: int) -> None:
-        """A PONG: the device clock at the round trip's middle. A sample that disagrees with the
-        clock by more than the two can explain is one bad frame: counted, not taken (three in a
-        row: the device's clock jumped, and the session is handshaken again). The device's clock
-        rate is judged against the session's first precise sample; off by more than
-        MAX_CLOCK_RATE_ERROR_PPM three times in a row, the session is refused."""
-        rtt = t_recv_ns - t_send_ns
-        mid = (t_send_ns + t_recv_ns) // 2
-        dev = self._dev_ns(raw_us)
-        off = dev - mid
-        ref = self._rate_ref
-        if ref is not None and mid - ref[0] >= self.heartbeat_ns // 2:
-            span = mid - ref[0]
-            ppm = ((dev - ref[1]) - span) * 1_000_000 // span
-            slack_ppm = (ref[2] + rtt) * 1_000_000 // span
-            if abs(ppm) > MAX_CLOCK_RATE_ERROR_PPM + slack_ppm:
-                self._rate_off += 1
-                if self._rate_off >= 3 and not self._refuse_why:
-                    rate = (dev - ref[1]) / span
-                    self._rate_refusal = (
-                        f"the device clock runs at {rate:.6f} us per us ({ppm / 10_000:+.3f} %), more than"
-                        f" {MAX_CLOCK_RATE_ERROR_PPM / 10_000:.1f} % off: the host cannot time strokes on it"
-                        " (a wrong timer prescaler or clock source?)"
-                    )
-                    self._refuse_why = self._rate_refusal
-                    return
-            else:
-                self._rate_off = 0
-        jump = abs(off - self.clock.offset_ns)
-        if jump > self._clock_err_ns(t_recv_ns) + rtt // 2 + STAMP_AHEAD_NS:
-            self.stats.bad_stamps += 1
-            self._clock_jumps += 1
-            log.warning(
-                "%s: PONG stamped %s off the device clock not taken",
-                self.name,
-                _fmt_ns(off - self.clock.offset_ns),
-            )
-            if self._clock_jumps >= 3 and not self._resync_why:
-                self._resync_why = f"its clock jumped by {_fmt_ns(off - self.clock.offset_ns)}"
-            return
-        self._clock_jumps = 0
-        self.stats.last_rtt_ns = rtt
-        self.stats.max_rtt_ns = max(self.stats.max_rtt_ns, rtt)
-        if ref is None and rtt <= _RATE_REF_RTT_NS:
-            self._rate_ref = (mid, dev, rtt)
-        u = self._dev_us(raw_us)
-        self._session_wraps = max(self._session_wraps, u // U32_MOD)
-        self._offsets.append((rtt, off, mid))
-        best = min(self._offsets)
-        self.clock.offset_ns = best[1]
-        self._clock_basis = (best[0], best[2])
 
     # -- sending -----------------------------------------------------------------------------
     def _send(self, msg: Message, waiter: _Waiter | None = None) -> int:
@@ -461,17 +345,50 @@ class McuDaq(Daq):
         if dev is not None and delay_us > dev.max_delay_us:
             # The device would refuse it (BAD_ARG): a driver error the loop handles, never a crash.
             raise DaqError(
-                f"{self.name}: a delay of {_fmt_ns(delay_ns)} is longer than the device's longest,"
-                f" {_fmt_ns(dev.max_delay_us * 1000)}"
+                f"{self.name}: a delay of {fmt_ns(delay_ns)} is longer than the device's longest,"
+                f" {fmt_ns(dev.max_delay_us * 1000)}"
             )
         self._stroke_id = (self._stroke_id + 1) % U16_MOD
         msg = Arm(self._stroke_id, int(direction), delay_us, self.stroke_timeout_ns // 1000)
         self._armed_msg = msg
-        # No wait: the ACK is checked by the COMMAND, which re-arms if this frame was lost.
+        self._forget_arm()
+        # No wait here: arming costs the loop one write. The ACK is checked by the COMMAND.
+        waiter = _Waiter(MsgType.ARM)
+        self._arm_waiter = waiter
         try:
-            self._send(msg)
+            self._send(msg, waiter)
         except TransportLost as exc:
             raise self._write_lost(exc) from exc
+
+    def _forget_arm(self) -> None:
+        waiter, self._arm_waiter = self._arm_waiter, None
+        if waiter is not None:
+            with self._state:
+                for s in waiter.seqs:
+                    self._waiters.pop(s, None)
+
+    def _check_arm(self, arm: Arm) -> None:
+        """The ARM's ACK, before its COMMAND: a refusal names the device's limit; a lost frame (or
+        ACK) is sent again and waited for."""
+        waiter = self._arm_waiter
+        if waiter is not None and not waiter.done.is_set():
+            waiter.done.wait(self.reply_timeout_ns / 1e9)
+        ack = waiter.ack if waiter is not None else None
+        self._forget_arm()
+        if ack is None:
+            if waiter is not None:
+                self.stats.reply_timeouts += 1
+                self.stats.retransmits += 1
+            ack = self._request(arm, f"ARM stroke {arm.stroke}")
+        if ack.status != Status.OK:
+            self._armed_msg = None
+            raise DaqError(
+                f"{self.name}: device refused ARM stroke {arm.stroke}: {_status_name(ack.status)}"
+                f" (delay {fmt_ns(arm.delay_us * 1000)}, its longest"
+                f" {fmt_ns(self.device.max_delay_us * 1000) if self.device else 'unknown'};"
+                f" stall limit {fmt_ns(arm.timeout_us * 1000)}, its range"
+                f" {fmt_ns(MIN_STROKE_TIMEOUT_NS)} to {fmt_ns(MAX_STROKE_TIMEOUT_NS)})"
+            )
 
     def _command(self, t_cmd_ns: int | None) -> int:
         arm = self._armed_msg
@@ -481,17 +398,29 @@ class McuDaq(Daq):
             cmd = Command(arm.stroke, 0, 0)
         else:
             check_ns("t_cmd_ns", t_cmd_ns)
-            cmd = Command(arm.stroke, self._to_raw_us(t_cmd_ns), 1)
+            cmd = Command(arm.stroke, self.timeline.to_raw_us(t_cmd_ns), 1)
+        self._check_arm(arm)
         with self._state:
-            self._ctx_new(arm.stroke, Direction(arm.direction))
-        ack = self._request(cmd, f"COMMAND stroke {arm.stroke}")
-        if ack.status == Status.NOT_ARMED:
-            # The ARM frame was lost or refused silently: arm again and repeat the command.
-            self._request(arm, f"ARM stroke {arm.stroke}")
+            self.strokes.begin(arm.stroke, Direction(arm.direction))
+            ctx = self.strokes.ctx
+            assert ctx is not None
+            if t_cmd_ns is not None:
+                ctx.due_ns = t_cmd_ns + arm.delay_us * 1000
+        t_sent = self._host_stamp()
+        try:
             ack = self._request(cmd, f"COMMAND stroke {arm.stroke}")
+        except DaqDisconnected:
+            raise
+        except DaqError as exc:
+            # Every ACK lost: the device may well have the command. Its own frames say whether it
+            # started (the loop follows them to the stroke's end, and past it names the link).
+            self.stats.unacked_commands += 1
+            self._armed_msg = None
+            log.warning("%s: %s: following the stroke's own frames", self.name, exc)
+            return t_sent if t_cmd_ns is None else t_cmd_ns
         if ack.status != Status.OK:
             with self._state:
-                self._ctx = None
+                self.strokes.ctx = None
             raise DaqError(
                 f"{self.name}: device refused COMMAND stroke {arm.stroke}: {_status_name(ack.status)}"
             )
@@ -507,11 +436,16 @@ class McuDaq(Daq):
                         cmd.t_cmd_us,
                     )
                 return t_cmd_ns
-            t = self._stamp(ack.t_us, "ACK of COMMAND")
-            return self._host_stamp() if t is None else t
+            t = self.timeline.stamp(ack.t_us, "ACK of COMMAND")
+            t = self._host_stamp() if t is None else t
+            ctx = self.strokes.ctx
+            if ctx is not None and ctx.stroke == arm.stroke:
+                ctx.due_ns = t + arm.delay_us * 1000
+            return t
 
     def _stop(self) -> None:
         self._armed_msg = None
+        self._forget_arm()
         if not self._connected:
             return  # no link: the device's watchdog has stopped or will stop the drive
         try:
@@ -594,26 +528,33 @@ class McuDaq(Daq):
             self.stats.handshake_failures += 1
             raise DaqError(
                 f"{self.name}: {self.transport.describe()} delays a start by at most"
-                f" {_fmt_ns(msg.max_delay_us * 1000)} (HELLO_ACK max_delay_us {msg.max_delay_us}); this"
-                f" host may ask for up to {_fmt_ns(self.max_delay_ns)} (its longest target)"
+                f" {fmt_ns(msg.max_delay_us * 1000)} (HELLO_ACK max_delay_us {msg.max_delay_us}); this"
+                f" host may ask for up to {fmt_ns(self.max_delay_ns)} (its longest target)"
             )
         with self._state:
-            restarted = self._note_restart(msg, t_recv)
-            if self._rate_refusal:
+            tl = self.timeline
+            restarted = tl.restarted(
+                msg,
+                t_recv,
+                booted=self._boot_reported,
+                fw_before=None if self.device is None else self.device.fw_version,
+            )
+            if tl.rate_refusal:
                 if not restarted:
                     self.stats.handshake_failures += 1
-                    raise DaqError(f"{self.name}: {self.transport.describe()}: {self._rate_refusal}")
-                self._rate_refusal = ""  # a new run of the device (new firmware?): judged afresh
+                    raise DaqError(f"{self.name}: {self.transport.describe()}: {tl.rate_refusal}")
+                tl.rate_refusal = ""  # another run of the device (new firmware?): judged afresh
+            self._note_restart(msg, restarted)
             self.device = msg
-            self._dev_heard = (msg.t_us, t_recv)
+            tl.heard = (msg.t_us, t_recv)
             self._keep_seq_totals()
             self._rx_seq = SeqTracker()
             self._rx_seq.reset((seq + 1) % U16_MOD)
-            self._anchor(msg.t_us, (t_send + t_recv) // 2, t_recv - t_send)
+            tl.anchor(msg.t_us, (t_send + t_recv) // 2, t_recv - t_send, self._last_stamp_ns + 1)
             self._last_rx_ns = t_recv
             self._next_ping_ns = t_recv
             self._dev_errors_base = (self.stats.device_rx_errors, self.stats.device_rx_lost)
-            self._levels = None  # until the first PONG of this session
+            self.strokes.levels = None  # until the first PONG of this session
             self._pings.clear()
             self._connected = True
         log.info(
@@ -626,25 +567,16 @@ class McuDaq(Daq):
             Caps(msg.caps),
         )
 
-    def _note_restart(self, msg: HelloAck, t_recv: int) -> bool:
-        """At a handshake: has the device restarted since the last session (or was this the first)?
-        A restart by its watchdog, not already reported by its BOOT, is reported now."""
+    def _note_restart(self, msg: HelloAck, restarted: bool) -> None:
+        """At a handshake: a restart of the device since the last session, not already reported by
+        its BOOT, is reported now (its cause is old news on a reconnect to the same run)."""
         self.stats.reset_cause = msg.reset_cause
-        if self._boot_reported:
-            self._boot_reported = False  # its BOOT said so already
-            return True
-        heard = self._dev_heard
-        if heard is not None:
-            elapsed_ns = t_recv - heard[1]
-            expected = (heard[0] + elapsed_ns // 1000) % U32_MOD
-            off_ns = abs(((msg.t_us - expected + U32_MOD // 2) % U32_MOD - U32_MOD // 2) * 1000)
-            slack_ns = _CLOCK_CONTINUITY_NS + 2 * self.stats.max_rtt_ns + elapsed_ns // 1000
-            if off_ns <= slack_ns:
-                return False  # the same run of the device (a reconnect): its cause is old news
-        if heard is not None:
+        booted, self._boot_reported = self._boot_reported, False
+        if not restarted or booted:
+            return
+        if self.timeline.heard is not None:
             self.stats.device_resets += 1
         self._report_reset(msg.reset_cause, in_session=False)
-        return True
 
     def _report_reset(self, cause: int, *, in_session: bool) -> None:
         """A device restart as an event: FAULT DRIVE for its watchdog or a brown-out; any other
@@ -725,9 +657,7 @@ class McuDaq(Daq):
                     self._pings.pop(next(iter(self._pings)))
             self._send(Ping(self._ping_token))
         with self._state:
-            ctx = self._ctx
-            if ctx is not None and ctx.gap and not ctx.reported and now >= ctx.hold_until_ns:
-                self._give_up(ctx, "no STROKE report")
+            self.strokes.poll(now)
         if now - self._last_rx_ns > self.link_timeout_ns:
             self.stats.silences += 1
             self._link_failed(f"device silent for {(now - self._last_rx_ns) // 1_000_000} ms")
@@ -741,12 +671,7 @@ class McuDaq(Daq):
                 w.lost = f"device lost the session: {why}"
                 w.done.set()
             self._waiters.clear()
-            ctx = self._ctx
-            if ctx is not None:
-                self._flush(ctx)
-                if ctx.started and not ctx.stopped:
-                    self._deliver(Event.stop(self._host_stamp(), ctx.direction, detail=why))
-            self._ctx = None
+            self.strokes.close(why)
             self._state.notify_all()
         log.warning("%s: %s: handshaking again", self.name, why)
         self.stats.resyncs += 1  # before: the handshake delivers the reset's FAULT, a reader sees it
@@ -795,12 +720,12 @@ class McuDaq(Daq):
                 w.done.set()
             self._waiters.clear()
             if was and report:
-                ctx = self._ctx
+                ctx = self.strokes.ctx
                 if ctx is not None:
-                    self._flush(ctx)
+                    self.strokes.flush(ctx)
                     if not ctx.stopped:
                         self._deliver(Event.stop(self._host_stamp(), ctx.direction, detail="disconnect"))
-                self._ctx = None
+                self.strokes.ctx = None
                 self._deliver(
                     Event.fault_event(
                         self._host_stamp(), FaultCode.DISCONNECT, _with_where(self.transport.describe(), why)
@@ -815,10 +740,9 @@ class McuDaq(Daq):
     def _handle(self, seq: int, msg: Message, now: int) -> None:
         gap = self._rx_seq.check(seq)
         if gap:
-            ctx = self._ctx
-            if ctx is not None and not ctx.reported and not ctx.gap:
-                ctx.gap = True
-                ctx.hold_until_ns = now + REPORT_WAIT_NS
+            ctx = self.strokes.ctx
+            if ctx is not None:
+                self.strokes.hold(ctx, now)
             log.info("%s: %d frame(s) lost before seq %d", self.name, gap, seq)
         if isinstance(msg, Ack):
             w = self._waiters.get(msg.acked_seq)
@@ -828,183 +752,35 @@ class McuDaq(Daq):
         elif isinstance(msg, Pong):
             t_send = self._pings.pop(msg.token, None)
             if t_send is not None:
-                self._clock_sample(msg.t_us, t_send, now)
+                action, why = self.timeline.sample(msg.t_us, t_send, now)
+                if action == "refuse" and not self._refuse_why:
+                    self._refuse_why = why
+                elif action == "resync" and not self._resync_why:
+                    self._resync_why = why
             # The device counts since the HELLO: add the sessions before this one.
             st = StateFlags(msg.state)
-            self._levels = [int(StateFlags.SENSOR_A in st), int(StateFlags.SENSOR_B in st)]
+            self.strokes.on_pong_levels(int(StateFlags.SENSOR_A in st), int(StateFlags.SENSOR_B in st))
             if StateFlags.SYNCED in st:
-                self._dev_heard = (msg.t_us, now)  # this session's device clock, for the next handshake
+                self.timeline.heard = (msg.t_us, now)  # this session's device clock, for the next handshake
             elif not self._resync_why:
                 self._resync_why = "the device says it is not in a session (PONG)"
             self.stats.device_rx_errors = self._dev_errors_base[0] + msg.rx_errors
             self.stats.device_rx_lost = self._dev_errors_base[1] + msg.rx_lost
         elif isinstance(msg, Edge):
-            self._on_edge(msg)
+            self.strokes.on_edge(msg)
         elif isinstance(msg, Start):
-            self._on_start(msg)
+            self.strokes.on_start(msg)
         elif isinstance(msg, Stopped):
-            self._on_stopped(msg)
+            dev = self.device
+            reports = dev is not None and Caps.STROKE_REPORT in Caps(dev.caps)
+            self.strokes.on_stopped(msg, reports=reports)
         elif isinstance(msg, Stroke):
-            self._on_stroke(msg)
+            self.strokes.on_stroke(msg)
         elif isinstance(msg, Fault):
-            self._on_fault(msg)
+            self.strokes.on_fault(msg)
         elif isinstance(msg, Boot):
             self._on_boot(msg)
         # HELLO_ACK outside a handshake and host-bound types from a confused peer are ignored.
-
-    def _on_edge(self, msg: Edge) -> None:
-        if msg.channel > 1 or msg.level > 1:
-            log.warning("%s: EDGE with channel %d level %d ignored", self.name, msg.channel, msg.level)
-            return
-        t = self._stamp(msg.t_us, f"EDGE of sensor {Channel(msg.channel).name}")
-        if t is None:
-            return
-        ev = Event.edge(t, Channel(msg.channel), msg.level)
-        if self._levels is not None:
-            self._levels[msg.channel] = msg.level
-        ctx = self._ctx
-        if ctx is not None and not ctx.reported:
-            if ev.channel is ctx.direction.source and ev.level == 0:
-                ctx.departed = True
-            elif ev.channel is ctx.direction.dest and ev.level == 1:
-                ctx.arrived = True
-            if ctx.gap:
-                ctx.held.append(ev)
-                return
-        self._deliver(ev)
-
-    def _on_start(self, msg: Start) -> None:
-        direction = Direction(msg.direction) if msg.direction <= 1 else None
-        if direction is None:
-            log.warning("%s: START with direction %d ignored", self.name, msg.direction)
-            return
-        ctx = self._ctx
-        why = ""
-        if ctx is None:
-            why = f"a START of stroke {msg.stroke}, which was not commanded"
-        elif ctx.stroke != msg.stroke:
-            why = f"a START naming stroke {msg.stroke} during stroke {ctx.stroke}"
-        elif ctx.started:
-            why = f"a second START of stroke {msg.stroke}"
-        elif direction is not ctx.direction:
-            why = f"a START of stroke {msg.stroke} going {direction.name}, armed {ctx.direction.name}"
-        t = None
-        if not why:
-            t = self._stamp(msg.t_us, f"START of stroke {msg.stroke}")
-            if t is None:
-                why = f"its START stamped {self._off_text(msg.t_us)}"
-        else:
-            self.stats.foreign_starts += 1
-            log.warning("%s: %s rejected", self.name, why)
-        if t is None:
-            # Not this stroke's start. Its own may still come, or its STROKE report rebuild it: the
-            # stroke's events are held till then, delivered in order; else it ends with a SEQUENCE fault.
-            if ctx is not None and not ctx.started and not ctx.reported:
-                ctx.start_rejected = ctx.start_rejected or why
-                if not ctx.gap:
-                    ctx.gap = True
-                    ctx.hold_until_ns = time.monotonic_ns() + REPORT_WAIT_NS
-            return
-        assert ctx is not None
-        self.last_start_late_ns = msg.late_us * 1000
-        detail = f"late {msg.late_us} us" if msg.late_us else ""
-        ev = Event(EventKind.START, t, direction=direction, detail=detail, lateness_ns=msg.late_us * 1000)
-        ctx.started = True
-        if ctx.gap:
-            ctx.held.append(ev)
-        else:
-            self._deliver(ev)
-
-    def _off_text(self, raw_us: int) -> str:
-        off = self._dev_ns(raw_us) - self.clock.now_ns()
-        return f"{_fmt_ns(abs(off))} {'ahead of' if off > 0 else 'behind'} the device clock"
-
-    def _on_stopped(self, msg: Stopped) -> None:
-        ctx = self._ctx
-        direction = None
-        if ctx is not None and ctx.stroke == msg.stroke:
-            ctx.stopped = True
-            direction = ctx.direction
-        if msg.reason == StopReason.HOST:
-            return  # Daq.stop() already reported it, stamped when it was asked
-        name = (
-            StopReason(msg.reason).name.lower() if msg.reason in StopReason._value2member_map_ else "unknown"
-        )
-        # The drive went off: that is news even with a stamp not to be believed (stamped on arrival).
-        t = self._stamp(msg.t_us, "STOPPED")
-        ev = Event.stop(self._host_stamp() if t is None else t, direction, detail=name)
-        if ctx is not None and ctx.gap and not ctx.reported:
-            ctx.held.append(ev)
-            if direction is not None and ctx.start_rejected:
-                # The device sends its STROKE report before STOPPED: none will come to rebuild it.
-                self._give_up(ctx, "no STROKE report came before its STOPPED")
-        else:
-            self._deliver(ev)
-
-    def _on_stroke(self, msg: Stroke) -> None:
-        ctx = self._ctx
-        if ctx is None or ctx.stroke != msg.stroke:
-            return  # a report of a stroke this host session did not command
-        ctx.reported = True
-        flags = StrokeFlags(msg.flags)
-        behind = self.link_timeout_ns + self.stroke_timeout_ns
-        rebuilt: list[Event] = []
-        if not ctx.started:
-            t = self._stamp(msg.t_start_us, f"STROKE {msg.stroke} report's start", behind)
-            if t is not None:
-                rebuilt.append(Event.start(t, ctx.direction))
-                ctx.started = True
-        if StrokeFlags.DEPARTED in flags and not ctx.departed:
-            t = self._stamp(msg.t_depart_us, f"STROKE {msg.stroke} report's departure", behind)
-            if t is not None:
-                rebuilt.append(Event.edge(t, ctx.direction.source, 0))
-                ctx.departed = True
-        if StrokeFlags.ARRIVED in flags and not ctx.arrived:
-            t = self._stamp(msg.t_arrive_us, f"STROKE {msg.stroke} report's arrival", behind)
-            if t is not None:
-                rebuilt.append(Event.edge(t, ctx.direction.dest, 1))
-                ctx.arrived = True
-        if rebuilt:
-            self.stats.recovered_strokes += 1
-            log.info(
-                "%s: stroke %d rebuilt from its report: %d event(s)", self.name, msg.stroke, len(rebuilt)
-            )
-        ctx.held.extend(rebuilt)
-        self._flush(ctx)
-        self._no_start(ctx, "nor did its STROKE report give one")
-
-    def _no_start(self, ctx: _StrokeCtx, why: str) -> None:
-        """A stroke whose START was rejected and never came good: a SEQUENCE fault ends it."""
-        if ctx.started or not ctx.start_rejected:
-            return
-        ctx.started = True  # said once
-        self.stats.unrecovered_strokes += 1
-        self._deliver(
-            Event.fault_event(
-                self._host_stamp(),
-                FaultCode.SEQUENCE,
-                f"stroke {ctx.stroke} has no START of its own ({ctx.start_rejected} was rejected), {why}",
-            )
-        )
-
-    def _on_fault(self, msg: Fault) -> None:
-        t = self._stamp(msg.t_us, "FAULT")
-        t = self._host_stamp() if t is None else t  # a fault is news whatever its stamp
-        code = {
-            DeviceFault.STALL: FaultCode.STALL,
-            DeviceFault.HOST_SILENT: FaultCode.DISCONNECT,
-            DeviceFault.SENSORS: FaultCode.SEQUENCE,
-            DeviceFault.DRIVE: FaultCode.DRIVE,
-        }.get(msg.code, FaultCode.DRIVE)
-        what = (
-            DeviceFault(msg.code).name if msg.code in DeviceFault._value2member_map_ else f"code {msg.code}"
-        )
-        ev = Event.fault_event(t, code, f"device: {what} (detail {msg.detail})")
-        ctx = self._ctx
-        if ctx is not None and ctx.gap and not ctx.reported:
-            ctx.held.append(ev)
-        else:
-            self._deliver(ev)
 
     def _on_boot(self, msg: Boot) -> None:
         """The device has just started (1.1): whatever it was doing is gone. Reported at once
@@ -1014,34 +790,6 @@ class McuDaq(Daq):
         self._report_reset(msg.reset_cause, in_session=True)
         self._boot_reported = True
         self._resync_why = f"it restarted ({_reset_text(msg.reset_cause)})"
-
-    # -- stroke bookkeeping (under self._state) ------------------------------------------------
-    def _ctx_new(self, stroke: int, direction: Direction) -> None:
-        old = self._ctx
-        if old is not None and old.gap and not old.reported:
-            self._give_up(old, f"stroke {stroke} commanded")
-        self._ctx = _StrokeCtx(stroke, direction)
-
-    def _give_up(self, ctx: _StrokeCtx, why: str) -> None:
-        """Frames of `ctx` were lost and its report never came: deliver what there is, flag it."""
-        ctx.reported = True
-        self._flush(ctx)
-        if not ctx.started and ctx.start_rejected:
-            self._no_start(ctx, f"and {why}")
-        elif not ctx.arrived:
-            self.stats.unrecovered_strokes += 1
-            self._deliver(
-                Event.fault_event(
-                    self._host_stamp(), FaultCode.WIRE, f"stroke {ctx.stroke}: frames lost and {why}"
-                )
-            )
-
-    def _flush(self, ctx: _StrokeCtx) -> None:
-        held = sorted(ctx.held, key=lambda e: e.t_ns)
-        ctx.held = []
-        ctx.gap = False
-        for ev in held:
-            self._deliver(ev)
 
     def _host_stamp(self) -> int:
         return max(self.clock.now_ns(), self._last_stamp_ns)
@@ -1063,7 +811,7 @@ class McuDaq(Daq):
             # Nobody reads as fast as the device talks: the oldest go, counted. A stroke in progress
             # has lost its events: a SEQUENCE fault (at the queue's end) ends it, once per spell.
             self._drop_oldest(events)
-            ctx = self._ctx
+            ctx = self.strokes.ctx
             if ctx is not None and not ctx.stopped and not self._overflow_said:
                 self._overflow_said = True
                 self._drop_oldest(events)
@@ -1106,16 +854,3 @@ def _reset_text(cause: int) -> str:
 
 def _with_where(where: str, why: str) -> str:
     return why if where in why else f"{where}: {why}"
-
-
-def _fmt_ns(ns: int) -> str:
-    """Nanoseconds for people, as usmswitch.protocol.units.format_ns writes them: "12.000 ms", "95.3 us"."""
-    sign = "-" if ns < 0 else ""
-    mag = abs(ns)
-    if mag < 1_000:
-        return f"{sign}{mag} ns"
-    if mag < 999_950:
-        return f"{sign}{mag / 1e3:.1f} us"
-    if mag < 999_999_500:
-        return f"{sign}{mag / 1e6:.3f} ms"
-    return f"{sign}{mag / 1e9:.6f} s"

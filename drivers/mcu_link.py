@@ -90,6 +90,11 @@ class LinkStats:
     bad_stamps: int = 0
     #: STARTs naming another stroke (or a second START, or the other direction): rejected.
     foreign_starts: int = 0
+    #: STARTs off the instant the host commanded, or whose `late_us` is not the lateness the host
+    #: measures (beyond START_TOLERANCE_NS): the stroke is kept with a flag, not learned.
+    start_mismatches: int = 0
+    #: COMMANDs none of whose tries was acknowledged: the stroke's own frames were followed.
+    unacked_commands: int = 0
     #: Events dropped, oldest first, from the full queue between the link thread and the loop.
     events_dropped: int = 0
     #: USB endpoint halts (EPIPE) cleared with CLEAR_FEATURE(ENDPOINT_HALT) and the transfer retried.

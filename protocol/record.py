@@ -46,10 +46,19 @@ class Flag(IntFlag):
     # departure before it, a departure after the arrival, an operating time below the plausible
     # band. Kept with its stamps, never fed to the predictor; the fault it latches says which.
     IMPLAUSIBLE = 1 << 10
+    # The device's own account of the stroke (its STROKE report, its sensor levels, the instant the
+    # host commanded) disagrees with the stamps on the wire: kept with its stamps, never fed to the
+    # predictor, counted in `status.mismatched_strokes`; the log line says what disagreed.
+    MISMATCH = 1 << 11
+    # Sensor edges the stroke does not explain (chatter, a spurious edge) came during it; counted
+    # per sensor in `status.noise`. The stroke's stamps still count when nothing else is wrong.
+    NOISE = 1 << 12
 
 
 #: Flags after which `operating_ns` is not a real stroke time (the predictor must not learn it).
-UNUSABLE = Flag.STALL | Flag.FAULT | Flag.ESTOP | Flag.ABORTED | Flag.PARTIAL | Flag.IMPLAUSIBLE
+UNUSABLE = (
+    Flag.STALL | Flag.FAULT | Flag.ESTOP | Flag.ABORTED | Flag.PARTIAL | Flag.IMPLAUSIBLE | Flag.MISMATCH
+)
 
 MODES = ("closed", "open")
 

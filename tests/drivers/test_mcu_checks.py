@@ -218,7 +218,7 @@ def test_fuzz_valid_frames_never_break_the_driver_and_it_recovers(tmp_path: Path
                 now,
             )
         assert len(daq._events) <= daq.max_queued_events
-        assert daq._ctx is None or len(daq._ctx.held) <= 64
+        assert daq.strokes.ctx is None or len(daq.strokes.ctx.held) <= 64
 
     try:
         one()

@@ -58,7 +58,7 @@ def test_strokes_across_the_clock_wrap(rig) -> None:
     assert stats["lost_frames"] == 0 and stats["crc_errors"] == 0 and stats["reconnects"] == 0
     # now_ns() is the device clock mapped to the host: within a fraction of a millisecond.
     dev_now = emu.device_us()
-    drv_now_us = daq._to_raw_us(daq.now_ns())
+    drv_now_us = daq.timeline.to_raw_us(daq.now_ns())
     assert min((dev_now - drv_now_us) % (1 << 32), (drv_now_us - dev_now) % (1 << 32)) < 1_000
 
 

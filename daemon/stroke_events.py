@@ -1,0 +1,198 @@
+"""Reading one stroke's events off the driver, and holding them against the device's own account.
+
+`read_stroke` follows a commanded stroke from its start to its arrival, a fault, or its timeout;
+`await_report` then waits for the device's REPORT (drivers that report strokes) so the loop can
+check its stamps before it learns from them. A stall is declared only once what is in hand and on
+the line has been read: past the stroke timeout the loop reads on for the driver's `report_wait_ns`,
+an arrival stamped inside the timeout still counts, and the cause is named: the device's own STALL
+(the mover), or no word from it at all (WIRE: the link).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from usmswitch.drivers import Daq, DaqError, Direction, EventKind, FaultCode
+from usmswitch.drivers.events import StrokeReport
+from usmswitch.protocol.units import format_ns
+
+#: Driver faults that end the stroke in progress, with the name its FAULT is latched under.
+STROKE_FAULTS = {
+    FaultCode.DISCONNECT: "disconnect",
+    FaultCode.STALL: "stall",
+    FaultCode.DRIVE: "drive",
+    FaultCode.SEQUENCE: "edge order",
+    FaultCode.WIRE: "wire",
+}
+#: How far the host's stamps of a stroke may be from the device's report of it: both are the
+#: device's stamps of the same edges, so only the microsecond rounding separates them.
+REPORT_TOLERANCE_NS = 2_000
+
+
+@dataclass
+class StrokeEvents:
+    """What one stroke's events said."""
+
+    t_start: int | None
+    lateness: int | None
+    t_depart: int | None = None
+    t_arrive: int | None = None
+    #: An arrival before any departure: a glitch, or a sensor that lies (kept if nothing better came).
+    early_arrive: int | None = None
+    fault: str = ""
+    #: The fault's cause was the mover (a stall), not the link or the device.
+    stalled: bool = False
+    report: StrokeReport | None = None
+    #: Edges the stroke does not explain, per sensor (A, B).
+    spurious: list[int] = field(default_factory=lambda: [0, 0])
+    #: The device fault (its watchdog or a brown-out reset) stamped before this stroke's command.
+    earlier_drive_fault: str = ""
+
+
+def read_stroke(
+    daq: Daq,
+    direction: Direction,
+    t_cmd_ns: int,
+    t_start: int | None,
+    lateness: int | None,
+    deadline: int,
+    timeout_ns: int,
+    *,
+    partial: bool,
+    slice_ns: int,
+    halted: Callable[[], bool],
+) -> StrokeEvents:
+    """Follow a commanded stroke until its arrival, a fault, or its timeout and the report wait."""
+    out = StrokeEvents(t_start, lateness)
+    src, dst = direction.source, direction.dest
+    clock = daq.clock
+    grace = daq.report_wait_ns
+    stopped = False
+    while True:
+        now = clock.now_ns()
+        if now >= deadline + grace:
+            break
+        if grace and now >= deadline and not stopped:
+            # The device's own stall limit has cut the drive by now; the host's STOP makes sure,
+            # and the device's account of the stroke is still read before a cause is named.
+            stopped = True
+            daq.stop("stroke timeout")
+        try:
+            ev = daq.recv(min(slice_ns, deadline + grace - now))
+        except DaqError as exc:
+            out.fault = f"driver: {exc}"
+            break
+        if ev is None:
+            if halted():
+                break
+            if grace == 0 and clock.now_ns() >= deadline:
+                break
+            continue
+        kind = ev.kind
+        if kind is EventKind.EDGE:
+            ts = out.t_start
+            if ts is None or ev.t_ns <= ts or ev.t_ns > ts + timeout_ns:
+                out.spurious[int(ev.channel)] += 1
+            elif ev.channel is dst and ev.level == 1:
+                if out.t_depart is None and not partial:
+                    # Not yet left: a glitch, or a sensor that lies. The stroke goes on; if nothing
+                    # better comes, it ends IMPLAUSIBLE with this stamp.
+                    out.spurious[int(ev.channel)] += 1
+                    out.early_arrive = out.early_arrive or ev.t_ns
+                    continue
+                out.t_arrive = ev.t_ns
+                break
+            elif ev.channel is src and ev.level == 0 and out.t_depart is None:
+                out.t_depart = ev.t_ns
+            else:
+                out.spurious[int(ev.channel)] += 1
+        elif kind is EventKind.START:
+            if out.t_start is None:
+                out.t_start = ev.t_ns
+                out.lateness = ev.lateness_ns
+                deadline = ev.t_ns + timeout_ns
+        elif kind is EventKind.REPORT:
+            assert ev.report is not None
+            out.report = ev.report
+            if not ev.report.arrived:
+                out.fault = (
+                    f"stall: the device reports no arrival within {format_ns(timeout_ns)} of the start"
+                )
+                out.stalled = True
+                break
+            if out.t_start is not None and ev.report.has_stamps and ev.report.t_arrive_ns is None:
+                why = ev.report.detail
+                out.fault = f"wire: the device reports an arrival, but no believable stamp of it ({why})"
+                break
+        elif kind is EventKind.FAULT and ev.fault in STROKE_FAULTS:
+            name = STROKE_FAULTS[ev.fault]
+            if ev.t_ns < t_cmd_ns:
+                # Left over from before this command. A device's reset between strokes is still news.
+                if ev.fault is FaultCode.DRIVE:
+                    out.earlier_drive_fault = f"{name}: {ev.detail}" if ev.detail else name
+                continue
+            out.fault = f"{name}: {ev.detail}" if ev.detail else name
+            out.stalled = ev.fault is FaultCode.STALL
+            break
+        elif kind is EventKind.STOP and halted():
+            break  # the halt's own stop: nothing will arrive
+    if not out.fault and out.t_arrive is None and not halted() and grace:
+        now = clock.now_ns()
+        if out.t_start is None:
+            out.fault = (
+                f"wire: no START from the device within {format_ns(now - t_cmd_ns)} of the command"
+                " (the link, or a device that did not take the command)"
+            )
+        else:
+            out.fault = (
+                f"wire: no word from the device within {format_ns(grace)} after the stroke timeout"
+                f" ({format_ns(timeout_ns)}): neither an arrival nor its stall"
+            )
+    return out
+
+
+def await_report(daq: Daq, events: StrokeEvents, *, slice_ns: int, halted: Callable[[], bool]) -> None:
+    """After an arrival: read on for the device's REPORT (drivers that report strokes), counting
+    what else comes as edges the stroke does not explain."""
+    if events.report is not None or not daq.reports_strokes:
+        return
+    clock = daq.clock
+    end = clock.now_ns() + daq.report_wait_ns
+    while (now := clock.now_ns()) < end and not halted():
+        try:
+            ev = daq.recv(min(slice_ns, end - now))
+        except DaqError:
+            return
+        if ev is None:
+            continue
+        if ev.kind is EventKind.REPORT:
+            events.report = ev.report
+            return
+        if ev.kind is EventKind.EDGE:
+            events.spurious[int(ev.channel)] += 1  # chatter after the arrival, before the report
+
+
+def disagreement(events: StrokeEvents, direction: Direction, levels: tuple[int, int] | None) -> str:
+    """Why the stroke's stamps are not the device's account of it ("" when they agree): the report
+    missing or saying otherwise, or the sensors not where an arrival leaves them."""
+    rep = events.report
+    if rep is None:
+        return "no report of the stroke from the device"
+    doubts = [rep.detail] if rep.detail else []
+    for what, ours, theirs in (
+        ("start", events.t_start, rep.t_start_ns),
+        ("departure", events.t_depart, rep.t_depart_ns),
+        ("arrival", events.t_arrive, rep.t_arrive_ns),
+    ):
+        if not rep.has_stamps:
+            break
+        if ours is None or theirs is None:
+            if theirs is None and ours is not None and what != "departure":
+                doubts.append(f"the device reports no {what}")
+            continue
+        if abs(ours - theirs) > REPORT_TOLERANCE_NS:
+            doubts.append(f"the {what} on the wire is {format_ns(ours - theirs)} off the device's report")
+    if levels is not None and not levels[int(direction.dest)]:
+        doubts.append(f"sensor {direction.dest.name} is not active after the arrival")
+    return "; ".join(doubts)
