@@ -17,6 +17,8 @@
  *   run US       run US microseconds of emulated time, print "uart HEX" (lockstep) and "ran CYCLE"
  *   runto CYCLE  the same, to an emulator cycle     edge CH LEVEL CYCLE  a sensor line at a cycle
  *   trace N      what to print as it happens (1-3)  stats   the measurements   info   the origin
+ *   square CH FIRST HALF COUNT   line noise: COUNT toggles of a sensor's line over the rig's
+ *                level, HALF cycles apart, from cycle FIRST (a square wave picked up from the drive)
  *   stall        the next stroke jams half way       bounce   the next arrival bounces
  *   unplug       close the pty, remove the symlink   replug   new pty (and a power-on reset)
  *   quit
@@ -134,6 +136,9 @@ static uint32_t span_pc;
 static avr_cycle_count_t wdr_last, wdr_max, wdr_max_at;
 static unsigned long long wdr_count;
 static unsigned long resets_wdt;
+/* The lowest the stack pointer went (stats "sp MIN AT"): a stack that grew into .bss shows here. */
+static uint16_t sp_min = 0xFFFF;
+static avr_cycle_count_t sp_min_at;
 static int reset_seen;
 /* lockstep "trace N": 1 prints "irq VECTOR CYCLE" as each interrupt is entered and "sensor CH
  * LEVEL CYCLE FW_US SPAN" as each sensor edge comes (SPAN: where the interrupts-off span then in
@@ -180,7 +185,13 @@ struct edge {
 #define MAX_EDGES 16
 static struct edge pending[MAX_EDGES];
 static int npending;
-static int sensor_active[2];
+static int sensor_active[2]; /* the rig's level of each sensor (1 active) */
+/* Line noise ("square CH FIRST HALF COUNT"): a square wave over the rig's level; the line the
+ * firmware sees is the rig's level XOR noise_x. COUNT toggles, HALF cycles apart, from FIRST. */
+static int noise_x[2];
+static avr_cycle_count_t noise_next[2], noise_half[2];
+static unsigned long noise_left[2];
+static int line_active(int ch) { return sensor_active[ch] ^ noise_x[ch]; }
 static avr_irq_t *sensor_irq[2], *sensor_int_irq[2];
 
 static void helper_start(const char *python, const char *script, int seed, char start_at)
@@ -276,37 +287,47 @@ static struct {
 static void drive_sensor_pins(void)
 {
     avr_ioport_external_t ext = {.name = 'L', .mask = 3, .value = 0};
-    ext.value = (unsigned)((sensor_active[0] ? 0 : 1) | (sensor_active[1] ? 0 : 2));
+    ext.value = (unsigned)((line_active(0) ? 0 : 1) | (line_active(1) ? 0 : 2));
     avr_ioctl(avr, AVR_IOCTL_IOPORT_SET_EXTERNAL('L'), &ext);
     /* Each sensor's line is wired to a second pin too (docs/firmware.md): A to PE4 (INT4), B to PE5. */
     avr_ioport_external_t ext_e = {.name = 'E', .mask = 0x30, .value = 0};
-    ext_e.value = (unsigned)((sensor_active[0] ? 0 : 0x10) | (sensor_active[1] ? 0 : 0x20));
+    ext_e.value = (unsigned)((line_active(0) ? 0 : 0x10) | (line_active(1) ? 0 : 0x20));
     avr_ioctl(avr, AVR_IOCTL_IOPORT_SET_EXTERNAL('E'), &ext_e);
     for (int ch = 0; ch < 2; ch++) {
-        avr_raise_irq(sensor_irq[ch], sensor_active[ch] ? 0 : 1);
-        avr_raise_irq(sensor_int_irq[ch], sensor_active[ch] ? 0 : 1);
+        avr_raise_irq(sensor_irq[ch], line_active(ch) ? 0 : 1);
+        avr_raise_irq(sensor_int_irq[ch], line_active(ch) ? 0 : 1);
     }
 }
 
-static void set_sensor(int ch, int active)
+/* The rig moves a sensor (noise 0) or the noise toggles it (noise 1); the line is what counts. */
+static void line_change(int ch, int active, int noise)
 {
-    sensor_active[ch] = active;
+    int before = line_active(ch);
+    if (noise)
+        noise_x[ch] ^= 1;
+    else
+        sensor_active[ch] = active;
     drive_sensor_pins();
+    int line = line_active(ch);
+    if (line == before)
+        return;
     if (lockstep && trace_irqs) /* the edge's truth, and what held interrupts off as it came */
-        printf("sensor %d %d %llu %lu %ld\n", ch, active, (unsigned long long)avr->cycle,
+        printf("sensor %d %d %llu %lu %ld\n", ch, line, (unsigned long long)avr->cycle,
                (unsigned long)fw_us(avr->cycle), avr->sreg[S_I] ? -1L : (long)span_pc);
     if (!cur.on)
         return;
     int source = cur.direction == 0 ? 0 : 1;
-    if (ch == source && !active && !cur.departed) {
+    if (ch == source && !line && !cur.departed) {
         cur.departed = 1;
         cur.depart = avr->cycle;
     }
-    if (ch == (source ^ 1) && active && !cur.arrived) {
+    if (ch == (source ^ 1) && line && !cur.arrived) {
         cur.arrived = 1;
         cur.arrive = avr->cycle;
     }
 }
+
+static void set_sensor(int ch, int active) { line_change(ch, active, 0); }
 
 /* ---- the drive pin: OC4A latch and COM4A mux, modelled here (simavr's is wrong) ---- */
 static int oc4a_latch, drive_pin;
@@ -331,7 +352,7 @@ static void drive_update(void)
         npending = 0;
         helper_ask("on %llu %d", (unsigned long long)cycles_to_ns(c), cur.direction);
         /* Already at the destination: the far sensor is active as the drive goes on. */
-        if (sensor_active[cur.direction == 0 ? 1 : 0] && !cur.arrived) {
+        if (line_active(cur.direction == 0 ? 1 : 0) && !cur.arrived) {
             cur.arrived = 1;
             cur.arrive = c;
         }
@@ -611,6 +632,7 @@ static void print_stats(FILE *f, const char *prefix)
     fprintf(f, "%swdr %llu %llu %llu\n", prefix, wdr_count, (unsigned long long)wdr_max,
             (unsigned long long)wdr_max_at);
     fprintf(f, "%sresets %lu\n", prefix, resets_wdt);
+    fprintf(f, "%ssp %u %llu\n", prefix, sp_min, (unsigned long long)sp_min_at);
 }
 
 /* ---- UART ---- */
@@ -823,6 +845,11 @@ static void no_sleep(avr_t *a, avr_cycle_count_t how_long)
 static void after_step(avr_cycle_count_t c0, uint32_t pc0, int was_sleeping)
 {
     int i_now = avr->sreg[S_I];
+    uint16_t sp = (uint16_t)(avr->data[R_SPL] | (avr->data[R_SPH] << 8));
+    if (sp < sp_min) {
+        sp_min = sp;
+        sp_min_at = avr->cycle;
+    }
     if (reset_seen) {
         reset_seen = 0;
         span_start = avr->cycle;
@@ -899,9 +926,22 @@ static void run_until(avr_cycle_count_t end)
             set_sensor(e.ch, e.level);
             continue;
         }
+        int toggled = 0;
+        for (int ch = 0; ch < 2; ch++)
+            if (noise_left[ch] && noise_next[ch] <= avr->cycle) {
+                noise_left[ch]--;
+                noise_next[ch] += noise_half[ch];
+                line_change(ch, 0, 1);
+                toggled = 1;
+            }
+        if (toggled)
+            continue;
         avr_cycle_count_t stop = end;
         if (next >= 0 && pending[next].at < stop)
             stop = pending[next].at;
+        for (int ch = 0; ch < 2; ch++)
+            if (noise_left[ch] && noise_next[ch] < stop)
+                stop = noise_next[ch];
         edges_changed = 0;
         /* A sleeping core jumps to its next cycle timer: this one keeps it from passing stop. */
         avr_cycle_timer_register(avr, stop - avr->cycle, stop_timer, NULL);
@@ -947,6 +987,7 @@ static void power_on_flag(void)
 static int stdin_command(char *line)
 {
     unsigned long long us, cyc;
+    unsigned long count;
     int ch, level;
     if (strncmp(line, "send ", 5) == 0) {
         uint8_t b[2048];
@@ -968,6 +1009,11 @@ static int stdin_command(char *line)
         printf("ran %llu %lu\n", (unsigned long long)avr->cycle, (unsigned long)fw_us(avr->cycle));
     } else if (sscanf(line, "edge %d %d %llu", &ch, &level, &cyc) == 3 && ch >= 0 && ch <= 1) {
         add_edge((avr_cycle_count_t)cyc, ch, level != 0); /* a sensor level at an exact cycle */
+    } else if (sscanf(line, "square %d %llu %llu %lu", &ch, &cyc, &us, &count) == 4 && ch >= 0 && ch <= 1) {
+        /* line noise: COUNT toggles of the sensor's line, one every US cycles, from cycle CYC */
+        noise_next[ch] = (avr_cycle_count_t)cyc;
+        noise_half[ch] = us ? (avr_cycle_count_t)us : 1;
+        noise_left[ch] = count;
     } else if (sscanf(line, "trace %d", &ch) == 1) {
         trace_irqs = ch;
     } else if (strncmp(line, "stats", 5) == 0) {
