@@ -17,6 +17,7 @@
  *   run US       run US microseconds of emulated time, print "uart HEX" (lockstep) and "ran CYCLE"
  *   runto CYCLE  the same, to an emulator cycle     edge CH LEVEL CYCLE  a sensor line at a cycle
  *   trace N      what to print as it happens (1-3)  stats   the measurements   info   the origin
+ *   statsreset   the longest watchdog-kick interval and the lowest stack pointer measured from now
  *   square CH FIRST HALF COUNT   line noise: COUNT toggles of a sensor's line over the rig's
  *                level, HALF cycles apart, from cycle FIRST (a square wave picked up from the drive)
  *   stall        the next stroke jams half way       bounce   the next arrival bounces
@@ -526,6 +527,55 @@ static void w_tifr_fixed(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
         clear_if(&t->comp[i].interrupt, addr, v);
 }
 
+/* Correction 10: an interrupt whose enable bit is written to 1 while its flag is already up is
+ * taken on the chip (the flag is the request); simavr 1.6 queues an interrupt only as its flag
+ * rises with the enable bit set, so one masked meanwhile was lost (a capture unit that masks
+ * itself while its handler runs never saw the edge that came then). After a write to an enable
+ * register, each of its vectors whose enable bit and flag are both set is raised again. */
+#define MAX_REENABLE 12
+static avr_int_vector_t *reenable_vec[MAX_REENABLE];
+static int nreenable;
+struct chained_write {
+    avr_io_addr_t addr;
+    avr_io_write_t c;
+    void *param;
+};
+static struct chained_write reenable_w[4];
+static int nreenable_w;
+
+static void w_enable(avr_t *a, avr_io_addr_t addr, uint8_t v, void *param)
+{
+    (void)param;
+    for (int i = 0; i < nreenable_w; i++)
+        if (reenable_w[i].addr == addr) {
+            if (reenable_w[i].c)
+                reenable_w[i].c(a, addr, v, reenable_w[i].param);
+            else
+                avr->data[addr] = v;
+        }
+    for (int i = 0; i < nreenable; i++) {
+        avr_int_vector_t *vec = reenable_vec[i];
+        if (vec->enable.reg == addr && avr_regbit_get(avr, vec->enable) && vec->raised.reg &&
+            avr_regbit_get(avr, vec->raised) && !avr_is_interrupt_pending(avr, vec))
+            avr_raise_interrupt(avr, vec);
+    }
+}
+
+static void reenable_watch(avr_int_vector_t *vec)
+{
+    if (nreenable == MAX_REENABLE)
+        die("correction 10: too many vectors");
+    reenable_vec[nreenable++] = vec;
+    avr_io_addr_t addr = vec->enable.reg;
+    for (int i = 0; i < nreenable_w; i++)
+        if (reenable_w[i].addr == addr)
+            return;
+    avr_io_addr_t io = AVR_DATA_TO_IO(addr);
+    reenable_w[nreenable_w++] = (struct chained_write){addr, avr->io[io].w.c, avr->io[io].w.param};
+    avr->io[io].w.c = w_enable;
+    avr->io[io].w.param = NULL;
+}
+
 static avr_timer_t *find_timer(char name)
 {
     for (avr_io_t *io = avr->io_port; io; io = io->next)
@@ -1016,6 +1066,12 @@ static int stdin_command(char *line)
         noise_left[ch] = count;
     } else if (sscanf(line, "trace %d", &ch) == 1) {
         trace_irqs = ch;
+    } else if (strncmp(line, "statsreset", 10) == 0) {
+        /* measure from here: the longest pass between two watchdog kicks, the lowest stack */
+        wdr_max = wdr_max_at = 0;
+        wdr_count = 0;
+        sp_min = 0xFFFF;
+        sp_min_at = 0;
     } else if (strncmp(line, "stats", 5) == 0) {
         print_stats(stdout, "");
         printf("end\n");
@@ -1141,6 +1197,17 @@ int main(int argc, char **argv)
     if (fix_bugs) {
         fix_tifr(timer4);
         fix_tifr(timer5);
+        avr_timer_t *ts[2] = {timer4, timer5};
+        for (int i = 0; i < 2; i++) {
+            reenable_watch(&ts[i]->overflow);
+            reenable_watch(&ts[i]->icr);
+            reenable_watch(&ts[i]->comp[0].interrupt);
+        }
+        for (avr_io_t *io = avr->io_port; io; io = io->next)
+            if (io->kind && !strcmp(io->kind, "uart") && ((avr_uart_t *)io)->name == '0') {
+                reenable_watch(&((avr_uart_t *)io)->rxc);
+                reenable_watch(&((avr_uart_t *)io)->udrc);
+            }
     }
     avr_irq_register_notify(timer4->comp[0].interrupt.irq + AVR_INT_IRQ_PENDING, on_compa, NULL);
     avr_register_io_write(avr, A_TCCR4C, w_tccr4c, NULL);
