@@ -16,7 +16,7 @@ from enum import IntEnum, IntFlag
 from typing import ClassVar
 
 PROTOCOL_MAJOR = 1
-PROTOCOL_MINOR = 1
+PROTOCOL_MINOR = 2
 
 #: Largest payload (type, seq, body, crc) either side may send; longer input is garbage.
 MAX_PAYLOAD = 64
@@ -114,7 +114,9 @@ class Caps(IntFlag):
     WATCHDOG = 0x10  # it stops the drive when the host goes silent
 
 
-REQUIRED_CAPS = Caps.HW_DELAY | Caps.EDGE_STAMP | Caps.STOP_ON_ARRIVAL | Caps.WATCHDOG
+# The STROKE report is the device's own account of each stroke, which the host holds the stroke's
+# frames against (and rebuilds lost ones from): without it no stroke could be checked.
+REQUIRED_CAPS = Caps.HW_DELAY | Caps.EDGE_STAMP | Caps.STROKE_REPORT | Caps.STOP_ON_ARRIVAL | Caps.WATCHDOG
 
 
 class ResetCause(IntFlag):
@@ -158,9 +160,10 @@ class DeviceFault(IntEnum):
 
     STALL = 1  # no arrival within the armed timeout
     HOST_SILENT = 2  # the watchdog fired
-    SENSORS = 3  # both limit sensors active at once
-    DRIVE = 4  # the drive stage reported an error
+    SENSORS = 3  # at a start the source sensor was not active (detail: sensor bits, 1 A, 2 B)
+    DRIVE = 4  # the drive was on with no stroke running (the firmware cut it)
     LATE_START = 5  # the start instant had passed when the COMMAND arrived
+    EVENTS_LOST = 6  # 1.2: interrupt events were lost (detail: how many since the last report)
 
 
 class StrokeFlags(IntFlag):
@@ -172,6 +175,15 @@ class StrokeFlags(IntFlag):
     HOST_STOP = 0x08
     LATE = 0x10
     WATCHDOG = 0x20
+    EVENTS_LOST = 0x40  # 1.2: ended because the device lost interrupt events
+    MISSED_EDGE = 0x80  # 1.2: a stamp of it is a missed edge's (EdgeFlags.MISSED), not a capture's
+
+
+class EdgeFlags(IntFlag):
+    """EDGE flags (1.2): how the device knows of the edge."""
+
+    MISSED = 0x01  # its capture unit missed it; found by reading the pin back, stamped then (late)
+    CUT = 0x02  # an arrival known from the external interrupt's drive cut, stamped by it
 
 
 class StateFlags(IntFlag):
@@ -273,24 +285,56 @@ class Ack(Message):
     FORMAT = "<BHBHI"
 
 
+class _Short(Message):
+    """A message that 1.2 extended at its end: the fields past FORMAT_1_1's are None in a 1.0/1.1
+    body (decoded from one, or to be sent to a 1.0/1.1 host), which packs in the old layout."""
+
+    __slots__ = ()
+    FORMAT_1_1: ClassVar[str]
+
+    def pack_body(self) -> bytes:
+        values = [getattr(self, f.name) for f in fields(self)]
+        n = len(self.FORMAT_1_1) - 1
+        extra = values[n:]
+        if all(v is None for v in extra):
+            return struct.pack(self.FORMAT_1_1, *values[:n])
+        if any(v is None for v in extra):
+            raise ValueError(
+                f"{type(self).__name__} field out of range: the 1.2 fields go together: {self!r}"
+            )
+        return struct.pack(self.FORMAT, *values)
+
+
 @dataclass(frozen=True, slots=True)
-class Pong(Message):
+class Pong(_Short):
+    """1.2 adds `events_lost` (interrupt events the device lost: its queue was full) and
+    `edges_missed` (edges its capture units missed, reported flagged), both since the last HELLO,
+    modulo 65536; None in a 1.0/1.1 body."""
+
     token: int
     t_us: int
     state: int
     rx_errors: int
     rx_lost: int
+    events_lost: int | None = None
+    edges_missed: int | None = None
     TYPE = MsgType.PONG
-    FORMAT = "<IIBHH"
+    FORMAT = "<IIBHHHH"
+    FORMAT_1_1: ClassVar[str] = "<IIBHH"
 
 
 @dataclass(frozen=True, slots=True)
-class Edge(Message):
+class Edge(_Short):
+    """1.2 adds `flags` (EdgeFlags; 0 for an edge its capture unit stamped); None in a 1.0/1.1
+    body."""
+
     channel: int
     level: int
     t_us: int
+    flags: int | None = None
     TYPE = MsgType.EDGE
-    FORMAT = "<BBI"
+    FORMAT = "<BBIB"
+    FORMAT_1_1: ClassVar[str] = "<BBI"
 
 
 @dataclass(frozen=True, slots=True)
@@ -349,6 +393,9 @@ _ALL = (Hello, Arm, Command, Stop, Ping, HelloAck, Ack, Pong, Edge, Start, Stopp
 MESSAGES: dict[int, type[Message]] = {cls.TYPE: cls for cls in _ALL}
 _SIZES = {t: struct.calcsize(cls.FORMAT) for t, cls in MESSAGES.items()}
 _SIZE_1_0 = {MsgType.HELLO_ACK: struct.calcsize(HelloAck.FORMAT_1_0)}  # the body of a 1.0 session
+#: The bodies of a 1.0/1.1 session of the messages 1.2 extended.
+_SHORT: dict[int, type[_Short]] = {MsgType.PONG: Pong, MsgType.EDGE: Edge}
+_SIZE_1_1 = {t: struct.calcsize(cls.FORMAT_1_1) for t, cls in _SHORT.items()}
 _HEADER = struct.Struct("<BH")
 
 
@@ -386,6 +433,8 @@ def decode_payload(payload: bytes) -> tuple[int, Message]:
     body = payload[3:-2]
     if mtype in _SIZE_1_0 and len(body) == _SIZE_1_0[mtype] and body[1] == 0:
         return seq, cls(*struct.unpack(HelloAck.FORMAT_1_0, body))
+    if mtype in _SIZE_1_1 and len(body) == _SIZE_1_1[mtype]:
+        return seq, cls(*struct.unpack(_SHORT[mtype].FORMAT_1_1, body))
     if len(body) != _SIZES[mtype]:
         raise ProtocolError(f"{cls.__name__} body is {len(body)} bytes, expected {_SIZES[mtype]}")
     return seq, cls(*struct.unpack(cls.FORMAT, body))

@@ -70,7 +70,7 @@ from .model import UsmSwitchModel
 log = logging.getLogger(__name__)
 
 ALL_CAPS = Caps.HW_DELAY | Caps.EDGE_STAMP | Caps.STROKE_REPORT | Caps.STOP_ON_ARRIVAL | Caps.WATCHDOG
-FW_VERSION = 0x0101
+FW_VERSION = 0x0102
 # The firmware's hardware watchdog (WDTO_30MS: 32 ms at 5 V): a hung main loop resets the chip
 # this long after its last pass.
 WATCHDOG_RESET_NS = 32_000_000
@@ -256,6 +256,7 @@ class McuEmulator:
             self._rx_seq = SeqTracker()
             self._tx_seq = 0
             self._synced = False
+            self._session_minor = self.minor
             self._watchdog_ns = 0
             self._last_host_ns = self._t_boot_ns
             self._armed: _Stroke | None = None
@@ -529,15 +530,32 @@ class McuEmulator:
             st |= StateFlags.SENSOR_A
         if b:
             st |= StateFlags.SENSOR_B
+        # 1.2: the firmware's lost events and missed edges; this one loses and misses none
+        extra = (0, 0) if self._session_minor >= 2 else (None, None)
         self._send(
-            Pong(msg.token, self.device_us(now), st, self.rx_errors % U16_MOD, self._rx_seq.lost % U16_MOD)
+            Pong(
+                msg.token,
+                self.device_us(now),
+                st,
+                self.rx_errors % U16_MOD,
+                self._rx_seq.lost % U16_MOD,
+                *extra,
+            )
         )
+
+    def _edge(self, channel: int, level: int, t_us: int) -> Edge:
+        """An EDGE in the session's layout (1.2: with its flags, none here: every edge is stamped)."""
+        return Edge(channel, level, t_us, 0 if self._session_minor >= 2 else None)
 
     def _on_hello(self, seq: int, msg: Hello, now: int) -> None:
         cur = self._cur
         if cur is not None and not cur.done:
             self._end_stroke(cur, now, StopReason.RESET, StrokeFlags.HOST_STOP)
         self._armed = None
+        # A new session: the last one's stroke is forgotten, so its id cannot make the new host's
+        # first COMMAND a "retransmission" (issue 33), as in the firmware.
+        self._cur = None
+        self._gen += 1
         self._tx_seq = 0
         self._rx_seq = SeqTracker()
         self._rx_seq.reset((seq + 1) % U16_MOD)
@@ -548,6 +566,7 @@ class McuEmulator:
         # speaks the lower minor version (1.0: no reset cause).
         self._synced = msg.major == self.major
         minor = min(self.minor, msg.minor) if self._synced else self.minor
+        self._session_minor = minor
         cause = int(self.reset_cause) if minor >= 1 else 0
         self._send(
             HelloAck(
@@ -610,12 +629,15 @@ class McuEmulator:
         st.t_start_ns = t0
         self.strokes_started += 1
         d = st.direction
+        a, b = self.rig.sensors(t0)
         plan = self.rig.start(d, t0)
         self._send(Start(st.stroke, int(d), self.device_us(t0), (t0 - due_ns) // 1000))
         if plan.there:
             st.t_arrive_ns = t0
             self._end_stroke(st, t0, StopReason.ARRIVED, StrokeFlags.ARRIVED)
             return
+        if not (a, b)[int(d.source)]:  # not at the source either: it runs, and the host hears of it
+            self._send(Fault(DeviceFault.SENSORS, self.device_us(t0), a | b << 1))
         if plan.jammed:
             self.injected.stalls += 1
         if self._hang_next:
@@ -643,14 +665,14 @@ class McuEmulator:
         if gen != self._gen or st.done:
             return
         st.t_depart_ns = t_ns
-        self._send(Edge(int(st.direction.source), 0, self.device_us(t_ns)))
+        self._send(self._edge(int(st.direction.source), 0, self.device_us(t_ns)))
 
     def _arrive(self, st: _Stroke, gen: int, t_ns: int) -> None:
         if gen != self._gen or st.done:
             return
         st.t_arrive_ns = t_ns
         self.strokes_arrived += 1
-        self._send(Edge(int(st.direction.dest), 1, self.device_us(t_ns)))
+        self._send(self._edge(int(st.direction.dest), 1, self.device_us(t_ns)))
         self._end_stroke(st, t_ns, StopReason.ARRIVED, StrokeFlags.ARRIVED)
 
     def _stall(self, st: _Stroke, gen: int, t_ns: int) -> None:
@@ -687,7 +709,9 @@ class McuEmulator:
             for t_b, ch, level in chatter:
                 self._at(
                     t_b,
-                    lambda t_b=t_b, ch=ch, level=level: self._send(Edge(int(ch), level, self.device_us(t_b))),
+                    lambda t_b=t_b, ch=ch, level=level: self._send(
+                        self._edge(int(ch), level, self.device_us(t_b))
+                    ),
                 )
 
     @property

@@ -10,7 +10,7 @@ struct stroke {
     uint16_t id;
     uint8_t direction; /* 0 on (A to B), 1 off (B to A) */
     uint8_t state;     /* enum stroke_state */
-    uint8_t departed, late;
+    uint8_t departed, late, missed; /* missed: a stamp of it is a missed edge's */
     uint32_t delay_us, timeout_us;
     uint32_t t_cmd_us, t_due_us, t_start_us, t_depart_us, t_arrive_us;
 };
@@ -28,6 +28,7 @@ static struct {
     /* session */
     uint8_t reset_cause;
     uint8_t synced;
+    uint8_t minor; /* the session's minor version: 1.2 adds EDGE.flags and PONG's two counters */
     uint32_t watchdog_us;
     uint32_t last_host_us;
     /* strokes */
@@ -35,7 +36,17 @@ static struct {
     struct stroke arm; /* the armed stroke, valid when armed */
     uint8_t have_cur;
     struct stroke cur; /* the commanded stroke (SS_SCHEDULED/RUNNING) or the last one (SS_DONE) */
+    /* interrupt events the board lost (its queue full) and edges its capture units missed (found
+     * by reading the pins back), since the last HELLO; PONG (1.2) reports both */
+    uint16_t events_lost, edges_missed;
+    uint16_t lost_unreported; /* lost, and not yet in a FAULT EVENTS_LOST */
+    uint8_t lost_reported;    /* a FAULT EVENTS_LOST went out at lost_report_us */
+    uint32_t lost_report_us;
 } S;
+
+/* At most one FAULT EVENTS_LOST in this long while no stroke runs (the PONG counter has them all):
+ * a storm of edges would otherwise fill the line with faults. */
+#define LOST_REPORT_US 10000UL
 
 void core_init(void)
 {
@@ -90,13 +101,18 @@ static void send_fault(uint8_t code, uint32_t t_us, uint16_t detail)
     send(MT_FAULT, 7);
 }
 
-static void send_edge(uint8_t channel, uint8_t level, uint32_t t_us)
+static void send_edge(uint8_t channel, uint8_t level, uint32_t t_us, uint8_t flags)
 {
     uint8_t *p = body();
     *p++ = channel;
     *p++ = level;
-    put_u32(p, t_us);
-    send(MT_EDGE, 6);
+    p = put_u32(p, t_us);
+    if (S.minor >= 2) {
+        *p = flags;
+        send(MT_EDGE, 7);
+    } else {
+        send(MT_EDGE, 6); /* a 1.0/1.1 host gets the edge without its flags */
+    }
 }
 
 void core_boot(uint8_t reset_cause)
@@ -122,6 +138,8 @@ static void end_stroke(uint32_t t_us, uint8_t reason, uint8_t flags)
         flags |= SF_DEPARTED;
     if (st->late)
         flags |= SF_LATE;
+    if (st->missed)
+        flags |= SF_MISSED_EDGE;
     uint8_t *p = body();
     p = put_u16(p, st->id);
     *p++ = st->direction;
@@ -155,30 +173,72 @@ void core_start(uint32_t t_us)
     send(MT_START, 11);
     /* Already at the destination: the stroke is over as it starts. */
     uint8_t dest = st->direction == 0 ? 1 : 0;
-    if (hal_sensors() & (1u << dest)) {
+    uint8_t sensors = hal_sensors();
+    if (sensors & (1u << dest)) {
         st->t_arrive_us = t_us;
         end_stroke(t_us, SR_ARRIVED, SF_ARRIVED);
+        return;
     }
+    /* Not at the source either (a jam left the mover between, or a sensor is dead): the stroke
+     * runs (its stall limit still holds), and the host hears of it. */
+    if (!(sensors & (1u << (dest ^ 1))))
+        send_fault(FC_SENSORS, t_us, sensors);
 }
 
-void core_edge(uint8_t channel, uint8_t level, uint32_t t_us)
+void core_edge(uint8_t channel, uint8_t level, uint32_t t_us, uint8_t flags)
 {
     struct stroke *st = &S.cur;
     uint8_t live = S.have_cur && st->state == SS_RUNNING;
     uint8_t source = st->direction == 0 ? 0 : 1;
+    if (flags & EF_MISSED)
+        S.edges_missed++;
     if (live && channel == (source ^ 1) && level) {
-        /* Arrival: the capture interrupt has already cut the drive (STOP_ON_ARRIVAL);
+        /* Arrival: the external interrupt has already cut the drive (STOP_ON_ARRIVAL);
          * hal_drive_off() in end_stroke makes sure of it. */
         st->t_arrive_us = t_us;
-        send_edge(channel, level, t_us);
+        if (flags & EF_MISSED)
+            st->missed = 1;
+        send_edge(channel, level, t_us, flags);
         end_stroke(t_us, SR_ARRIVED, SF_ARRIVED);
         return;
     }
     if (live && channel == source && !level && !st->departed) {
         st->departed = 1;
         st->t_depart_us = t_us;
+        if (flags & EF_MISSED)
+            st->missed = 1;
     }
-    send_edge(channel, level, t_us);
+    send_edge(channel, level, t_us, flags);
+}
+
+uint8_t core_wants_arrival(uint8_t channel)
+{
+    struct stroke *st = &S.cur;
+    return S.have_cur && st->state == SS_RUNNING && channel == (st->direction == 0 ? 1 : 0);
+}
+
+static void report_lost(uint32_t now)
+{
+    uint16_t n = S.lost_unreported;
+    S.lost_unreported = 0;
+    S.lost_reported = 1;
+    S.lost_report_us = now;
+    send_fault(FC_EVENTS_LOST, now, n);
+}
+
+void core_events_lost(uint16_t n, uint32_t now)
+{
+    S.events_lost = (uint16_t)(S.events_lost + n);
+    uint32_t unreported = (uint32_t)S.lost_unreported + n;
+    S.lost_unreported = unreported > 0xFFFFu ? 0xFFFFu : (uint16_t)unreported;
+    /* A stroke whose edges may be among the lost cannot be told: it ends, now, as a fault. */
+    if (running()) {
+        hal_drive_off(); /* first: building a frame takes tens of microseconds */
+        report_lost(now);
+        end_stroke(now, SR_FAULT, SF_EVENTS_LOST);
+    } else if (!S.lost_reported || now - S.lost_report_us >= LOST_REPORT_US) {
+        report_lost(now);
+    }
 }
 
 uint32_t core_poll(void)
@@ -188,25 +248,46 @@ uint32_t core_poll(void)
         S.synced = 0;
         S.armed = 0;
         uint32_t ms = S.watchdog_us / 1000;
+        if (running())
+            hal_drive_off(); /* first: building a frame takes tens of microseconds */
         send_fault(FC_HOST_SILENT, now, ms > 0xFFFF ? 0xFFFF : (uint16_t)ms);
         if (running())
             end_stroke(now, SR_WATCHDOG, SF_WATCHDOG);
     }
     struct stroke *st = &S.cur;
-    if (S.have_cur && st->state == SS_RUNNING && now - st->t_start_us >= st->timeout_us) {
+    /* The stall check runs whenever the drive may be on, whatever the core's state: a running
+     * stroke from its start, a scheduled one whose drive is on before its START came through
+     * from its due instant. */
+    uint8_t on = hal_drive_is_on();
+    uint8_t timed = S.have_cur && (st->state == SS_RUNNING || (st->state == SS_SCHEDULED && on));
+    uint32_t from = st->state == SS_RUNNING ? st->t_start_us : st->t_due_us;
+    if (timed && (int32_t)(now - from) >= 0 && now - from >= st->timeout_us) {
         uint32_t ms = st->timeout_us / 1000;
+        hal_drive_off(); /* first: building a frame takes tens of microseconds */
         send_fault(FC_STALL, now, ms > 0xFFFF ? 0xFFFF : (uint16_t)ms);
         end_stroke(now, SR_STALL, SF_STALL);
+        timed = 0;
+    } else if (on && !running()) {
+        /* The drive on with no stroke of the core's: cut it, and say so. */
+        hal_drive_off();
+        send_fault(FC_DRIVE, now, 1);
     }
+    if (S.lost_unreported && now - S.lost_report_us >= LOST_REPORT_US)
+        report_lost(now);
     /* The next instant a check above can fire: the watchdog one microsecond past its period,
-     * the stroke timeout at start + timeout. */
+     * the stroke timeout at start + timeout, the next report of lost events. */
     uint32_t left = UINT32_MAX;
     if (S.synced)
         left = S.watchdog_us + 1 - (now - S.last_host_us);
-    if (S.have_cur && st->state == SS_RUNNING) {
-        uint32_t stall = st->timeout_us - (now - st->t_start_us);
+    if (timed) {
+        uint32_t stall = (int32_t)(now - from) >= 0 ? st->timeout_us - (now - from) : st->timeout_us;
         if (stall < left)
             left = stall;
+    }
+    if (S.lost_unreported) {
+        uint32_t next = LOST_REPORT_US - (now - S.lost_report_us);
+        if (next < left)
+            left = next;
     }
     return left;
 }
@@ -217,6 +298,12 @@ static void on_hello(uint16_t seq, const uint8_t *b, uint32_t now)
     if (running())
         end_stroke(now, SR_RESET, SF_HOST_STOP);
     S.armed = 0;
+    /* A new session: the last one's stroke is forgotten, so its id cannot make the new host's
+     * first COMMAND a "retransmission" (issue 33: a host restarted on a board that was not
+     * reset numbered its strokes from 1 again, and stroke 1 never started). */
+    S.have_cur = 0;
+    S.events_lost = S.edges_missed = S.lost_unreported = 0;
+    S.lost_reported = 0;
     S.tx_seq = 0;
     S.rx_expected = (uint16_t)(seq + 1);
     S.rx_have_expected = 1;
@@ -229,6 +316,7 @@ static void on_hello(uint16_t seq, const uint8_t *b, uint32_t now)
     /* The session speaks the lower of the two minor versions, and says which: a 1.0 host gets the
      * 1.0 layout, a 1.1 host the reset cause after it. */
     uint8_t minor = b[0] == PROTO_MAJOR && b[1] < PROTO_MINOR ? b[1] : PROTO_MINOR;
+    S.minor = minor;
     uint8_t *p = body();
     *p++ = PROTO_MAJOR;
     *p++ = minor;
@@ -263,8 +351,14 @@ static void on_ping(const uint8_t *b, uint32_t now)
     p = put_u32(p, now);
     *p++ = state;
     p = put_u16(p, S.rx_errors);
-    put_u16(p, S.rx_lost);
-    send(MT_PONG, 13);
+    p = put_u16(p, S.rx_lost);
+    if (S.minor >= 2) {
+        p = put_u16(p, S.events_lost);
+        put_u16(p, S.edges_missed);
+        send(MT_PONG, 17);
+    } else {
+        send(MT_PONG, 13);
+    }
 }
 
 static void on_arm(uint16_t seq, const uint8_t *b, uint32_t now)
@@ -322,6 +416,7 @@ static void on_command(uint16_t seq, const uint8_t *b, uint32_t now)
     st->state = SS_SCHEDULED;
     st->departed = 0;
     st->late = 0;
+    st->missed = 0;
     st->t_cmd_us = t_cmd;
     st->t_due_us = t_cmd + st->delay_us;
     send_ack(MT_COMMAND, seq, ST_OK, id, t_cmd);
@@ -345,9 +440,8 @@ static void on_frame(const uint8_t *pl, uint8_t n)
     uint8_t type = pl[0];
     uint16_t seq = get_u16(pl + 1);
     const uint8_t *b = pl + 3;
-    int8_t size = msg_body_size(type);
-    /* A known type must have its size; an unknown one (a newer minor version) is answered. */
-    if (size >= 0 && size != (int8_t)(n - 5)) {
+    /* A known type must have one of its sizes; an unknown one (a newer minor version) is answered. */
+    if (!msg_body_size_ok(type, (uint8_t)(n - 5))) {
         S.rx_errors++;
         return;
     }

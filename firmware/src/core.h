@@ -26,6 +26,11 @@ uint8_t hal_drive_is_on(void);
 /* Current sensor levels: bit 0 sensor A active, bit 1 sensor B active. */
 uint8_t hal_sensors(void);
 
+/* EDGE.flags (protocol 1.2): EF_MISSED the capture unit missed the edge (found by reading the pin
+ * back); its stamp is when the firmware found it, after the edge. EF_CUT: an arrival known from
+ * the external interrupt's drive cut, stamped by it. */
+enum edge_flags { EF_MISSED = 0x01, EF_CUT = 0x02 };
+
 /* ---- called by the hardware layer's main loop ---- */
 void core_init(void);
 /* Once after core_init, interrupts on: remember the reset cause (MCUSR's bits) for HELLO_ACK and
@@ -35,8 +40,15 @@ void core_boot(uint8_t reset_cause);
 void core_rx_byte(uint8_t b);
 /* The drive went on at t_us (compare match, or at once for a late start). */
 void core_start(uint32_t t_us);
-/* A sensor edge captured at t_us: channel 0 A / 1 B, level 1 active, 0 released. */
-void core_edge(uint8_t channel, uint8_t level, uint32_t t_us);
+/* A sensor edge at t_us: channel 0 A / 1 B, level 1 active, 0 released; flags EF_* (proto.h):
+ * 0 for a capture's edge, EF_MISSED for one the capture unit missed (found by reading the pin
+ * back, stamped then), EF_CUT too for an arrival known from the external interrupt's cut. */
+void core_edge(uint8_t channel, uint8_t level, uint32_t t_us, uint8_t flags);
+/* Whether an active edge on this channel would be the running stroke's arrival. */
+uint8_t core_wants_arrival(uint8_t channel);
+/* The board lost n interrupt events (its queue was full): reported (FAULT EVENTS_LOST, PONG's
+ * counter), and a running stroke ends with it. */
+void core_events_lost(uint16_t n, uint32_t now);
 /* Timeouts: the watchdog and the stroke timeout. Call every main-loop pass. Returns how long
  * the main loop may sleep: the microseconds until the next timeout falls due, UINT32_MAX when
  * none is running. */

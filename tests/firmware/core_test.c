@@ -97,7 +97,7 @@ int main(void)
     uint8_t buf[1024], out[1100];
     core_init();
     while (fgets(line, sizeof line, stdin)) {
-        unsigned long a, b, c;
+        unsigned long a, b, c, d = 0;
         if (sscanf(line, "clock %lu", &a) == 1) {
             fake_now = (uint32_t)a;
         } else if (sscanf(line, "sensors %lu", &a) == 1) {
@@ -110,8 +110,10 @@ int main(void)
             core_boot((uint8_t)a);
         } else if (sscanf(line, "start %lu", &a) == 1) {
             core_start((uint32_t)a);
-        } else if (sscanf(line, "edge %lu %lu %lu", &a, &b, &c) == 3) {
-            core_edge((uint8_t)a, (uint8_t)b, (uint32_t)c);
+        } else if (sscanf(line, "edge %lu %lu %lu %lu", &a, &b, &c, &d) >= 3) {
+            core_edge((uint8_t)a, (uint8_t)b, (uint32_t)c, (uint8_t)d); /* d: EF_* flags */
+        } else if (sscanf(line, "lost %lu", &a) == 1) {
+            core_events_lost((uint16_t)a, fake_now);
         } else if (strncmp(line, "poll", 4) == 0) {
             core_poll();
         } else if (strncmp(line, "stats", 5) == 0) {

@@ -101,10 +101,19 @@ def test_arrival_to_drive_off_is_under_5_us_in_every_section(avrsim: Path, firmw
     print({k: f"{v} cycles, {v * 1e6 / F_CPU:.2f} us" for k, v in worst.items()})
 
 
+# An arrival's cut waits for the section running as it comes, one instruction (5 cycles at most)
+# and its own 19: a section of 55 cycles keeps it under 80 (5 us).
+SECTION_LIMIT = 55
+# The start's compare handler runs with interrupts off throughout (no handler nests in it), only
+# while the drive is off or at the instant it goes on (it arms the cut itself): no arrival waits.
+COMPARE_LIMIT = 160
+
+
 def test_every_interrupts_off_section_is_bounded(avrsim: Path, firmware_elf: Path) -> None:
     """Strokes started on time, late (forced) and a period or more ahead (pre-armed), heartbeats
     in bursts, a stop: every stretch the firmware runs with interrupts off, as the harness measures
-    it, stays within docs/firmware.md's table (69 cycles at most; the start-up's excepted)."""
+    it, stays within docs/firmware.md's table (55 cycles at most, the start's compare handler 160;
+    the start-up's excepted)."""
     sim = Lockstep(avrsim, firmware_elf, "--seed", "4")
     dev = FirmwareDevice(sim)
     try:
@@ -142,5 +151,7 @@ def test_every_interrupts_off_section_is_bounded(avrsim: Path, firmware_elf: Pat
             f"{where:32} {cycles:4d} cycles" for where, cycles in sorted(spans.items(), key=lambda x: -x[1])
         )
     )
-    assert max(spans.values()) <= 69, spans
+    compare = spans.pop("vector42")
+    assert compare <= COMPARE_LIMIT, compare
+    assert max(spans.values()) <= SECTION_LIMIT, spans
     assert len(spans) >= 20  # the handlers and the main loop's sections were all met

@@ -118,7 +118,7 @@ def _msgs(got: list[tuple[int, Message]]) -> list[Message]:
 
 def test_handshake_and_versions(device: Device) -> None:
     ack = _hello(device)  # a 1.0 host: the 1.0 layout, no reset cause
-    assert (ack.major, ack.minor, ack.caps, ack.fw_version, ack.max_delay_us) == (1, 0, 31, 0x0101, 1_000_000)
+    assert (ack.major, ack.minor, ack.caps, ack.fw_version, ack.max_delay_us) == (1, 0, 31, 0x0102, 1_000_000)
     assert ack.reset_cause == 0
     device.send(mp.Ping(7), 1)
     (pong,) = _msgs(device.run(3000))
@@ -135,10 +135,10 @@ def test_boot_and_the_reset_cause(device: Device) -> None:
     """1.1: BOOT as it starts, unasked, and HELLO_ACK's reset cause: power-on, also after a
     power cycle."""
     (boot,) = _msgs(device.run(3000))
-    assert boot == mp.Boot(int(mp.ResetCause.POWER_ON), 0x0101)
+    assert boot == mp.Boot(int(mp.ResetCause.POWER_ON), 0x0102)
     ack = _hello(device, minor=1)
     assert (ack.minor, ack.reset_cause) == (1, mp.ResetCause.POWER_ON)
-    assert _msgs(device.power_cycle()) == [mp.Boot(int(mp.ResetCause.POWER_ON), 0x0101)]
+    assert _msgs(device.power_cycle()) == [mp.Boot(int(mp.ResetCause.POWER_ON), 0x0102)]
     ack = _hello(device, minor=1)
     assert (ack.minor, ack.reset_cause) == (1, mp.ResetCause.POWER_ON)
 

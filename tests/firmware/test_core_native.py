@@ -122,7 +122,7 @@ def test_a_1_0_host_gets_the_1_0_hello_ack(core: CoreDriver) -> None:
     core.cmd("boot 1")
     core.clock(4294667296)
     out = core.send(mp.Hello(1, 0, 500))
-    assert core.messages(out) == [(0, mp.HelloAck(1, 0, 31, 0x0101, 4294667296, 1_000_000, 0))]
+    assert core.messages(out) == [(0, mp.HelloAck(1, 0, 31, 0x0102, 4294667296, 1_000_000, 0))]
 
 
 def test_doc_fault_example_is_a_stall(core: CoreDriver) -> None:

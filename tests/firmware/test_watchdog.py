@@ -53,7 +53,7 @@ def test_a_hung_main_loop_is_reset_by_the_watchdog_drive_off(avrsim: Path, hang_
         dev.write(b"\x00")
         dev.send(mp.Hello(1, 1, 60_000), 0)
         got = _msgs(dev, 5000)
-        assert got[0] == mp.Boot(int(mp.ResetCause.POWER_ON), 0x0101)
+        assert got[0] == mp.Boot(int(mp.ResetCause.POWER_ON), 0x0102)
         assert isinstance(got[1], mp.HelloAck) and got[1].reset_cause == mp.ResetCause.POWER_ON
         sim.command("stall")  # the mover jams half way: no arrival will cut the drive
         dev.send(mp.Arm(1, 0, 1000, 100_000), 1)
@@ -61,7 +61,7 @@ def test_a_hung_main_loop_is_reset_by_the_watchdog_drive_off(avrsim: Path, hang_
         got = _msgs(dev, 60_000)
         # START went out (the UART drains by interrupt), then nothing until the reset's BOOT
         assert [type(m).__name__ for m in got] == ["Ack", "Ack", "Start", "Boot"], got
-        assert got[-1] == mp.Boot(int(mp.ResetCause.WATCHDOG), 0x0101)
+        assert got[-1] == mp.Boot(int(mp.ResetCause.WATCHDOG), 0x0102)
         (on, off) = sim.drive
         assert (on[0], off[0]) == (1, 0)
         ((reset_cycle, _),) = sim.resets

@@ -69,101 +69,174 @@ TIMER5_COMPA_vect:
     sts _SFR_MEM_ADDR(TCCR4C), r24 /* OC4A low now */
 .endm
 
+/* The clock's overflow flag register, as board.c's CLOCK_TIFR (the plant image's is timer 4's). */
+#ifdef USMSWITCH_PLANT_STAMP_ERROR
+#define CUT_TCNTL TCNT4L
+#define CUT_TCNTH TCNT4H
+#define CUT_TIFR TIFR4
+#else
+#define CUT_TCNTL TCNT5L
+#define CUT_TCNTH TCNT5H
+#define CUT_TIFR TIFR5
+#endif
+
 /* The arrival's cut. Each sensor's line is also on an external interrupt pin (A: INT4, PE4, D2;
- * B: INT5, PE5, D3), falling edge: the sensor goes active. Vectors 5 and 6 outrank every other, so
- * only an interrupts-off stretch already running holds one back, never another handler's turn.
- * When the sensor is the armed arrival's (stop_mask) it sets COM4A to "clear" and strobes FOC4A:
- * OC4A is low 19 cycles after the vector (5 to enter, 3 for its jmp, 11 here). No instruction
- * here changes SREG, so it is not saved. */
-.macro ARRIVAL_CUT maskbit
+ * B: INT5, PE5, D3; the wiring is required), falling edge: the sensor goes active. Vectors 5 and 6
+ * outrank every other, so only an interrupts-off stretch already running holds one back, never
+ * another handler's turn. When the sensor is the armed arrival's (stop_mask) it sets COM4A to
+ * "clear" and strobes FOC4A: OC4A is low 19 cycles after the vector (5 to enter, 3 for its jmp,
+ * 11 here). Then it leaves the cut's instant for the main loop (cut_flag: 1 A, 2 B; the counter,
+ * the clock's low byte and its overflow flag), which ends the stroke as an arrival at that instant
+ * should no capture of the edge come (a capture unit out of step with its pin), and disarms
+ * itself (stop_mask, drive_on). No instruction here changes SREG, so it is not saved; interrupts
+ * stay off throughout. */
+.macro ARRIVAL_CUT maskbit, which
     push r24
     lds r24, stop_mask
     sbrs r24, \maskbit
     rjmp 1f
     DRIVE_OFF_NOW
+    lds r24, _SFR_MEM_ADDR(CUT_TCNTL)
+    sts cut_tick, r24
+    lds r24, _SFR_MEM_ADDR(CUT_TCNTH)
+    sts cut_tick+1, r24
+    lds r24, clock_ovf
+    sts cut_ovf, r24
+    in r24, _SFR_IO_ADDR(CUT_TIFR)
+    sts cut_tifr, r24
+    ldi r24, \which
+    sts cut_flag, r24
+    ldi r24, 0
+    sts stop_mask, r24
+    sts drive_on, r24
 1:  pop r24
     reti
 .endm
 
     .global INT4_vect
 INT4_vect:
-    ARRIVAL_CUT 0
+    ARRIVAL_CUT 0, 1
 
     .global INT5_vect
 INT5_vect:
-    ARRIVAL_CUT 1
+    ARRIVAL_CUT 1, 2
 
-/* A capture vector's first instructions cut the drive again when the edge is the armed arrival
- * (the falling edge, active low, of the sensor in stop_mask): the cut of a board whose sensors are
- * not wired to INT4/INT5 as well, or one the external interrupt missed. Then the tail (board.c)
- * stamps and queues the edge, with interrupts on. No instruction here changes SREG. */
-.macro CAPTURE_STUB tccrb, ices, maskbit, tail
+/* A capture vector masks its own unit (ICIEn) with interrupts off, turns them on and calls its
+ * tail (board.c, a plain C function: the registers a call may change are saved here, r1 cleared),
+ * then turns them off again before it unmasks the unit, and returns. The tail therefore never
+ * nests in itself (issue 33: the tails of before re-enabled interrupts before their epilogue with
+ * the unit armed, and a 40 kHz line nested them until the stack ran through RAM), while an
+ * arrival's cut, the UART and the other unit still get in: interrupts are off here for 19 cycles
+ * from the vector and 19 to the end of RETI. A unit whose edge found the event ring full stays
+ * masked (cap_blanked) until the main loop has emptied it. RAMPZ is saved as avr-gcc's handlers
+ * save it. */
+.macro CAPTURE_STUB timsk, icie, tail, blankbit
     push r24
-    lds r24, \tccrb
-    sbrc r24, \ices
-    rjmp 1f /* rising: released, not an arrival */
-    lds r24, stop_mask
-    sbrs r24, \maskbit
-    rjmp 1f
-    DRIVE_OFF_NOW
-1:  pop r24
-    jmp \tail
+    in r24, _SFR_IO_ADDR(SREG)
+    push r24
+    lds r24, \timsk
+    andi r24, ~_BV(\icie)
+    sts \timsk, r24
+    sei
+    push r0
+    push r1
+    clr r1
+    push r18
+    push r19
+    push r20
+    push r21
+    push r22
+    push r23
+    push r25
+    push r26
+    push r27
+    push r30
+    push r31
+    in r24, _SFR_IO_ADDR(RAMPZ)
+    push r24
+    call \tail
+    pop r24
+    out _SFR_IO_ADDR(RAMPZ), r24
+    pop r31
+    pop r30
+    pop r27
+    pop r26
+    pop r25
+    pop r23
+    pop r22
+    pop r21
+    pop r20
+    pop r19
+    pop r18
+    pop r1
+    pop r0
+    cli
+    lds r24, cap_blanked
+    sbrc r24, \blankbit
+    rjmp 2f /* blanked (the event ring was full): the main loop unmasks it */
+    lds r24, \timsk
+    ori r24, _BV(\icie)
+    sts \timsk, r24
+2:  pop r24
+    out _SFR_IO_ADDR(SREG), r24
+    pop r24
+    reti
 .endm
 
     .global TIMER4_CAPT_vect
 TIMER4_CAPT_vect:
-    CAPTURE_STUB _SFR_MEM_ADDR(TCCR4B), ICES4, 0, __vector_capt4_tail
+    CAPTURE_STUB _SFR_MEM_ADDR(TIMSK4), ICIE4, capture_a_tail, 0
 
     .global TIMER5_CAPT_vect
 TIMER5_CAPT_vect:
-    CAPTURE_STUB _SFR_MEM_ADDR(TCCR5B), ICES5, 1, __vector_capt5_tail
+    CAPTURE_STUB _SFR_MEM_ADDR(TIMSK5), ICIE5, capture_b_tail, 1
 
-/* USART0 receive. With interrupts off it claims the ring's next slot (rx_head moves on) and reads
- * the byte (which clears RXC0 for it); then interrupts are on again, 31 cycles after the vector,
- * and the byte goes into its slot. A second byte already in the USART's two-byte buffer (this
- * handler was held back more than a byte time) sets RXC0 again at once and enters this handler
- * again, nested: it claims the slot after, so the ring keeps the bytes in order (the handler before
- * issue 23 moved rx_head after its sei, and a nested byte overwrote the one before it: a frame lost
- * after each long interrupts-off stretch). The main loop, the ring's reader, runs only when every
- * handler has returned, so a claimed slot is always filled when it reads it. A full ring (128
- * bytes) loses the byte; its frame then fails COBS or CRC and is counted. */
+/* USART0 receive: masks its own interrupt (RXCIE0) with interrupts off, turns them on, reads the
+ * byte (which clears RXC0) into the 128-byte ring, and turns them off again before it unmasks
+ * itself and returns: it never nests in itself (the USART keeps a second byte meanwhile). The
+ * main loop, the ring's reader, runs only when every handler has returned. A full ring loses the
+ * byte; its frame then fails COBS or CRC and is counted. */
     .global USART0_RX_vect
 USART0_RX_vect:
     push r24
     in r24, _SFR_IO_ADDR(SREG)
     push r24
+    lds r24, _SFR_MEM_ADDR(UCSR0B)
+    andi r24, ~_BV(RXCIE0)
+    sts _SFR_MEM_ADDR(UCSR0B), r24
+    sei
     push r25
     push r30
+    push r31
     lds r30, rx_head
     mov r25, r30
     inc r25
     andi r25, 0x7F /* RXQ = 128 */
-    lds r24, rx_tail
-    cp r25, r24
-    breq 2f /* full */
-    sts rx_head, r25
     lds r24, _SFR_MEM_ADDR(UDR0)
-    sei
-    push r31
+    lds r31, rx_tail
+    cp r25, r31
+    breq 1f /* full: the byte is lost */
     ldi r31, 0
     subi r30, lo8(-(rx_buf))
     sbci r31, hi8(-(rx_buf))
     st Z, r24
-    pop r31
-1:  pop r30
+    sts rx_head, r25
+1:  pop r31
+    pop r30
     pop r25
+    cli
+    lds r24, _SFR_MEM_ADDR(UCSR0B)
+    ori r24, _BV(RXCIE0)
+    sts _SFR_MEM_ADDR(UCSR0B), r24
     pop r24
     out _SFR_IO_ADDR(SREG), r24
     pop r24
     reti
-2:  lds r24, _SFR_MEM_ADDR(UDR0) /* full: read it all the same (clears RXC0), lose it */
-    rjmp 1b
 
-/* USART0 data register empty: masks its own interrupt (UDRIE0: it cannot nest in itself) and
- * re-enables interrupts 19 cycles after the vector, then sends tx_buf[tx_tail] (256 bytes, the
- * index wraps as a byte) and unmasks itself if there was one; an empty ring leaves it masked until
- * hal_tx adds a byte. UCSR0B is written by no other handler (hal_tx's read-modify-write in the main
- * loop cannot come between this one's), so the unmasking needs no cli. */
+/* USART0 data register empty: masks its own interrupt (UDRIE0), turns interrupts on, sends
+ * tx_buf[tx_tail] (256 bytes, the index wraps as a byte), and with interrupts off again unmasks
+ * itself if there was one; an empty ring leaves it masked until hal_tx adds a byte (hal_tx
+ * unmasks it with interrupts off, and runs only when no handler does). */
     .global USART0_UDRE_vect
 USART0_UDRE_vect:
     push r24
@@ -188,13 +261,27 @@ USART0_UDRE_vect:
     ld r24, Z
     sts _SFR_MEM_ADDR(UDR0), r24
     sts tx_tail, r25
+    pop r31
+    pop r30
+    pop r25
+    cli
     lds r24, _SFR_MEM_ADDR(UCSR0B)
     ori r24, _BV(UDRIE0)
     sts _SFR_MEM_ADDR(UCSR0B), r24
+    rjmp 2f
 1:  pop r31
     pop r30
     pop r25
-    pop r24
+    cli
+2:  pop r24
     out _SFR_IO_ADDR(SREG), r24
     pop r24
     reti
+
+/* Any interrupt without a handler of its own (avr-libc's __bad_interrupt jumps here; its default
+ * jumps to 0, a restart with no reset that leaves the I/O as it was): the drive off, and wait with
+ * interrupts off for the watchdog, whose reset then says why (BOOT, reset cause WATCHDOG). */
+    .global __vector_default
+__vector_default:
+    DRIVE_OFF_NOW
+1:  rjmp 1b
