@@ -324,3 +324,22 @@ def test_power_cycle_forgets_the_session(device: Device) -> None:
     assert pong.t_us < hello.t_us + 20_000  # the clock restarted at power-on
     again = _hello(device)
     assert again.t_us > pong.t_us
+
+
+def test_a_new_session_forgets_the_last_ones_stroke(device: Device) -> None:
+    """A host restarted on a board that was not reset numbers its strokes from 1 again: after the
+    second HELLO, stroke 1 is a new stroke and starts (issue 33: it was answered as a
+    retransmission of the last session's stroke 1, never started, and the host saw a stall)."""
+    _hello(device, watchdog_ms=5000, minor=2)
+    got = _stroke(device, 1, 0, 1)  # A to B
+    (stroke,) = [m for m in got if isinstance(m, mp.Stroke)]
+    assert stroke.flags & mp.StrokeFlags.ARRIVED
+    _hello(device, watchdog_ms=5000, minor=2)  # a new host: its sequence and stroke ids from scratch
+    got = _stroke(device, 1, 1, 1)  # B to A, also numbered 1
+    acks = [m for m in got if isinstance(m, mp.Ack)]
+    assert [(a.acked_type, a.status) for a in acks] == [(mp.MsgType.ARM, 0), (mp.MsgType.COMMAND, 0)]
+    assert since_us(acks[1].t_us, acks[0].t_us) >= 0  # its own command instant, not the old one's
+    (start,) = [m for m in got if isinstance(m, mp.Start)]
+    (stroke,) = [m for m in got if isinstance(m, mp.Stroke)]
+    assert (start.stroke, start.direction) == (1, 1)
+    assert stroke.stroke == 1 and stroke.direction == 1 and stroke.flags & mp.StrokeFlags.ARRIVED

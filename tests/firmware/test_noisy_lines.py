@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -110,6 +111,21 @@ class Board:
         self.sim.close()
 
 
+RAMEND = 0x21FF
+
+
+def _stack_bound(elf: Path) -> int | None:
+    """firmware/stack_depth.py's bound for the image built here (None for another image)."""
+    su = elf.with_suffix(".su")
+    if not su.exists():
+        return None
+    out = subprocess.run(
+        [sys.executable, str(elf.parents[1] / "stack_depth.py"), str(elf), str(su)],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    return int(out.stdout)
+
+
 def _check_alive(board: Board, elf: Path, token: int) -> mp.Pong:
     """The chip kept its clock (a PONG that agrees with the harness's), RAM and session."""
     pong = board.ping_answered(token)
@@ -120,6 +136,9 @@ def _check_alive(board: Board, elf: Path, token: int) -> mp.Pong:
     assert st["sp"][0] >= _ram_end(elf), (
         f"the stack reached 0x{st['sp'][0]:04x}, RAM ends at 0x{_ram_end(elf):04x}"
     )
+    bound = _stack_bound(elf)
+    if bound is not None:  # the depth measured is within stack_depth.py's bound
+        assert RAMEND - st["sp"][0] <= bound, (RAMEND - st["sp"][0], bound)
     return pong
 
 
