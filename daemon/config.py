@@ -21,6 +21,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
+from usmswitch.drivers.mcu import MAX_STROKE_TIMEOUT_NS
 from usmswitch.drivers.serial_mcu import DEFAULT_BAUD
 from usmswitch.fleet.pg_schema import check_url, redact_url
 from usmswitch.predictor import DEFAULT_MODEL, MAX_ORDER, MODELS, check_stroke_ns, min_samples
@@ -494,6 +495,13 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     web = WebConfig(listen=t.get("listen", listen_value, ""))
     t.done()
     top.done()
+    if driver.kind in ("serial", "usb") and control.stroke_timeout_ns > MAX_STROKE_TIMEOUT_NS:
+        # The microcontroller times the stall itself (ARM timeout_us): it takes 1 ms to 10 s.
+        raise ConfigError(
+            "control.stroke_timeout",
+            f"{format_ns(control.stroke_timeout_ns)} is longer than the microcontroller's longest stall"
+            f" limit, {format_ns(MAX_STROKE_TIMEOUT_NS)} (docs/mcu-protocol.md, ARM)",
+        )
     return Config(daemon, driver, sim, control, cycle, realtime, socket, modbus, records, metrics, web)
 
 

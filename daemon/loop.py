@@ -220,6 +220,7 @@ class ControlLoop:
             raise ValueError(f"set_targets takes (on, off), got {len(targets)} values")
         if not allow_late:
             self.check_reach(targets)
+        self._check_device(targets, self.mode, self.open_delay_ns)
         if self.state is State.CYCLING:
             self._check_period(self._period_ns, targets, self.mode, self.open_delay_ns)
         self.targets = targets
@@ -230,6 +231,7 @@ class ControlLoop:
         """Closed loop (Eq. 7) or open loop with a fixed delay; applies from the next armed stroke."""
         mode = Mode(mode)
         delay = self.open_delay_ns if open_delay_ns is None else check_ns("open_delay_ns", open_delay_ns)
+        self._check_device(self.targets, mode, delay)
         if self.state is State.CYCLING:
             self._check_period(self._period_ns, self.targets, mode, delay)
         self.mode = mode
@@ -317,6 +319,7 @@ class ControlLoop:
         self._require_no_fault()
         if self.state is State.CYCLING:
             raise LoopError("already cycling: stop_cycling first (or wait for the run to end)")
+        self._check_device(self.targets, self.mode, self.open_delay_ns)
         self._check_period(period_ns, self.targets, self.mode, self.open_delay_ns)
         self._period_ns = period_ns
         self._cycling_left = count if count else -1
@@ -540,6 +543,28 @@ class ControlLoop:
                 f" ({longest} ns, {what}): commands would overlap"
             )
 
+    def _check_device(self, targets: Sequence[int], mode: Mode, open_delay_ns: int) -> None:
+        """Refuse (ValueError) a start delay longer than the device can time (HELLO_ACK
+        max_delay_us), naming its limit: the strokes would otherwise each fault at their ARM."""
+        longest = self.daq.limits().get("max_delay_ns")
+        if longest is None:
+            return
+        if mode is Mode.OPEN:
+            if open_delay_ns > longest:
+                raise ValueError(
+                    f"open-loop delay {format_ns(open_delay_ns)} is longer than the device's longest"
+                    f" start delay, {format_ns(longest)}"
+                )
+            return
+        for d in (Direction.ON, Direction.OFF):
+            t_hat = max(0, math.floor(self.predictors[d].predict()))
+            if targets[d] - t_hat > longest:
+                raise TargetUnreachableError(
+                    f"target {format_ns(targets[d])} needs a start delay of {format_ns(targets[d] - t_hat)}"
+                    f" (T - t_hat), longer than the device's longest, {format_ns(longest)}: the"
+                    f" longest target it reaches is {format_ns(longest + t_hat)}"
+                )
+
     def _latch_fault(self, reason: str) -> None:
         self.state = State.FAULT
         self.fault_reason = reason
@@ -680,9 +705,11 @@ class ControlLoop:
         )
         t_start, lateness, t_depart, t_arrive = got.t_start, got.lateness, got.t_depart, got.t_arrive
         early_arrive, fault = got.early_arrive, got.fault
-        if got.earlier_drive_fault and not fault:
-            # The device restarted (its watchdog, a brown-out) between strokes: latched as it is idle.
-            fault = got.earlier_drive_fault
+        if got.earlier_drive_fault:
+            # The device restarted (its watchdog, a brown-out) between strokes: latched as it is
+            # while idle; the run ends after this stroke's record.
+            flags |= Flag.FAULT
+            self._latch_fault(got.earlier_drive_fault)
         implausible = ""
         halted = self._estop.is_set() or self._shutdown.is_set()
         if t_arrive is None and early_arrive is not None and t_start is not None and not fault and not halted:

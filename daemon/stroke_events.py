@@ -68,16 +68,12 @@ def read_stroke(
     src, dst = direction.source, direction.dest
     clock = daq.clock
     grace = daq.report_wait_ns
-    stopped = False
+    # Past the deadline the device's own stall limit (armed with the same timeout) has cut the drive;
+    # its account of the stroke is still read before a cause is named, and the loop's stop follows.
     while True:
         now = clock.now_ns()
         if now >= deadline + grace:
             break
-        if grace and now >= deadline and not stopped:
-            # The device's own stall limit has cut the drive by now; the host's STOP makes sure,
-            # and the device's account of the stroke is still read before a cause is named.
-            stopped = True
-            daq.stop("stroke timeout")
         try:
             ev = daq.recv(min(slice_ns, deadline + grace - now))
         except DaqError as exc:

@@ -249,8 +249,8 @@ class McuDaq(Daq):
                 return None
             return levels[0], levels[1]
 
-    #: Every stroke ends with a REPORT: the device's STROKE report held against the stroke's frames,
-    #: or, from a device without reports (caps lacking STROKE_REPORT), its STOPPED and the checks.
+    #: Every stroke ends with a REPORT: the device's STROKE report held against the stroke's frames
+    #: (a device without reports is refused at the handshake: REQUIRED_CAPS).
     reports_strokes = True
 
     @property
@@ -379,6 +379,10 @@ class McuDaq(Daq):
             if waiter is not None:
                 self.stats.reply_timeouts += 1
                 self.stats.retransmits += 1
+            ack = self._request(arm, f"ARM stroke {arm.stroke}")
+        if ack.status == Status.BUSY:
+            # Armed while the device was still in the last stroke (its arrival on the wire was not
+            # its own): that stroke is over by the COMMAND's turn, so ask again now.
             ack = self._request(arm, f"ARM stroke {arm.stroke}")
         if ack.status != Status.OK:
             self._armed_msg = None
@@ -771,9 +775,7 @@ class McuDaq(Daq):
         elif isinstance(msg, Start):
             self.strokes.on_start(msg)
         elif isinstance(msg, Stopped):
-            dev = self.device
-            reports = dev is not None and Caps.STROKE_REPORT in Caps(dev.caps)
-            self.strokes.on_stopped(msg, reports=reports)
+            self.strokes.on_stopped(msg)
         elif isinstance(msg, Stroke):
             self.strokes.on_stroke(msg)
         elif isinstance(msg, Fault):

@@ -209,7 +209,7 @@ class StrokeAssembler:
             self.stats.start_mismatches += 1
         return max(0, late)
 
-    def on_stopped(self, msg: Stopped, *, reports: bool) -> None:
+    def on_stopped(self, msg: Stopped) -> None:
         ctx = self.ctx
         direction = None
         if ctx is not None and ctx.stroke == msg.stroke:
@@ -225,16 +225,11 @@ class StrokeAssembler:
         ev = Event.stop(self._host_stamp() if t is None else t, direction, detail=name)
         if ctx is not None and ctx.gap and not ctx.reported:
             ctx.held.append(ev)
-            if direction is not None and (ctx.start_rejected or not reports):
+            if direction is not None and ctx.start_rejected:
                 # The device sends its STROKE report before STOPPED: none will come to rebuild it.
                 self.give_up(ctx, "no STROKE report came before its STOPPED")
         else:
             self._deliver(ev)
-        if direction is not None and ctx is not None and not reports and not ctx.reported:
-            ctx.reported = True  # a device without reports: its STOPPED ends its account
-            arrived = msg.reason == StopReason.ARRIVED
-            report = StrokeReport(arrived=arrived, detail="; ".join(ctx.doubts))
-            self._deliver(Event.report_event(self._report_stamp(), report))
 
     def on_stroke(self, msg: Stroke) -> None:
         ctx = self.ctx

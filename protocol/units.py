@@ -1,4 +1,4 @@
-"""Human durations in and out: "12ms", "10500us", "0.012s" <-> integer nanoseconds.
+"""Human durations in and out: "12ms", "10500us", "0.012s", "2min", "1h" <-> integer nanoseconds.
 
 Config files, command-line flags and the socket client all take durations from people; this is
 the one place that turns them into the integer nanoseconds every API uses, exactly (Decimal, never
@@ -8,7 +8,7 @@ float), and back into a readable form.
 from __future__ import annotations
 
 import re
-from decimal import Decimal, InvalidOperation
+from decimal import Decimal, InvalidOperation, localcontext
 
 # Nanoseconds per unit. "µ" (micro sign) and "μ" (Greek mu) both appear in copied text.
 UNITS_NS: dict[str, int] = {
@@ -18,7 +18,10 @@ UNITS_NS: dict[str, int] = {
     "μs": 1_000,
     "ms": 1_000_000,
     "s": 1_000_000_000,
+    "min": 60_000_000_000,
+    "h": 3_600_000_000_000,
 }
+_UNIT_NAMES = "ns, us, ms, s, min, h"
 
 # SQLite stores signed 64-bit integers: about 292 years of nanoseconds.
 MAX_NS = 2**63 - 1
@@ -26,9 +29,9 @@ MAX_NS = 2**63 - 1
 _DURATION = re.compile(
     r"""^\s*
     (?P<sign>[+-]?)
-    (?P<number>(?:\d[\d_]*(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?)
+    (?P<number>(?:[0-9][0-9_]*(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][+-]?[0-9]+)?)
     \s*
-    (?P<unit>[^\s\d.+-][^\s]*)?
+    (?P<unit>[^\s0-9.+-][^\s]*)?
     \s*$""",
     re.VERBOSE,
 )
@@ -37,6 +40,8 @@ _DURATION = re.compile(
 def _unit_hint(number: Decimal) -> str:
     """What a bare number most likely meant, written with units: a count of ms when small (a
     target of "12"), else of ns (a raw "12000000" copied from a record), in its natural unit too."""
+    if number.adjusted() > 20 or number.adjusted() < -20:
+        return "'12ms'"
     if abs(number) < 1000:
         return f"'{number}ms'"
     if number == number.to_integral_value():
@@ -63,7 +68,10 @@ def parse_duration_ns(value: str | int) -> int:
         )
     m = _DURATION.match(value)
     if m is None:
-        raise ValueError(f"duration {value!r}: not a number with a unit (ns, us, ms, s), e.g. '12ms'")
+        raise ValueError(
+            f"duration {value!r}: not a number with a unit ({_UNIT_NAMES}), e.g. '12ms'"
+            " (ASCII digits)"
+        )
     unit = m["unit"]
     try:
         number = Decimal(m["number"].replace("_", ""))
@@ -73,11 +81,19 @@ def parse_duration_ns(value: str | int) -> int:
         # A bare number is ambiguous ("12" meant as ms would be a 12 ns target): only 0 is safe.
         if number == 0:
             return 0
-        raise ValueError(f"duration {value!r}: needs a unit (ns, us, ms, s), e.g. {_unit_hint(number)}")
+        raise ValueError(f"duration {value!r}: needs a unit ({_UNIT_NAMES}), e.g. {_unit_hint(number)}")
     scale = UNITS_NS.get(unit)
     if scale is None:
-        raise ValueError(f"duration {value!r}: unknown unit {unit!r} (use ns, us, ms or s)")
-    ns = number * scale
+        raise ValueError(f"duration {value!r}: unknown unit {unit!r} (use {_UNIT_NAMES})")
+    # Exact, or refused: an exponent far out of range is never handed to arithmetic that would
+    # overflow or round, and the product keeps every digit typed.
+    if number != 0 and number.adjusted() > 20:
+        raise ValueError(f"duration {value!r}: longer than {MAX_NS} ns")
+    if number != 0 and number.adjusted() < -20:
+        raise ValueError(f"duration {value!r}: finer than 1 ns")
+    with localcontext() as ctx:
+        ctx.prec = 80
+        ns = number * scale
     if m["sign"] == "-" and ns != 0:
         raise ValueError(f"duration {value!r}: negative")
     if ns != ns.to_integral_value():

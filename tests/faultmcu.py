@@ -4,7 +4,10 @@ It speaks docs/mcu-protocol.md as `McuEmulator` does, over a pty (`PtyLink`), an
 sends is valid (COBS, CRC, the firmware's own sequence numbers): what it injects is what a confused
 device or a noisy line that happens to pass the CRC would say. `tamper` rewrites each frame the
 firmware sends into any list of frames; `say` sends one more now; `flood` sends EDGE frames as fast
-as the line takes them. Importable from any test (tests/conftest.py puts this folder on sys.path).
+as the line takes them; `chatter` sends a sensor's edges at a given spacing for a while (a line
+ringing); `latency_ns` delays every frame on the line (a USB-serial adapter's latency timer) and
+`trickle` sends the next frames a byte at a time, both in order; `jump_clock` moves the device
+clock without a restart. Importable from any test (tests/conftest.py puts this folder on sys.path).
 """
 
 from __future__ import annotations
@@ -29,6 +32,13 @@ class FaultyMcu(McuEmulator):
         #: Frames `tamper` replaced, and frames sent by say/flood.
         self.tampered = 0
         self.said = 0
+        #: Every frame reaches the host this much later (in order).
+        self.latency_ns = 0
+        self._trickle_frames = 0
+        self._trickle_byte_ns = 0
+        self._line_busy_ns = 0
+        #: The next stroke's start fires this much after its instant, and says it was on time.
+        self.fire_late_ns = 0
 
     def _send(self, msg: Message) -> None:
         tamper = self.tamper
@@ -40,6 +50,64 @@ class FaultyMcu(McuEmulator):
             self.tampered += 1
         for m in out:
             super()._send(m)
+
+    def _put_raw(self, data: bytes) -> None:
+        now = time.monotonic_ns()
+        if not self.latency_ns and not self._trickle_frames and self._line_busy_ns <= now:
+            super()._put_raw(data)
+            return
+        # The line's model: frames leave in order, each after the one before it is out.
+        if self._trickle_frames:
+            self._trickle_frames -= 1
+            for i in range(len(data)):
+                due = max(now + self.latency_ns, self._line_busy_ns) + self._trickle_byte_ns
+                self._line_busy_ns = due
+                self._at(due, lambda b=data[i : i + 1]: McuEmulator._put_raw(self, b))
+            return
+        due = max(now + self.latency_ns, self._line_busy_ns)
+        self._line_busy_ns = due
+        self._at(due, lambda: McuEmulator._put_raw(self, data))
+
+    def _fire(self, st: object, due_ns: int, gen: int) -> None:
+        off, self.fire_late_ns = self.fire_late_ns, 0
+        if off > 0:  # the timer fires late, and the firmware believes it on time
+            self._at(due_ns + off, lambda: McuEmulator._fire(self, st, due_ns + off, gen))  # type: ignore[arg-type]
+            return
+        super()._fire(st, due_ns, gen)  # type: ignore[arg-type]
+
+    def trickle(self, frames: int, byte_ns: int) -> None:
+        """Send the next `frames` frames one byte every `byte_ns` (and what follows after them)."""
+        with self._lock:
+            self._trickle_frames = frames
+            self._trickle_byte_ns = byte_ns
+
+    def jump_clock(self, by_us: int) -> None:
+        """Move the device clock by `by_us` at once, in session, without a restart or a BOOT."""
+        with self._lock:
+            self.clock_start_us = (self.clock_start_us + by_us) % (1 << 32)
+
+    def restart_clock(self) -> None:
+        """The device clock starts again from clock_start_us, in session, without a BOOT."""
+        with self._lock:
+            self._t_boot_ns = time.monotonic_ns()
+
+    def chatter(self, channel: int, spacing_ns: int, duration_ns: int) -> threading.Thread:
+        """Edges of `channel`, alternating from the level it does not have now, every `spacing_ns`
+        for `duration_ns`, each stamped when sent (a line ringing): returns the sending thread."""
+
+        def run() -> None:
+            end = time.monotonic_ns() + duration_ns
+            level = 1 - int(self.rig.sensors()[channel])
+            while time.monotonic_ns() < end:
+                with self._lock:
+                    self.said += 1
+                    McuEmulator._send(self, Edge(channel, level, self.device_us()))
+                level ^= 1
+                time.sleep(spacing_ns / 1e9)
+
+        t = threading.Thread(target=run, daemon=True)
+        t.start()
+        return t
 
     def say(self, msg: Message) -> None:
         """Send `msg` now, numbered in the firmware's sequence."""

@@ -5,19 +5,17 @@ honour, floods of edges."""
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import sqlite3
 import threading
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import daemonproc
 import faultmcu
+import mcudaemon
 import pytest
+from mcudaemon import daemon, run
 
-from usmswitch.client import Client
 from usmswitch.drivers.mcu_protocol import U32_MOD, Edge, Message, Start, Stroke
 
 MS = 1_000_000
@@ -27,39 +25,8 @@ STALL = 2  # Flag.STALL
 pytestmark = pytest.mark.realtime
 
 
-@contextlib.contextmanager
-def daemon(tmp_path: Path, port: Path, *extra: str) -> Iterator[tuple[Client, object]]:
-    sock = tmp_path / "d.sock"
-    args = ["--driver", "serial", "--port", str(port), "--target", "12ms", *extra]
-    proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False))
-    try:
-        daemonproc.wait_serving(sock, proc)
-        with Client(str(sock), timeout=10) as c:
-            yield c, proc
-    except Exception as exc:
-        err = daemonproc.stop(proc)
-        raise AssertionError(err.decode()[-3000:]) from exc
-    else:
-        err = daemonproc.stop(proc)
-        assert proc.returncode == 0, err.decode()[-3000:]
-
-
-def run(c: Client, period_ns: int, count: int, timeout_s: float = 20.0) -> dict:
-    c.start_cycling(period_ns, count)
-    end = time.monotonic() + timeout_s
-    while (st := c.status())["state"] == "cycling":
-        assert time.monotonic() < end
-        time.sleep(0.05)
-    return st
-
-
 def rows(tmp_path: Path) -> list[tuple[int, int, int | None, int | None, int | None]]:
-    con = sqlite3.connect(tmp_path / "state" / "records.sqlite")
-    try:
-        sql = "SELECT cycle, flags, t_start_ns, t_arrive_ns, operating_ns FROM cycles ORDER BY cycle"
-        return list(con.execute(sql))
-    finally:
-        con.close()
+    return [(r.cycle, r.flags, r.t_start_ns, r.t_arrive_ns, r.operating_ns) for r in mcudaemon.rows(tmp_path)]
 
 
 def test_stamps_off_the_device_clock_are_rejected_and_outlive_nothing(tmp_path: Path) -> None:
@@ -169,23 +136,28 @@ def test_a_device_that_cannot_delay_as_long_as_the_targets_is_refused(tmp_path: 
     assert "up to 12.000 ms" in text
 
 
-def test_a_delay_beyond_the_devices_longest_is_a_driver_fault_not_an_internal_error(tmp_path: Path) -> None:
-    """Item 3: a target raised past what the device can delay made arm() raise ValueError inside the
-    loop: 'internal error' and a traceback. Now it is a DaqError the loop records and latches."""
+def test_a_target_beyond_the_devices_longest_delay_is_refused_at_the_call(tmp_path: Path) -> None:
+    """Item 3 (and issue 34 item 8): a target raised past what the device can delay made arm()
+    raise ValueError inside the loop ('internal error'); then a fault at the next stroke. Now the
+    call itself is refused, naming the device's longest delay, and the rig runs on."""
+    from usmswitch.client import TargetUnreachable
+    from usmswitch.protocol.wire import InvalidParams
+
     emu, link, port = faultmcu.plug(tmp_path, seed=10, max_delay_us=15_000)
     try:
         with daemon(tmp_path, port) as (c, _):
             assert run(c, 100 * MS, 2)["state"] == "idle"
-            c.set_target(40 * MS)
+            with pytest.raises(TargetUnreachable, match=r"longer than the device.s longest, 15\.000 ms"):
+                c.set_target(40 * MS)
+            with pytest.raises(InvalidParams, match=r"device.s longest start delay, 15\.000 ms"):
+                c.set_mode("open", "20ms")
             st = run(c, 100 * MS, 2)
     finally:
         link.close()
         emu.stop()
-    assert st["state"] == "fault"
-    assert not st["fault"].startswith("internal error"), st["fault"]
-    assert "longer than the device's longest, 15.000 ms" in st["fault"], st["fault"]
+    assert st["state"] == "idle", st["fault"]
     got = rows(tmp_path)
-    assert len(got) == 3 and got[2][1] & FAULT and got[2][2] is None
+    assert len(got) == 4 and not [r for r in got if r[1] & FAULT], got
 
 
 def _rss_kb(pid: int) -> int:

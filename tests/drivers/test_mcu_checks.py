@@ -238,3 +238,24 @@ def test_fuzz_valid_frames_never_break_the_driver_and_it_recovers(tmp_path: Path
     assert examples[0] >= 10
     grown_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0
     assert grown_kb < 50_000, grown_kb
+
+
+def test_an_edge_older_than_the_sensor_snapshot_does_not_overwrite_it(tmp_path: Path) -> None:
+    """Issue 34 item 9: an EDGE stamped in the past overwrote the newer PONG snapshot of the sensors
+    (a `switch` was then refused as "already rests at sensor ..."). Now an edge moves the levels
+    only when it is newer than what they are as of; a newer one still does."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=41)
+    daq = _open(port)
+    try:
+        assert wait_for(lambda: daq.levels() is not None)
+        time.sleep(3 * FAST["heartbeat_ns"] / 1e9)  # a fresh PONG: the mover rests at A
+        assert daq.levels() == (1, 0)
+        emu.say(Edge(0, 0, (emu.device_us() - 100_000) % U32_MOD))  # "A released", 100 ms ago
+        time.sleep(0.01)
+        assert daq.levels() == (1, 0)
+        emu.say(Edge(1, 1, emu.device_us()))  # "B active", now: taken until the next PONG
+        assert wait_for(lambda: daq.levels() == (1, 1), 0.5)
+    finally:
+        daq.close()
+        link.close()
+        emu.stop()

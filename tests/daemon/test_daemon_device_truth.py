@@ -1,0 +1,383 @@
+"""Issue 34, through the daemon process: `usmswitchd --driver serial` on a fake MCU (tests/faultmcu.py)
+over a pty, the emulator's own log as the truth. The device's STROKE report, its sensor levels and
+the instant the host commanded are checks on every stroke; a clock jump is a new handshake at any
+session age; a refused clock rate stays refused; a watchdog reset is latched whenever it comes; a
+stall is declared only once what is in hand and on the line is read, and its cause is named."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+import faultmcu
+import pytest
+from mcudaemon import FAULT, MISMATCH, MS, NOISE, STALL, daemon, rows, run, truth_of, untrue_clean
+
+from usmswitch.drivers.mcu_protocol import U32_MOD, Ack, Message, MsgType, Start, Stroke
+
+pytestmark = pytest.mark.realtime
+
+T_NS = 12 * MS
+
+
+def _on_start(k: int, action: object) -> faultmcu.Tamper:
+    """A tamper that calls `action(start)` (in a thread of its own) when the k-th START is sent."""
+    return faultmcu.start_of_stroke(
+        k, lambda s: (threading.Thread(target=action, args=(s,), daemon=True).start(), [s])[1]
+    )
+
+
+def test_destination_chatter_mid_stroke_is_never_a_clean_record(tmp_path: Path) -> None:
+    """Item 1: edges on the destination sensor from 2 ms after a start were recorded as a clean
+    stroke of 2.7-5.1 ms (true ~8 ms) and the predictor learned it: the next stroke that way came
+    5.36 ms late. Now the wire's arrival is held against the device's report: the stroke is kept
+    flagged MISMATCH (and NOISE), never learned, the chatter counted per sensor in status, and the
+    strokes after it are on time."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=21)
+    chatters: list[threading.Thread] = []
+
+    def ring(s: Start) -> None:
+        time.sleep(0.002)
+        dest = 1 if s.direction == 0 else 0
+        chatters.append(emu.chatter(dest, 300_000, 30 * MS))
+
+    try:
+        with daemon(tmp_path, port) as (c, _):
+            assert run(c, 100 * MS, 6)["state"] == "idle"  # the predictors warm
+            emu.tamper = _on_start(2, ring)  # the 8th stroke of the daemon's life
+            st = run(c, 100 * MS, 10)
+    finally:
+        link.close()
+        emu.stop()
+    got = rows(tmp_path)
+    assert st["state"] == "idle", st["fault"]
+    assert chatters, "the chatter never started"
+    hit = got[7]
+    assert hit.flags & MISMATCH and hit.flags & NOISE, hit
+    assert not untrue_clean(got, emu.log), untrue_clean(got, emu.log)
+    assert sum(st_noise for st_noise in st["noise"].values()) > 0, st["noise"]
+    assert st["mismatched_strokes"] >= 1
+    # The strokes after it, both ways, are on time: nothing of the chatter was learned.
+    for r in got[8:12]:
+        assert r.clean and abs(r.error_ns) <= T_NS // 20, (r, got[7])
+
+
+def test_a_clock_jump_is_a_new_handshake_at_any_session_age(tmp_path: Path) -> None:
+    """Item 2: a jump of +70 ms 3 s into a session read as a rate error ("+1.066 %") and the rig was
+    locked out; a clock started again without BOOT read "-117 %". Now three PONGs that agree with
+    each other and not with the clock are a jump: the host handshakes again, and strokes go on."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=22)
+    try:
+        with daemon(tmp_path, port) as (c, _):
+            time.sleep(1.0)
+            emu.jump_clock(70_000)
+            time.sleep(1.0)
+            st1 = run(c, 60 * MS, 6)
+            emu.restart_clock()  # back to 0, in session, no BOOT
+            time.sleep(1.0)
+            st2 = run(c, 60 * MS, 6)
+    finally:
+        link.close()
+        emu.stop()
+    got = rows(tmp_path)
+    for st in (st1, st2):
+        assert st["state"] == "idle", st["fault"]
+    counters = st2["driver_counters"]
+    assert counters["resyncs"] >= 2 and counters["handshake_failures"] == 0, counters
+    assert len(got) == 12 and all(r.clean for r in got), got
+    assert not untrue_clean(got, emu.log)
+
+
+def test_a_clock_jump_mid_stroke_is_named_the_links_not_a_stall(tmp_path: Path) -> None:
+    """Item 2: a stroke during which the device clock jumped was recorded STALL though the device
+    arrived. Its stamps cannot be believed: the stroke ends with FAULT WIRE, never STALL, and after
+    reset_fault the strokes are clean again."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=23)
+    try:
+        with daemon(tmp_path, port) as (c, _):
+            emu.tamper = _on_start(3, lambda s: emu.jump_clock(70_000))
+            st = run(c, 100 * MS, 6)
+            emu.tamper = None
+            time.sleep(1.0)  # the jump is handshaken away
+            c.reset_fault()
+            after = run(c, 100 * MS, 4)
+    finally:
+        link.close()
+        emu.stop()
+    got = rows(tmp_path)
+    assert st["state"] == "fault" and st["fault"].startswith("wire"), st["fault"]
+    hit = got[2]
+    assert hit.flags & FAULT and not hit.flags & STALL, hit
+    assert after["state"] == "idle", after["fault"]
+    assert all(r.clean for r in got[3:]) and len(got) == 7, got
+    assert not untrue_clean(got, emu.log)
+
+
+@pytest.mark.parametrize("drift_ppm", [10_000, -10_000])
+def test_a_refused_clock_rate_stays_refused(tmp_path: Path, drift_ppm: int) -> None:
+    """Item 3: a device clock 1 % off was refused, then taken again at the next reconnect (the
+    restart check read the drift as a restart): 8-20 reconnects a minute. Now the refusal stands
+    until the device really restarts."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=24, drift_ppm=drift_ppm)
+    try:
+        with daemon(tmp_path, port) as (c, _):
+            end = time.monotonic() + 10
+            while c.status()["driver_ok"] and time.monotonic() < end:
+                time.sleep(0.1)
+            assert not c.status()["driver_ok"], "the rate was never refused"
+            first = c.status()["driver_counters"]
+            time.sleep(6.0)
+            later = c.status()
+    finally:
+        link.close()
+        emu.stop()
+    assert not later["driver_ok"]
+    counters = later["driver_counters"]
+    assert counters["reconnects"] == first["reconnects"], (first, counters)
+    assert counters["handshake_failures"] > first["handshake_failures"], counters
+
+
+def test_the_clock_rate_is_judged_through_a_slow_link(tmp_path: Path) -> None:
+    """Item 4: with a round trip over 10 ms (a USB-serial adapter's 16 ms latency timer) the rate
+    was never judged: +1 % ran on, +5 % made 68 resyncs in 45 s. Now it is judged past both round
+    trips whatever they are: refused within seconds; an exact clock behind the same link is not."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=25, drift_ppm=10_000)
+    emu.latency_ns = 16 * MS
+    (tmp_path / "good").mkdir()
+    good, glink, gport = faultmcu.plug(tmp_path / "good", seed=26)
+    good.latency_ns = 16 * MS
+    try:
+        with daemon(tmp_path, port) as (c, _):
+            end = time.monotonic() + 15
+            while c.status()["driver_ok"] and time.monotonic() < end:
+                time.sleep(0.2)
+            refused = c.status()
+        with daemon(tmp_path / "good", gport) as (g, _):
+            time.sleep(4.0)
+            fine = g.status()
+            st = run(g, 100 * MS, 4)
+    finally:
+        for lk, e in ((link, emu), (glink, good)):
+            lk.close()
+            e.stop()
+    assert not refused["driver_ok"], refused["driver_counters"]
+    assert fine["driver_ok"] and fine["driver_counters"]["handshake_failures"] == 0, fine
+    assert fine["driver_counters"]["max_rtt_ns"] > 15 * MS
+    assert st["state"] == "idle", st["fault"]
+
+
+def test_a_watchdog_reset_between_strokes_of_a_run_is_latched(tmp_path: Path) -> None:
+    """Item 5: a watchdog reset of the MCU between two strokes of a run gave warnings only (the loop
+    dropped the fault as stamped before its command): 20 of 20 strokes clean. Now it is latched
+    whenever it comes, as it is while idle."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=27)
+
+    def reset_after_fifth() -> None:
+        while emu.strokes_arrived < 5:
+            time.sleep(0.001)
+        time.sleep(0.03)  # between strokes: the 5th is over, the 6th not yet commanded
+        with emu._lock:
+            emu._watchdog_reset(time.monotonic_ns())
+
+    try:
+        with daemon(tmp_path, port) as (c, _):
+            t = threading.Thread(target=reset_after_fifth, daemon=True)
+            t.start()
+            st = run(c, 100 * MS, 20)
+            t.join(5)
+    finally:
+        link.close()
+        emu.stop()
+    assert st["state"] == "fault", "the reset was not latched"
+    assert "watchdog" in st["fault"], st["fault"]
+    assert len(rows(tmp_path)) < 20
+
+
+@pytest.mark.parametrize(
+    ("name", "rewrite"),
+    [
+        ("late, says on time", None),
+        ("early", lambda s: dataclasses.replace(s, t_us=(s.t_us - 3000) % U32_MOD)),
+        ("on time, says 5 s late", lambda s: dataclasses.replace(s, late_us=5_000_000)),
+    ],
+)
+def test_a_devices_claim_about_its_start_is_checked(tmp_path: Path, name: str, rewrite: object) -> None:
+    """Item 6: a START fired 3 ms late that said late_us 0, one 3 ms early, and one on time that
+    said 5 s late were believed (clean records 3 ms off; LATE by 5 s). Now the start is held
+    against the instant the host commanded: the stroke is flagged MISMATCH, its lateness is the
+    host's measure, and the next strokes are clean."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=28)
+    try:
+        with daemon(tmp_path, port) as (c, _):
+            assert run(c, 100 * MS, 4)["state"] == "idle"
+            if rewrite is None:
+                emu.fire_late_ns = 3 * MS
+            else:
+                emu.tamper = faultmcu.start_of_stroke(1, lambda s: [rewrite(s)])  # type: ignore[operator]
+            st = run(c, 100 * MS, 6)
+    finally:
+        link.close()
+        emu.stop()
+    got = rows(tmp_path)
+    assert st["state"] == "idle", st["fault"]
+    hit = got[4]
+    assert hit.flags & MISMATCH, (name, hit)
+    # Its lateness is the host's measure against its own instant, not the device's claim.
+    expected_late_ns = 3 * MS if rewrite is None else 0
+    assert hit.lateness_ns is not None and abs(hit.lateness_ns - expected_late_ns) < 100_000, hit
+    assert st["driver_counters"]["start_mismatches"] >= 1
+    assert not untrue_clean(got, emu.log)
+    assert all(r.clean and abs(r.error_ns) <= T_NS // 20 for r in got[5:]), got
+
+
+def test_a_host_pause_after_the_start_is_not_a_stall(tmp_path: Path) -> None:
+    """Item 7: a 70 ms pause of the daemon 2 ms after a START (the default stroke timeout is 50 ms)
+    was a STALL although the device arrived at ~8 ms: the loop gave up at its deadline without
+    reading what had come. Now it reads what is in hand: the stroke is clean and exact."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=29)
+    pid = [0]
+
+    def pause(_s: Start) -> None:
+        time.sleep(0.002)
+        os.kill(pid[0], signal.SIGSTOP)
+        time.sleep(0.07)
+        os.kill(pid[0], signal.SIGCONT)
+
+    try:
+        with daemon(tmp_path, port) as (c, proc):
+            pid[0] = proc.pid  # type: ignore[attr-defined]
+            emu.tamper = _on_start(3, pause)
+            st = run(c, 200 * MS, 5)
+    finally:
+        link.close()
+        emu.stop()
+    got = rows(tmp_path)
+    assert st["state"] == "idle", st["fault"]
+    assert len(got) == 5 and all(r.clean for r in got), got
+    assert not untrue_clean(got, emu.log)
+
+
+def test_a_slow_frame_is_waited_for_and_lost_ones_are_the_wires_fault(tmp_path: Path) -> None:
+    """Item 7: a stroke whose frames trickled in a byte per 10 ms, and one whose arrival and report
+    were lost, were both STALL. Now the trickled stroke is read when it comes (clean, exact), and
+    the lost one ends with FAULT WIRE (the link), never STALL (the mover)."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=30)
+    try:
+        with daemon(tmp_path, port) as (c, _):
+            emu.tamper = _on_start(2, lambda s: emu.trickle(1, 10 * MS))  # its departure, and all behind it
+            st = run(c, 300 * MS, 4)
+            assert st["state"] == "idle", st["fault"]
+
+            def lose(msg: Message) -> list[Message]:
+                return [] if isinstance(msg, Stroke) or (lose.armed and msg.TYPE is MsgType.EDGE) else [msg]
+
+            lose.armed = False  # type: ignore[attr-defined]
+
+            def arm_loss(s: Start) -> list[Message]:
+                lose.armed = True  # type: ignore[attr-defined]
+                return [s]
+
+            emu.tamper = lambda m: arm_loss(m) if isinstance(m, Start) else lose(m)
+            lost = run(c, 300 * MS, 1)
+    finally:
+        link.close()
+        emu.stop()
+    got = rows(tmp_path)
+    assert len(got) == 5 and all(r.clean for r in got[:4]), got
+    assert not untrue_clean(got, emu.log)
+    assert lost["state"] == "fault" and lost["fault"].startswith("wire"), lost["fault"]
+    assert got[4].flags & FAULT and not got[4].flags & STALL, got[4]
+
+
+def test_a_command_whose_acks_are_all_lost_is_followed_to_its_end(tmp_path: Path) -> None:
+    """Item 7: all three ACKs of a COMMAND lost: the record had no start and a 'command failed'
+    fault, though the device started and arrived. Now the stroke's own frames are followed: the
+    record is the device's stroke, clean and exact."""
+    emu, link, port = faultmcu.plug(tmp_path, seed=31)
+    drop = [False]
+    victim: list[int] = []
+
+    def no_command_acks(msg: Message) -> list[Message]:
+        if isinstance(msg, Ack) and msg.acked_type == MsgType.COMMAND:
+            if drop[0] and not victim:
+                victim.append(msg.stroke)
+            if msg.stroke in victim:
+                return []  # every try's ACK of this one stroke
+        return [msg]
+
+    try:
+        with daemon(tmp_path, port) as (c, _):
+            assert run(c, 200 * MS, 2)["state"] == "idle"
+            drop[0] = True
+            emu.tamper = no_command_acks
+            st = run(c, 200 * MS, 3)
+    finally:
+        link.close()
+        emu.stop()
+    got = rows(tmp_path)
+    assert st["state"] == "idle", st["fault"]
+    assert st["driver_counters"]["unacked_commands"] == 1
+    assert got[2].t_start_ns is not None and got[2].clean, got[2]
+    assert not untrue_clean(got, emu.log)
+    assert truth_of(got[2], emu.log) is not None
+
+
+def test_a_device_without_stroke_reports_is_refused(tmp_path: Path) -> None:
+    """Item 7: a device without STROKE reports (caps 0x1B) was accepted, and any lost frame was a
+    false STALL: nothing could rebuild or check its strokes. The report is now a check on every
+    stroke: such a device is refused at the handshake, naming what it lacks."""
+    import daemonproc
+
+    from usmswitch.drivers.mcu_protocol import Caps
+    from usmswitch.sim.mcu_firmware import ALL_CAPS
+
+    emu, link, port = faultmcu.plug(tmp_path, seed=32, caps=ALL_CAPS & ~Caps.STROKE_REPORT)
+    try:
+        args = ["--driver", "serial", "--port", str(port), "--target", "12ms"]
+        proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False))
+        _, err = proc.communicate(timeout=30)
+    finally:
+        link.close()
+        emu.stop()
+    assert proc.returncode != 0
+    assert "STROKE_REPORT" in err.decode(), err.decode()[-2000:]
+
+
+def test_limits_the_device_states_are_checked_at_the_call(tmp_path: Path) -> None:
+    """Item 8: `stroke_timeout` had no upper bound (11 s and 3600 s accepted, then every stroke
+    NOT_ARMED, the ARM's ACK never checked; 7200 s an internal ValueError with a traceback), and
+    "1h" was an unknown unit. Now the config refuses a stall limit past the device's 10 s, naming
+    it (h and min are units), and an ARM the device refuses is a fault that says so."""
+    import daemonproc
+
+    emu, link, port = faultmcu.plug(tmp_path, seed=33)
+    try:
+        for value in ("11s", "1h", "7200s"):
+            cfg = tmp_path / f"c{value}.toml"
+            cfg.write_text(f'[control]\nstroke_timeout = "{value}"\n')
+            args = ["--driver", "serial", "--port", str(port), "--config", str(cfg)]
+            proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False))
+            _, err = proc.communicate(timeout=30)
+            text = err.decode()
+            assert proc.returncode == 2, text[-2000:]
+            assert "control.stroke_timeout" in text and "longest stall limit, 10.000000 s" in text, text
+            assert "Traceback" not in text
+
+        def refuse_arm(msg: Message) -> list[Message]:
+            if isinstance(msg, Ack) and msg.acked_type == MsgType.ARM and emu.strokes_started >= 2:
+                return [dataclasses.replace(msg, status=4)]  # BAD_ARG
+            return [msg]
+
+        with daemon(tmp_path, port, "--target", "12ms") as (c, _):
+            emu.tamper = refuse_arm
+            st = run(c, 100 * MS, 5)
+    finally:
+        link.close()
+        emu.stop()
+    assert st["state"] == "fault"
+    assert "device refused ARM stroke" in st["fault"] and "BAD_ARG" in st["fault"], st["fault"]
+    assert "stall limit 50.000 ms" in st["fault"], st["fault"]
