@@ -132,6 +132,7 @@ class DirectionStats:
         # the error figures. At most two a rig's life, so a short list is fixed memory enough.
         self.commissioning: list[dict[str, int | None]] = []
         self.implausible = 0  # strokes the hardware side reported that were not strokes
+        self.mismatched = 0  # strokes whose stamps the device's own account did not bear out
 
     def add(
         self,
@@ -169,8 +170,13 @@ class DirectionStats:
 
         A commissioning stroke feeds the operating time and the counters; its error is kept apart."""
         flags = rec.flags
-        if flags & Flag.IMPLAUSIBLE:  # not a stroke: counted apart, none of its times believed
-            self.implausible += 1
+        if flags & (Flag.IMPLAUSIBLE | Flag.MISMATCH):
+            # Not a stroke, or one whose stamps the device does not bear out: counted apart, none of
+            # its times believed.
+            if flags & Flag.IMPLAUSIBLE:
+                self.implausible += 1
+            else:
+                self.mismatched += 1
             self.faults += bool(flags & Flag.FAULT)
             return
         if flags & Flag.COMMISSIONING and rec.error_ns is not None:
@@ -212,7 +218,9 @@ class DirectionStats:
 
         `raw=True` leaves the percentiles to `finish_direction`: the windows travel as bytes.
         """
-        strokes = self.error.count + self.stalls + len(self.commissioning) + self.implausible
+        strokes = (
+            self.error.count + self.stalls + len(self.commissioning) + self.implausible + self.mismatched
+        )
         out: dict[str, object] = {"count": self.operating.count, "strokes": strokes}
         out.update(self.operating.as_dict("operating"))
         out.update(self.total.as_dict("total"))
@@ -223,6 +231,7 @@ class DirectionStats:
         out.update(late=self.late, stalls=self.stalls, bounces=self.bounces, faults=self.faults)
         out["commissioning"] = list(self.commissioning)
         out["implausible"] = self.implausible
+        out["mismatched"] = self.mismatched
         return out if raw else finish_direction(out)
 
 

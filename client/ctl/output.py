@@ -227,6 +227,7 @@ def stats_table(stats: dict[str, Any]) -> str:
         row("bounces", lambda d: _count(d, "bounces")),
         row("faults", lambda d: _count(d, "faults")),
         row("implausible (not strokes)", lambda d: _count(d, "implausible")),
+        row("mismatched (device disagreed)", lambda d: _count(d, "mismatched")),
         row("model order", lambda d: _count(d, "order")),
         row(
             "coefficients",

@@ -111,3 +111,31 @@ def test_format_elapsed_reads_like_an_uptime() -> None:
     assert format_elapsed((3 * 86400 + 4 * 3600) * s) == "3 d 04 h"
     with pytest.raises(ValueError):
         format_elapsed(1.5)  # type: ignore[arg-type]
+
+
+def test_hours_and_minutes_are_units() -> None:
+    """Issue 34 item 8: "1h" was refused as an unknown unit."""
+    assert parse_duration_ns("1h") == 3_600_000_000_000
+    assert parse_duration_ns("2min") == 120_000_000_000
+    assert parse_duration_ns("1.5 min") == 90_000_000_000
+
+
+@pytest.mark.parametrize(
+    ("text", "says"),
+    [
+        ("1e999999ms", "longer than"),  # was a decimal.Overflow traceback
+        ("1e999999", "needs a unit"),  # was decimal.InvalidOperation
+        ("1e-9999999999ms", "finer than 1 ns"),  # was parsed as 0
+        ("1234567890123456789.5ns", "finer than 1 ns"),  # 20 digits: exact or refused, never rounded
+        ("١٢ms", "ASCII digits"),  # Arabic-Indic digits were taken
+    ],
+)
+def test_a_duration_is_exact_or_refused_with_a_value_error(text: str, says: str) -> None:
+    with pytest.raises(ValueError, match=says):
+        parse_duration_ns(text)
+
+
+def test_many_digits_stay_exact() -> None:
+    assert parse_duration_ns("9223372036854775807ns") == 2**63 - 1
+    assert parse_duration_ns("0.000000001s") == 1
+    assert parse_duration_ns("1234567890123456.789000000us") == 1234567890123456789
