@@ -8,6 +8,10 @@ predicted from the truth of the last stroke the same way), with a PING arriving 
 the rare instants issue 23 was about come up by the thousand. For every stroke, the STROKE report's
 start, depart and arrive stamps and the STOPPED instant are compared with the harness's truth
 (computed from emulator cycles), and the truth's arrival-to-drive-off time must be under 5 us.
+One stroke in two also has noise on its lines (issue 33), in turn, in both directions: a pulse of 1-8 us on the far
+sensor at rest before the COMMAND (the capture unit misses its second edge and must read it back),
+and chatter on the source sensor mid-stroke (a 3 us and a 12 us pulse, 40 us apart); the stamps
+must still equal the truth, and no edge may be lost.
 
     python tests/firmware/soak.py --strokes 100000 [--elf firmware/build/usmswitch.elf]
 
@@ -48,6 +52,11 @@ class SoakResult:
     #: arrivals that came within 3 us of an overflow (before or after it)
     near_overflow: int = 0
     late_starts: int = 0
+    #: strokes with noise on a line (a pulse at rest, chatter mid-stroke)
+    noisy: int = 0
+    #: edges the firmware lost (FAULT EVENTS_LOST) and read back flagged (EDGE flags MISSED)
+    lost: int = 0
+    missed: int = 0
     #: (stroke, stamp, firmware us, truth us) of every stamp off by more than 1 us
     wrong: list[tuple[int, str, int, int]] = field(default_factory=list)
     slow_cuts: list[tuple[int, int]] = field(default_factory=list)
@@ -55,7 +64,7 @@ class SoakResult:
 
     @property
     def ok(self) -> bool:
-        return not self.wrong and not self.slow_cuts and not self.missing
+        return not self.wrong and not self.slow_cuts and not self.missing and not self.lost
 
     def summary(self) -> str:
         rate = self.strokes / self.seconds if self.seconds else 0.0
@@ -66,7 +75,8 @@ class SoakResult:
             f" depart {w['depart']} us,"
             f" arrive {w['arrive']} us, drive-off {w['stop']} us; worst arrival-to-drive-off"
             f" {self.worst_cut_ns} ns; {len(self.wrong)} wrong stamps, {len(self.slow_cuts)} cuts >= 5 us,"
-            f" {len(self.missing)} strokes without a report, {self.late_starts} late starts"
+            f" {len(self.missing)} strokes without a report, {self.late_starts} late starts;"
+            f" {self.noisy} noisy strokes, {self.missed} edges read back, {self.lost} lost"
         )
 
 
@@ -113,7 +123,7 @@ def run_soak(
     t0 = time.monotonic()
     try:
         dev.write(b"\x00")
-        send(mp.Hello(1, 1, 60_000))
+        send(mp.Hello(1, 2, 60_000))
         got = [m for _, m in dev.run(5000)]
         assert any(isinstance(m, mp.HelloAck) for m in got), got
         predicted = {0: 8500, 1: 8500}  # operating time per direction, us
@@ -127,12 +137,27 @@ def run_soak(
             lead = DELAY_US + predicted[direction] + 1500  # the frames take ~0.3 ms to arrive
             target = ((now + lead) // PERIOD_US + 1) * PERIOD_US + jitter
             t_cmd = (target - predicted[direction] - DELAY_US) % U32
+            noise = n % 8
+            if noise in (3, 6):  # a pulse of 1-8 us on the far sensor, at rest (on and off strokes)
+                width = 1 + (n // 8) % 8
+                sim.command(f"square {direction ^ 1} {sim.cycle + 200 * 16} {width * 16} 2")
             send(mp.Arm(n % 65536, direction, DELAY_US, 100_000))
             send(mp.Command(n % 65536, t_cmd, 1))
+            res.noisy += noise in (3, 4, 6, 7)
+            msgs = []
+            if noise in (4, 7):  # chatter on the source sensor, mid-stroke: a 3 us and a 12 us pulse
+                mid = sim.cycle + (since_us(t_cmd, now) + DELAY_US + 3000) * 16
+                sim.command(f"square {direction} {mid} {3 * 16} 2")
+                msgs += [m for _, m in dev.run((mid - sim.cycle) // 16 + 20)]
+                sim.command(f"square {direction} {mid + 40 * 16} {12 * 16} 2")
             # a PING arriving as the arrival nears: the UART and the main loop busy around it
-            msgs = [m for _, m in dev.run(max(1, since_us(target, now) - 300))]
+            msgs += [m for _, m in dev.run(max(1, since_us(target, sim.fw_us) - 300))]
             send(mp.Ping(n))
             msgs += [m for _, m in dev.run(3000)]
+            res.lost += sum(
+                m.detail for m in msgs if isinstance(m, mp.Fault) and m.code == mp.DeviceFault.EVENTS_LOST
+            )
+            res.missed += sum(1 for m in msgs if isinstance(m, mp.Edge) and m.flags)
             report = next((m for m in msgs if isinstance(m, mp.Stroke) and m.stroke == n % 65536), None)
             stopped = next((m for m in msgs if isinstance(m, mp.Stopped) and m.stroke == n % 65536), None)
             drive_ons += any(isinstance(m, mp.Start) for m in msgs)
