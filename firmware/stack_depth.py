@@ -33,6 +33,7 @@ HAND_WRITTEN = {
     "__vector_45": 5,  # TIMER4_OVF (the plant image's clock): r24, SREG
     "__vector_50": 5,  # TIMER5_OVF (the clock)
     "__vector_47": 3,  # TIMER5_COMPA: reti
+    "__vector_42": 6,  # TIMER4_COMPA: r24, SREG, r25, all popped before its jmp to __vector_compare_rest
     "__vector_25": 8,  # USART0_RX: r24, SREG, r25, r30, r31
     "__vector_26": 8,  # USART0_UDRE: the same
     "__vector_default": 3,  # BADISR: drive off, waits for the watchdog (never returns)
@@ -95,7 +96,7 @@ def main(argv: list[str]) -> int:
             seis.add(cur)
 
     def skip(f: str, g: str) -> bool:  # the vector table's jumps, and the bad-interrupt loop
-        if g.startswith("__vector_") and g not in HAND_WRITTEN and f != "__vectors":
+        if re.fullmatch(r"__vector_\d+", g) and g not in HAND_WRITTEN and f != "__vectors":
             return True
         return g == "__vectors" or g.startswith("__bad_interrupt")
 

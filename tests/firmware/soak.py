@@ -8,10 +8,10 @@ predicted from the truth of the last stroke the same way), with a PING arriving 
 the rare instants issue 23 was about come up by the thousand. For every stroke, the STROKE report's
 start, depart and arrive stamps and the STOPPED instant are compared with the harness's truth
 (computed from emulator cycles), and the truth's arrival-to-drive-off time must be under 5 us.
-One stroke in two also has noise on its lines (issue 33), in turn, in both directions: a pulse of 1-8 us on the far
-sensor at rest before the COMMAND (the capture unit misses its second edge and must read it back),
-and chatter on the source sensor mid-stroke (a 3 us and a 12 us pulse, 40 us apart); the stamps
-must still equal the truth, and no edge may be lost.
+One stroke in two also has noise on its lines (issue 33), in turn, in both directions: a pulse
+of 1-8 us on the far sensor at rest before the COMMAND (the capture unit misses its second edge
+and must read it back), and chatter on the source sensor mid-stroke (a 3 us and a 12 us pulse,
+40 us apart); the stamps must still equal the truth, and no edge may be lost.
 
     python tests/firmware/soak.py --strokes 100000 [--elf firmware/build/usmswitch.elf]
 

@@ -94,7 +94,10 @@ static volatile uint16_t ev_dropped;
  * lost, counted as the one that found the ring full, and its pin is read back when it is unmasked. */
 volatile uint8_t cap_blanked __attribute__((used, externally_visible));
 
-static volatile uint8_t start_pending;
+/* 1: the start's instant is in start_hi/lo (a start forced by hal_drive_schedule); 2: it is the
+ * due instant, cmp_due_hi/tick (the compare match's, set by vectors.S); neither is written again
+ * before the main loop has taken it (the core schedules the next stroke only after). */
+volatile uint8_t start_pending __attribute__((used, externally_visible));
 static volatile uint32_t start_hi;
 static volatile uint16_t start_lo;
 
@@ -175,13 +178,13 @@ uint32_t hal_now_us(void)
 
 /* ---- drive ---- */
 enum { CMP_IDLE = 0, CMP_PRE, CMP_FINAL };
-static volatile uint8_t cmp_phase;
+volatile uint8_t cmp_phase __attribute__((used, externally_visible)); /* CMP_*: vectors.S reads it */
 static volatile uint16_t cmp_pre_period; /* the timer period of the pre-arm match (low 16 bits) */
 static volatile uint16_t cmp_due_low;
 static volatile uint32_t cmp_due_hi; /* the due instant as an event stamp (period, tick) */
 static volatile uint16_t cmp_due_tick;
 volatile uint8_t stop_mask __attribute__((used, externally_visible)); /* read by the capture stubs */
-static volatile uint8_t dest_mask; /* bit 0 sensor A, bit 1 sensor B */
+volatile uint8_t dest_mask __attribute__((used, externally_visible)); /* bit 0 sensor A, bit 1 B */
 volatile uint8_t drive_on __attribute__((used, externally_visible)); /* cleared by the cut too */
 
 static inline __attribute__((always_inline)) void drive_cut(void) /* interrupts off */
@@ -195,7 +198,8 @@ static inline __attribute__((always_inline)) void drive_cut(void) /* interrupts 
 }
 
 /* An arrival between the drive going on and stop_mask being set found the external interrupt
- * disarmed: look at the sensor as stop_mask is set, and cut now if it is there (interrupts off). */
+ * disarmed: look at the sensor as stop_mask is set, and cut now if it is there (interrupts off).
+ * (The compare match's own path, in vectors.S, does the same in its first cycles.) */
 static inline __attribute__((always_inline)) void arm_arrival_cut(void)
 {
     stop_mask = dest_mask;
@@ -209,11 +213,12 @@ static inline __attribute__((always_inline)) void arm_arrival_cut(void)
     }
 }
 
-/* The start's compare, with interrupts off throughout (no handler nests here but the two
- * self-masking ones of vectors.S, each at most once). The pin itself is set by the hardware at
- * the match. The drive is off whenever this runs (its pre-arm half a period before the start, its
- * final match the instant the drive goes on), so its length holds back no arrival's cut. */
-ISR(TIMER4_COMPA_vect)
+/* The start's compare at its pre-arm match, half a period before the start (TIMER4_COMPA_vect in
+ * vectors.S jumps here; the final match, the drive going on, is all its own): interrupts off
+ * throughout, the drive off, so its length holds back no arrival's cut. It moves OCR4A to the due
+ * instant. */
+void __vector_compare_rest(void) __attribute__((signal, used, externally_visible));
+void __vector_compare_rest(void)
 {
     if (cmp_phase == CMP_PRE) {
         /* the period of this match: t's, or the one before when the counter has wrapped since
@@ -228,14 +233,6 @@ ISR(TIMER4_COMPA_vect)
             TCCR4A = COM4A_SET;
             cmp_phase = CMP_FINAL;
         }
-    } else if (cmp_phase == CMP_FINAL) {
-        /* The hardware set OC4A at the match: the drive is on. */
-        cmp_phase = CMP_IDLE;
-        TIMSK4 &= (uint8_t)~_BV(OCIE4A);
-        start_hi = cmp_due_hi;
-        start_lo = cmp_due_tick;
-        start_pending = 1;
-        arm_arrival_cut();
     }
 }
 
@@ -455,6 +452,13 @@ static void hw_init(void)
     set_sleep_mode(SLEEP_MODE_IDLE);
 }
 
+/* The instant of the pending start (written whole before start_pending, and not again until the
+ * core has it). */
+static uint32_t start_instant(void)
+{
+    return start_pending == 2 ? us_of(cmp_due_hi, cmp_due_tick) : us_of(start_hi, start_lo);
+}
+
 /* The levels the main loop last reported for each sensor (bit 0 A, bit 1 B, 1 active). */
 static uint8_t reported;
 
@@ -550,8 +554,7 @@ int main(void)
             uint8_t i = ev_tail;
             uint8_t have = i != ev_head;
             if (start_pending) {
-                /* written whole before start_pending, and not again until the core has it */
-                uint32_t ts = us_of(start_hi, start_lo);
+                uint32_t ts = start_instant();
                 if (!have || (int32_t)(ev_us(i) - ts) >= 0) {
                     start_pending = 0;
                     core_start(ts);
@@ -602,8 +605,9 @@ int main(void)
             if (start_pending) {
                 /* the start first, whatever its place among the edges still queued: the stroke
                  * the loss ends has started */
+                uint32_t ts = start_instant();
                 start_pending = 0;
-                core_start(us_of(start_hi, start_lo));
+                core_start(ts);
             }
             core_events_lost((uint16_t)(dropped - dropped_seen), hal_now_us());
             dropped_seen = dropped;

@@ -80,6 +80,24 @@ TIMER5_COMPA_vect:
 #define CUT_TIFR TIFR5
 #endif
 
+/* The cut's record for the main loop (cut_flag = r24's value on entry): the counter, the clock's
+ * low byte and its overflow flag; then disarmed (stop_mask, drive_on). Uses r24; no SREG change. */
+.macro CUT_RECORD
+    sts cut_flag, r24
+    lds r24, _SFR_MEM_ADDR(CUT_TCNTL)
+    sts cut_tick, r24
+    lds r24, _SFR_MEM_ADDR(CUT_TCNTH)
+    sts cut_tick+1, r24
+    lds r24, clock_ovf
+    sts cut_ovf, r24
+    in r24, _SFR_IO_ADDR(CUT_TIFR)
+    sts cut_tifr, r24
+    ldi r24, 0
+    sts stop_mask, r24
+    sts drive_on, r24
+.endm
+
+
 /* The arrival's cut. Each sensor's line is also on an external interrupt pin (A: INT4, PE4, D2;
  * B: INT5, PE5, D3; the wiring is required), falling edge: the sensor goes active. Vectors 5 and 6
  * outrank every other, so only an interrupts-off stretch already running holds one back, never
@@ -96,19 +114,8 @@ TIMER5_COMPA_vect:
     sbrs r24, \maskbit
     rjmp 1f
     DRIVE_OFF_NOW
-    lds r24, _SFR_MEM_ADDR(CUT_TCNTL)
-    sts cut_tick, r24
-    lds r24, _SFR_MEM_ADDR(CUT_TCNTH)
-    sts cut_tick+1, r24
-    lds r24, clock_ovf
-    sts cut_ovf, r24
-    in r24, _SFR_IO_ADDR(CUT_TIFR)
-    sts cut_tifr, r24
     ldi r24, \which
-    sts cut_flag, r24
-    ldi r24, 0
-    sts stop_mask, r24
-    sts drive_on, r24
+    CUT_RECORD
 1:  pop r24
     reti
 .endm
@@ -190,6 +197,46 @@ TIMER4_CAPT_vect:
     .global TIMER5_CAPT_vect
 TIMER5_CAPT_vect:
     CAPTURE_STUB _SFR_MEM_ADDR(TIMSK5), ICIE5, capture_b_tail, 1
+
+/* The start's compare match (timer 4 compare A), interrupts off throughout. At the final match
+ * (cmp_phase 2) the hardware has set OC4A, the drive is on: arm the arrival's cut at once
+ * (stop_mask, drive_on), then look at the destination sensor, and cut now if the mover is there
+ * already or came in these few cycles (the external interrupt found the cut disarmed); then leave
+ * the START to the main loop (start_pending 2: the due instant is its stamp) and return, 48
+ * cycles in all (OCIE4A stays on: a later match finds cmp_phase idle and returns; the stroke's end
+ * masks it). At the pre-arm match, __vector_compare_rest (board.c) moves OCR4A. */
+    .global TIMER4_COMPA_vect
+TIMER4_COMPA_vect:
+    push r24
+    in r24, _SFR_IO_ADDR(SREG)
+    push r24
+    lds r24, cmp_phase
+    cpi r24, 2 /* CMP_FINAL */
+    brne 3f
+    lds r24, dest_mask
+    sts stop_mask, r24
+    push r25
+    ldi r25, 1
+    sts drive_on, r25
+    lds r25, _SFR_MEM_ADDR(PINL)
+    and r25, r24 /* the destination's line: low when the mover is there */
+    brne 1f
+    DRIVE_OFF_NOW
+    lds r24, dest_mask
+    CUT_RECORD
+1:  ldi r24, 0 /* CMP_IDLE */
+    sts cmp_phase, r24
+    ldi r24, 2
+    sts start_pending, r24
+    pop r25
+    pop r24
+    out _SFR_IO_ADDR(SREG), r24
+    pop r24
+    reti
+3:  pop r24
+    out _SFR_IO_ADDR(SREG), r24
+    pop r24
+    jmp __vector_compare_rest
 
 /* USART0 receive: masks its own interrupt (RXCIE0) with interrupts off, turns them on, reads the
  * byte (which clears RXC0) into the 128-byte ring, and turns them off again before it unmasks
