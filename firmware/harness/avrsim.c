@@ -18,6 +18,7 @@
  *   runto CYCLE  the same, to an emulator cycle     edge CH LEVEL CYCLE  a sensor line at a cycle
  *   trace N      what to print as it happens (1-3)  stats   the measurements   info   the origin
  *   statsreset   the longest watchdog-kick interval and the lowest stack pointer measured from now
+ *   wire CH 0|1  sensor CH's line cut from its capture pin (a broken wire) or joined again
  *   square CH FIRST HALF COUNT   line noise: COUNT toggles of a sensor's line over the rig's
  *                level, HALF cycles apart, from cycle FIRST (a square wave picked up from the drive)
  *   stall        the next stroke jams half way       bounce   the next arrival bounces
@@ -193,6 +194,10 @@ static int noise_x[2];
 static avr_cycle_count_t noise_next[2], noise_half[2];
 static unsigned long noise_left[2];
 static int line_active(int ch) { return sensor_active[ch] ^ noise_x[ch]; }
+/* "wire CH 0": sensor CH's line no longer reaches its capture pin (a broken wire; the pin's pull-up
+ * holds it released), only its external interrupt pin. "wire CH 1" joins it again. */
+static int capture_wired[2] = {1, 1};
+static int capture_active(int ch) { return capture_wired[ch] && line_active(ch); }
 static avr_irq_t *sensor_irq[2], *sensor_int_irq[2];
 
 static void helper_start(const char *python, const char *script, int seed, char start_at)
@@ -288,14 +293,14 @@ static struct {
 static void drive_sensor_pins(void)
 {
     avr_ioport_external_t ext = {.name = 'L', .mask = 3, .value = 0};
-    ext.value = (unsigned)((line_active(0) ? 0 : 1) | (line_active(1) ? 0 : 2));
+    ext.value = (unsigned)((capture_active(0) ? 0 : 1) | (capture_active(1) ? 0 : 2));
     avr_ioctl(avr, AVR_IOCTL_IOPORT_SET_EXTERNAL('L'), &ext);
     /* Each sensor's line is wired to a second pin too (docs/firmware.md): A to PE4 (INT4), B to PE5. */
     avr_ioport_external_t ext_e = {.name = 'E', .mask = 0x30, .value = 0};
     ext_e.value = (unsigned)((line_active(0) ? 0 : 0x10) | (line_active(1) ? 0 : 0x20));
     avr_ioctl(avr, AVR_IOCTL_IOPORT_SET_EXTERNAL('E'), &ext_e);
     for (int ch = 0; ch < 2; ch++) {
-        avr_raise_irq(sensor_irq[ch], line_active(ch) ? 0 : 1);
+        avr_raise_irq(sensor_irq[ch], capture_active(ch) ? 0 : 1);
         avr_raise_irq(sensor_int_irq[ch], line_active(ch) ? 0 : 1);
     }
 }
@@ -1064,6 +1069,9 @@ static int stdin_command(char *line)
         noise_next[ch] = (avr_cycle_count_t)cyc;
         noise_half[ch] = us ? (avr_cycle_count_t)us : 1;
         noise_left[ch] = count;
+    } else if (sscanf(line, "wire %d %d", &ch, &level) == 2 && ch >= 0 && ch <= 1) {
+        capture_wired[ch] = level != 0;
+        drive_sensor_pins();
     } else if (sscanf(line, "trace %d", &ch) == 1) {
         trace_irqs = ch;
     } else if (strncmp(line, "statsreset", 10) == 0) {

@@ -10,6 +10,9 @@
  *   "irq N": N = CPU cycles (timer 1 at clk/1) from a read of TCNT1 to the same read first thing in
  *   INT0's handler, the interrupt raised by the instruction after the first read (the chip's
  *   interrupt response counts 5 of them; simavr 1.6 counted none);
+ *   "ien ok" if an interrupt whose flag is already up is taken when its enable bit is then written
+ *   (the chip takes it: the flag is the request), "ien bug" if not (simavr 1.6 queues one only
+ *   as its flag rises with the enable bit set);
  *   "porf N": MCUSR's PORF as the image starts (1 after a power-on; simavr's reset cleared it).
  */
 #include <avr/interrupt.h>
@@ -127,6 +130,21 @@ int main(void)
     irq[4] = (char)('0' + d / 10 % 10);
     irq[5] = (char)('0' + d % 10);
     put(irq);
+
+    /* 6. Enable after the flag: TOV4 up with TOIE4 off and interrupts on, then TOIE4 written. */
+    TCCR4A = 0;
+    TCCR4B = _BV(CS40);
+    TIMSK4 = 0;
+    seen = 0;
+    GPIOR0 = 0x80;
+    TIFR4 = 0xFF;
+    sei();
+    while (!(TIFR4 & _BV(TOV4)))
+        ;
+    TIMSK4 = _BV(TOIE4); /* the handler sets seen = GPIOR0 and masks itself */
+    __asm__ __volatile__("nop\n\tnop\n\t");
+    cli();
+    put(seen == 0x80 ? "ien ok\n" : "ien bug\n");
     put(porf ? "porf 1\n" : "porf 0\n");
 
     while (!(UCSR0A & _BV(TXC0)))

@@ -311,3 +311,34 @@ def test_a_short_pulse_at_rest_then_a_stroke(
         assert pong.state & mp.StateFlags.SENSOR_B and not pong.state & mp.StateFlags.SENSOR_A, pong
     finally:
         board.close()
+
+
+def test_an_arrival_only_the_external_interrupt_saw_ends_the_stroke(
+    avrsim: Path, elf: Path, tmp_path: Path
+) -> None:
+    """Sensor B's wire to its capture pin is broken (`wire 1 0`), its external interrupt pin still
+    wired: the interrupt cuts the drive at the arrival, and the stroke ends as arrived at the
+    cut's instant (a 1.2 EDGE flagged MISSED and CUT, the STROKE flagged MISSED_EDGE), not as a
+    stall 100 ms on with the drive flag still set (issue 33)."""
+    truth_csv = tmp_path / "truth.csv"
+    board = Board(avrsim, elf, "--truth", str(truth_csv))
+    try:
+        board.sim.command("wire 1 0")
+        board.start(1, 0)
+        board.run(20_000)
+        stroke = next((m for m in board.got if isinstance(m, mp.Stroke)), None)
+        stopped = next((m for m in board.got if isinstance(m, mp.Stopped)), None)
+        assert stroke is not None and stopped is not None, f"the stroke did not end: {board.got}"
+        assert stroke.flags & mp.StrokeFlags.ARRIVED and stopped.reason == mp.StopReason.ARRIVED, board.got
+        # (its capture pin, held released by the broken wire, then reads back as a release)
+        arrival = next(m for m in board.got if isinstance(m, mp.Edge) and m.channel == 1)
+        assert arrival.level == 1 and arrival.flags == mp.EdgeFlags.MISSED | mp.EdgeFlags.CUT, arrival
+        assert stroke.flags & mp.StrokeFlags.MISSED_EDGE and stroke.t_arrive_us == arrival.t_us
+        (row,) = _truth(truth_csv)
+        late = since_us(stroke.t_arrive_us, int(row["arrive_us"]))
+        assert 0 <= late <= 3, (stroke, row)  # the cut's own instant: a few us after the edge
+        assert int(row["cut_ns"]) < 5000, row
+        pong = _check_alive(board, elf, 3)
+        assert not pong.state & mp.StateFlags.DRIVE_ON, pong
+    finally:
+        board.close()
