@@ -19,6 +19,7 @@
  *   trace N      what to print as it happens (1-3)  stats   the measurements   info   the origin
  *   statsreset   the longest watchdog-kick interval and the lowest stack pointer measured from now
  *   wire CH 0|1  sensor CH's line cut from its capture pin (a broken wire) or joined again
+ *   badirq       an interrupt the firmware has no handler for (INT0, enabled behind its back)
  *   square CH FIRST HALF COUNT   line noise: COUNT toggles of a sensor's line over the rig's
  *                level, HALF cycles apart, from cycle FIRST (a square wave picked up from the drive)
  *   stall        the next stroke jams half way       bounce   the next arrival bounces
@@ -1069,6 +1070,14 @@ static int stdin_command(char *line)
         noise_next[ch] = (avr_cycle_count_t)cyc;
         noise_half[ch] = us ? (avr_cycle_count_t)us : 1;
         noise_left[ch] = count;
+    } else if (strncmp(line, "badirq", 6) == 0) {
+        /* an interrupt the firmware has no handler for: INT0 enabled behind its back (falling
+         * edge), and a falling edge on its pin (PD0) */
+        avr->data[A_EICRA] = (uint8_t)((avr->data[A_EICRA] & ~3) | 2);
+        avr->data[A_EIMSK] |= 1;
+        avr_irq_t *pd0 = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('D'), 0);
+        avr_raise_irq(pd0, 1);
+        avr_raise_irq(pd0, 0);
     } else if (sscanf(line, "wire %d %d", &ch, &level) == 2 && ch >= 0 && ch <= 1) {
         capture_wired[ch] = level != 0;
         drive_sensor_pins();

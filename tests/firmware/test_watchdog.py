@@ -80,6 +80,38 @@ def test_a_hung_main_loop_is_reset_by_the_watchdog_drive_off(avrsim: Path, hang_
         sim.close()
 
 
+def test_an_interrupt_without_a_handler_cuts_the_drive_and_waits_for_the_watchdog(
+    avrsim: Path, firmware_elf: Path
+) -> None:
+    """An interrupt the firmware has no handler for (the harness enables INT0 behind its back) in
+    the middle of a jammed stroke: BADISR_vect takes the drive off at once and waits, interrupts
+    off, for the watchdog, whose reset then says why (BOOT WATCHDOG). avr-libc's default jumps to
+    0, a restart with no reset (7f3fa01: a BOOT with reset cause 0, the I/O left as it was)."""
+    sim = Lockstep(avrsim, firmware_elf, "--seed", "2")
+    dev = FirmwareDevice(sim)
+    try:
+        dev.write(b"\x00")
+        dev.send(mp.Hello(1, 1, 60_000), 0)
+        _msgs(dev, 5000)
+        sim.command("stall")  # no arrival will cut the drive
+        dev.send(mp.Arm(1, 0, 1000, 100_000), 1)
+        dev.send(mp.Command(1, 0, 0), 2)
+        while not sim.drive:
+            dev.run(100)
+        dev.run(2000)
+        at = sim.cycle
+        sim.command("badirq")
+        got = _msgs(dev, 60_000)
+        (on, off) = sim.drive
+        assert (on[0], off[0]) == (1, 0)
+        assert (off[1] - at) / 16 < 10, (off, at)  # off at once, not at the watchdog's reset
+        ((reset_cycle, _),) = sim.resets
+        assert 0.9 * WDT_PERIOD_US < (reset_cycle - at) / 16 <= WDT_PERIOD_US + 100, (reset_cycle, at)
+        assert got[-1] == mp.Boot(int(mp.ResetCause.WATCHDOG), 0x0102), got
+    finally:
+        sim.close()
+
+
 def _stat(lines: list[str], word: str) -> list[str]:
     (line,) = [ln for ln in lines if ln.startswith(word + " ")]
     return line.split()[1:]
