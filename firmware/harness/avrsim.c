@@ -1087,6 +1087,7 @@ static int stdin_command(char *line)
         /* measure from here: the longest pass between two watchdog kicks, the lowest stack */
         wdr_max = wdr_max_at = 0;
         wdr_count = 0;
+        wdr_last = 0; /* the first interval counted starts at the next kick */
         sp_min = 0xFFFF;
         sp_min_at = 0;
     } else if (strncmp(line, "stats", 5) == 0) {
