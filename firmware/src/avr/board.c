@@ -352,6 +352,8 @@ uint8_t hal_sensors(void)
         uint16_t t = tcnt_reg;                                                                     \
         uint32_t ovf = clock_ovf;                                                                  \
         uint8_t tov = CLOCK_TIFR & _BV(CLOCK_TOV);                                                 \
+        sei(); /* two short sections rather than one: the cut waits for neither long */          \
+        cli();                                                                                     \
         uint8_t b = tccrb;                                                                         \
         uint8_t active = !(b & _BV(ices)); /* falling edge captured: the sensor went active */     \
         tccrb = b ^ _BV(ices);                                                                     \

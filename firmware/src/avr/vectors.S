@@ -106,18 +106,30 @@ TIMER5_COMPA_vect:
  * 11 here). Then it leaves the cut's instant for the main loop (cut_flag: 1 A, 2 B; the counter,
  * the clock's low byte and its overflow flag), which ends the stroke as an arrival at that instant
  * should no capture of the edge come (a capture unit out of step with its pin), and disarms
- * itself (stop_mask, drive_on). No instruction here changes SREG, so it is not saved; interrupts
- * stay off throughout. */
+ * itself (stop_mask, drive_on). Not armed, it still cuts when the start's final match has come
+ * (OCF4A up, cmp_phase final) for a stroke to this sensor and its handler has not run yet: that
+ * handler is outranked by this one, which would otherwise leave the drive on past the arrival
+ * until it ran. No instruction here changes SREG, so it is not saved; interrupts stay off
+ * throughout. */
 .macro ARRIVAL_CUT maskbit, which
     push r24
     lds r24, stop_mask
     sbrs r24, \maskbit
-    rjmp 1f
-    DRIVE_OFF_NOW
+    rjmp 3f
+2:  DRIVE_OFF_NOW
     ldi r24, \which
     CUT_RECORD
 1:  pop r24
     reti
+3:  sbis _SFR_IO_ADDR(TIFR4), OCF4A /* not armed: is the start's match in, its handler not run? */
+    rjmp 1b
+    lds r24, cmp_phase
+    sbrs r24, 1 /* CMP_FINAL: the match that turned the drive on */
+    rjmp 1b
+    lds r24, dest_mask
+    sbrs r24, \maskbit
+    rjmp 1b
+    rjmp 2b /* the arrival of the stroke whose drive just went on: cut, 33 cycles from the vector */
 .endm
 
     .global INT4_vect
@@ -199,12 +211,13 @@ TIMER5_CAPT_vect:
     CAPTURE_STUB _SFR_MEM_ADDR(TIMSK5), ICIE5, capture_b_tail, 1
 
 /* The start's compare match (timer 4 compare A), interrupts off throughout. At the final match
- * (cmp_phase 2) the hardware has set OC4A, the drive is on: arm the arrival's cut at once
- * (stop_mask, drive_on), then look at the destination sensor, and cut now if the mover is there
- * already or came in these few cycles (the external interrupt found the cut disarmed); then leave
- * the START to the main loop (start_pending 2: the due instant is its stamp) and return, 48
- * cycles in all (OCIE4A stays on: a later match finds cmp_phase idle and returns; the stroke's end
- * masks it). At the pre-arm match, __vector_compare_rest (board.c) moves OCR4A. */
+ * (cmp_phase 2) the hardware has set OC4A, the drive is on. First a look at the destination
+ * sensor, and the drive cut now if the mover is there (an arrival the external interrupt found
+ * disarmed): OC4A low 34 cycles from the vector. Else the cut is armed (stop_mask, drive_on) and
+ * the sensor looked at once more, for an arrival in between. Then the START is left to the main
+ * loop (start_pending 2: the due instant is its stamp): 55 cycles in all without a cut. OCIE4A
+ * stays on (a match a period later finds cmp_phase idle and returns; the stroke's end masks it).
+ * At the pre-arm match, __vector_compare_rest (board.c) moves OCR4A. */
     .global TIMER4_COMPA_vect
 TIMER4_COMPA_vect:
     push r24
@@ -212,19 +225,27 @@ TIMER4_COMPA_vect:
     push r24
     lds r24, cmp_phase
     cpi r24, 2 /* CMP_FINAL */
-    brne 3f
+    breq 5f
+    rjmp 3f /* the pre-arm match */
+5:  push r25
     lds r24, dest_mask
-    sts stop_mask, r24
-    push r25
-    ldi r25, 1
-    sts drive_on, r25
     lds r25, _SFR_MEM_ADDR(PINL)
     and r25, r24 /* the destination's line: low when the mover is there */
     brne 1f
+    DRIVE_OFF_NOW /* 34 cycles from the vector */
+    lds r24, dest_mask
+    CUT_RECORD /* stop_mask and drive_on stay 0 */
+    rjmp 4f
+1:  sts stop_mask, r24 /* armed: the external interrupt cuts from here on */
+    ldi r25, 1
+    sts drive_on, r25
+    lds r25, _SFR_MEM_ADDR(PINL) /* and a look again, for an arrival in between */
+    and r25, r24
+    brne 4f
     DRIVE_OFF_NOW
     lds r24, dest_mask
     CUT_RECORD
-1:  ldi r24, 0 /* CMP_IDLE */
+4:  ldi r24, 0 /* CMP_IDLE */
     sts cmp_phase, r24
     ldi r24, 2
     sts start_pending, r24
