@@ -763,7 +763,9 @@ class McuDaq(Daq):
                     self._resync_why = why
             # The device counts since the HELLO: add the sessions before this one.
             st = StateFlags(msg.state)
-            self.strokes.on_pong_levels(int(StateFlags.SENSOR_A in st), int(StateFlags.SENSOR_B in st))
+            self.strokes.on_pong_levels(
+                int(StateFlags.SENSOR_A in st), int(StateFlags.SENSOR_B in st), msg.t_us
+            )
             if StateFlags.SYNCED in st:
                 self.timeline.heard = (msg.t_us, now)  # this session's device clock, for the next handshake
             elif not self._resync_why:

@@ -119,9 +119,11 @@ class StrokeAssembler:
             ctx.hold_until_ns = (time.monotonic_ns() if now is None else now) + REPORT_WAIT_NS
 
     # -- frames -------------------------------------------------------------------------------
-    def on_pong_levels(self, a: int, b: int) -> None:
+    def on_pong_levels(self, a: int, b: int, raw_us: int) -> None:
+        """The sensors as the device sampled them at its PONG's stamp (an edge it stamped later,
+        though it reaches the host after the PONG, is newer)."""
         self.levels = [a, b]
-        self.levels_t_ns = self.timeline.clock.now_ns()
+        self.levels_t_ns = self.timeline.dev_ns(raw_us)
 
     def on_edge(self, msg: Edge) -> None:
         if msg.channel > 1 or msg.level > 1:

@@ -75,6 +75,16 @@ class FaultyMcu(McuEmulator):
             return
         super()._fire(st, due_ns, gen)  # type: ignore[arg-type]
 
+    def behave(self) -> None:
+        """From now on the device and its line behave: every pending injection is cleared."""
+        with self._lock:
+            self.tamper = None
+            self.fire_late_ns = 0
+            self.latency_ns = 0
+            self._trickle_frames = 0
+            self._drop_next = self._corrupt_next = self._delay_next = self._rx_drop_next = 0
+            self._drop_only = self._corrupt_only = None
+
     def trickle(self, frames: int, byte_ns: int) -> None:
         """Send the next `frames` frames one byte every `byte_ns` (and what follows after them)."""
         with self._lock:

@@ -90,7 +90,7 @@ def truth_of(row: Row, log: list) -> int | None:
     return best.t_arrive_ns - best.t_start_ns
 
 
-def untrue_clean(got: list[Row], log: list, tolerance_ns: int = 50_000) -> list[tuple[Row, int | None]]:
+def untrue_clean(got: list[Row], log: list, tolerance_ns: int = 50_000) -> list[tuple[Row, int | None, str]]:
     """Clean records whose operating time is not the emulator's truth within `tolerance_ns`."""
     bad = []
     for r in got:
@@ -98,5 +98,6 @@ def untrue_clean(got: list[Row], log: list, tolerance_ns: int = 50_000) -> list[
             continue
         true = truth_of(r, log)
         if true is None or r.operating_ns is None or abs(r.operating_ns - true) > tolerance_ns:
-            bad.append((r, true))
+            near = min((s.t_start_ns - r.t_start_ns for s in log), key=abs, default=None)
+            bad.append((r, true, f"nearest device start {near} ns off"))
     return bad
