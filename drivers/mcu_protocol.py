@@ -16,7 +16,12 @@ from enum import IntEnum, IntFlag
 from typing import ClassVar
 
 PROTOCOL_MAJOR = 1
-PROTOCOL_MINOR = 2
+PROTOCOL_MINOR = 1
+#: The newest minor version this codec decodes: 1.2 adds EDGE.flags, PONG.events_lost and
+#: edges_missed, FAULT EVENTS_LOST and FAULT SENSORS at a start away from the source sensor. The
+#: firmware speaks it (sim/mcu_firmware.py too, when asked); the host says PROTOCOL_MINOR in its
+#: HELLO until it uses 1.2's fields, and a session speaks the lower of the two.
+LATEST_MINOR = 2
 
 #: Largest payload (type, seq, body, crc) either side may send; longer input is garbage.
 MAX_PAYLOAD = 64

@@ -636,7 +636,8 @@ class McuEmulator:
             st.t_arrive_ns = t0
             self._end_stroke(st, t0, StopReason.ARRIVED, StrokeFlags.ARRIVED)
             return
-        if not (a, b)[int(d.source)]:  # not at the source either: it runs, and the host hears of it
+        if self._session_minor >= 2 and not (a, b)[int(d.source)]:
+            # not at the source either (1.2): it runs, and the host hears of it
             self._send(Fault(DeviceFault.SENSORS, self.device_us(t0), a | b << 1))
         if plan.jammed:
             self.injected.stalls += 1

@@ -180,8 +180,8 @@ void core_start(uint32_t t_us)
         return;
     }
     /* Not at the source either (a jam left the mover between, or a sensor is dead): the stroke
-     * runs (its stall limit still holds), and the host hears of it. */
-    if (!(sensors & (1u << (dest ^ 1))))
+     * runs (its stall limit still holds), and a 1.2 host hears of it. */
+    if (S.minor >= 2 && !(sensors & (1u << (dest ^ 1))))
         send_fault(FC_SENSORS, t_us, sensors);
 }
 

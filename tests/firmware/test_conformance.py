@@ -22,6 +22,8 @@ class PythonDevice:
     """sim/mcu_emulator.py behind the same face as FirmwareDevice."""
 
     def __init__(self, **kw: object) -> None:
+        # the firmware's protocol version (the host's PROTOCOL_MINOR is the emulator's default)
+        kw.setdefault("minor", mp.LATEST_MINOR)
         self.emu = McuEmulator(seed=1, **kw)  # type: ignore[arg-type]
         self._buf = bytearray()
         self._lock = threading.Lock()
@@ -258,6 +260,31 @@ def test_stall_stops_the_drive(device: Device) -> None:
     device.send(mp.Ping(1), 3)
     (pong,) = _msgs(device.run(2000))
     assert pong.state & mp.StateFlags.SYNCED and not pong.state & mp.StateFlags.DRIVE_ON
+
+
+def test_a_start_away_from_the_source_sensor_is_said(device: Device) -> None:
+    """1.2: a stroke that starts with its source sensor not active (a jam left the mover between
+    the sensors) runs, and a FAULT SENSORS (detail: the sensors active, none here) says so after
+    its START; a 1.1 session is not told."""
+    _hello(device, watchdog_ms=5000, minor=2)
+    device.stall()
+    got = _stroke(device, 1, 0, 1, delay_us=1000)
+    got += _msgs(device.run(100_000))  # the jammed stroke's own stall limit: 100 ms
+    assert any(isinstance(m, mp.Fault) and m.code == mp.DeviceFault.STALL for m in got), got
+    got = _stroke(device, 2, 1, 3)  # back to A, from half way
+    kinds = [type(m).__name__ for m in got]
+    i = kinds.index("Start")
+    assert kinds[i + 1] == "Fault" and got[i + 1].code == mp.DeviceFault.SENSORS and got[i + 1].detail == 0, (
+        got
+    )
+    (stroke,) = [m for m in got if isinstance(m, mp.Stroke)]
+    assert stroke.flags & mp.StrokeFlags.ARRIVED and not stroke.flags & mp.StrokeFlags.DEPARTED
+    _hello(device, watchdog_ms=5000, minor=1)  # a 1.1 host: the same start, not said
+    device.stall()
+    _msgs(device.run(2000))
+    got = _stroke(device, 3, 0, 1) + _msgs(device.run(100_000))
+    got = _stroke(device, 4, 1, 3)
+    assert not [m for m in got if isinstance(m, mp.Fault)], got
 
 
 def test_bounce_is_reported_edge_by_edge(device: Device) -> None:

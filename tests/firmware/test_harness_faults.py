@@ -125,13 +125,6 @@ def test_unplug_mid_stroke_then_replug_over_the_pty(avrsim: Path, firmware_elf: 
         assert daq.device is not None and daq.device.t_us < 1_000_000  # a new session, a new clock
         daq.stroke_timeout_ns = 100_000_000
         again = run_stroke(daq, Direction.OFF)  # from where the jam left the mover, to A
-        # not at its source sensor as it starts: the firmware says so (FAULT SENSORS), and the
-        # stroke runs on to its arrival
-        assert again.events[-1].kind is EventKind.FAULT and "SENSORS" in again.events[-1].detail, again.events
-        while again.events[-1].kind is not EventKind.STOP:
-            nxt = daq.recv(300_000_000)
-            assert nxt is not None, again.events
-            again.events.append(nxt)
         assert again.events[-1].detail == "arrived"
         assert again.start.t_ns > events[-1].t_ns > first.events[-1].t_ns  # one timeline across the reboot
 
