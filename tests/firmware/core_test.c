@@ -5,7 +5,9 @@
  *   sensors N         bit 0 sensor A active, bit 1 sensor B active
  *   rx HEX            bytes from the host (wire bytes, delimiters included)
  *   start T           the drive went on at T (the hardware layer's compare fired)
- *   edge CH LEVEL T   a captured sensor edge
+ *   edge CH LEVEL T [FLAGS]  a sensor edge (FLAGS: EF_MISSED 1, EF_CUT 2)
+ *   lost N            the hardware layer lost N interrupt events
+ *   drive N           the fake drive output on (1) or off (0), behind the core's back
  *   poll              the main loop's timeout check
  *   stats             print "stats rx_errors rx_lost tx_seq synced"
  *   crc HEX           print "crc XXXX" of the bytes
@@ -112,6 +114,8 @@ int main(void)
             core_start((uint32_t)a);
         } else if (sscanf(line, "edge %lu %lu %lu %lu", &a, &b, &c, &d) >= 3) {
             core_edge((uint8_t)a, (uint8_t)b, (uint32_t)c, (uint8_t)d); /* d: EF_* flags */
+        } else if (sscanf(line, "drive %lu", &a) == 1) {
+            fake_drive = (uint8_t)a;
         } else if (sscanf(line, "lost %lu", &a) == 1) {
             core_events_lost((uint16_t)a, fake_now);
         } else if (strncmp(line, "poll", 4) == 0) {

@@ -146,3 +146,68 @@ def test_doc_fault_example_is_a_stall(core: CoreDriver) -> None:
         mp.Stroke(1, 0, mp.StrokeFlags.STALL | mp.StrokeFlags.LATE, 1, 948576, 0, 0),
         mp.Stopped(1, mp.StopReason.STALL, 1048576),
     ]
+
+
+def _session_1_2(core: CoreDriver) -> None:
+    core.sensors(1)  # at A
+    core.clock(1000)
+    core.send(mp.Hello(1, 2, 60_000), 0)
+
+
+def test_lost_events_end_a_running_stroke_and_are_counted(core: CoreDriver) -> None:
+    """Issue 33: edges the board lost end the stroke they may belong to (drive off first), with a
+    FAULT EVENTS_LOST, the STROKE flagged EVENTS_LOST and STOPPED FAULT; PONG counts them."""
+    _session_1_2(core)
+    core.send(mp.Arm(1, 0, 1000, 100_000))
+    core.send(mp.Command(1, 0, 0))
+    core.cmd("start 2000")
+    core.clock(2500)
+    out = core.cmd("lost 3")
+    assert out[0] == "hal off"  # before any frame is built
+    msgs = [m for _, m in core.messages(out)]
+    assert msgs == [
+        mp.Fault(mp.DeviceFault.EVENTS_LOST, 2500, 3),
+        mp.Stroke(1, 0, mp.StrokeFlags.EVENTS_LOST, 1000, 2000, 0, 0),
+        mp.Stopped(1, mp.StopReason.FAULT, 2500),
+    ]
+    ((_, pong),) = core.messages(core.send(mp.Ping(5)))
+    assert isinstance(pong, mp.Pong) and (pong.events_lost, pong.edges_missed) == (3, 0)
+
+
+def test_lost_events_at_rest_are_said_at_most_every_10_ms(core: CoreDriver) -> None:
+    _session_1_2(core)
+    core.clock(2000)
+    assert [m for _, m in core.messages(core.cmd("lost 2"))] == [
+        mp.Fault(mp.DeviceFault.EVENTS_LOST, 2000, 2)
+    ]
+    core.clock(5000)
+    assert core.messages(core.cmd("lost 5")) == []  # within 10 ms of the last FAULT: counted
+    core.clock(11_999)
+    assert core.messages(core.cmd("poll")) == []
+    core.clock(12_000)
+    assert [m for _, m in core.messages(core.cmd("poll"))] == [
+        mp.Fault(mp.DeviceFault.EVENTS_LOST, 12_000, 5)
+    ]
+    ((_, pong),) = core.messages(core.send(mp.Ping(1)))
+    assert pong.events_lost == 7
+
+
+def test_a_missed_edge_is_flagged_for_a_1_2_host_only(core: CoreDriver) -> None:
+    _session_1_2(core)
+    out = core.cmd(f"edge 1 1 3000 {1}")
+    assert [m for _, m in core.messages(out)] == [mp.Edge(1, 1, 3000, mp.EdgeFlags.MISSED)]
+    ((_, pong),) = core.messages(core.send(mp.Ping(1)))
+    assert (pong.events_lost, pong.edges_missed) == (0, 1)
+    core.send(mp.Hello(1, 1, 60_000), 0)  # a 1.1 host: the 1.1 layouts
+    assert [m for _, m in core.messages(core.cmd("edge 1 0 4000 1"))] == [mp.Edge(1, 0, 4000)]
+    ((_, pong),) = core.messages(core.send(mp.Ping(2)))
+    assert pong == mp.Pong(2, 1000, pong.state, 0, 0)
+
+
+def test_the_drive_on_with_no_stroke_is_cut_and_said(core: CoreDriver) -> None:
+    _session_1_2(core)
+    core.cmd("drive 1")
+    core.clock(3000)
+    out = core.cmd("poll")
+    assert out[0] == "hal off"
+    assert [m for _, m in core.messages(out)] == [mp.Fault(mp.DeviceFault.DRIVE, 3000, 1)]
