@@ -215,7 +215,7 @@ TIMER5_CAPT_vect:
  * sensor, and the drive cut now if the mover is there (an arrival the external interrupt found
  * disarmed): OC4A low 34 cycles from the vector. Else the cut is armed (stop_mask, drive_on) and
  * the sensor looked at once more, for an arrival in between. Then the START is left to the main
- * loop (start_pending 2: the due instant is its stamp): 55 cycles in all without a cut. OCIE4A
+ * loop (start_pending 2: the due instant is its stamp): 59 cycles in all without a cut. OCIE4A
  * stays on (a match a period later finds cmp_phase idle and returns; the stroke's end masks it).
  * At the pre-arm match, __vector_compare_rest (board.c) moves OCR4A. */
     .global TIMER4_COMPA_vect
@@ -236,7 +236,10 @@ TIMER4_COMPA_vect:
     lds r24, dest_mask
     CUT_RECORD /* stop_mask and drive_on stay 0 */
     rjmp 4f
-1:  sts stop_mask, r24 /* armed: the external interrupt cuts from here on */
+1:  lds r25, cut_flag
+    tst r25
+    brne 4f /* the external interrupt has cut it already (its window path): leave it disarmed */
+    sts stop_mask, r24 /* armed: the external interrupt cuts from here on */
     ldi r25, 1
     sts drive_on, r25
     lds r25, _SFR_MEM_ADDR(PINL) /* and a look again, for an arrival in between */
