@@ -510,7 +510,7 @@ class ControlLoop:
         if not daq.reports_strokes:
             return ""
         await_report(daq, got, slice_ns=RECV_SLICE_NS, halted=self._estop.is_set)
-        doubt = disagreement(got, direction, daq.levels())
+        doubt = disagreement(got)
         if doubt:
             self.mismatched += 1
             log.warning("stroke not learned: the device's account disagrees", cycle=self.cycle, why=doubt)
@@ -704,6 +704,10 @@ class ControlLoop:
             halted=lambda: self._estop.is_set() or self._shutdown.is_set(),
         )
         t_start, lateness, t_depart, t_arrive = got.t_start, got.lateness, got.t_depart, got.t_arrive
+        if partial and t_depart is not None:
+            # The mover left its source after the start: it was there, whatever the levels said (a
+            # chattering line's last edge can leave them wrong until the next PONG).
+            partial = False
         early_arrive, fault = got.early_arrive, got.fault
         if got.earlier_drive_fault:
             # The device restarted (its watchdog, a brown-out) between strokes: latched as it is
@@ -714,8 +718,15 @@ class ControlLoop:
         halted = self._estop.is_set() or self._shutdown.is_set()
         if t_arrive is None and early_arrive is not None and t_start is not None and not fault and not halted:
             t_arrive = early_arrive  # the only arrival there was: kept, and said what it was
+        doubt = ""
         if t_arrive is not None and t_start is not None:
             implausible = self._implausible(direction, t_start, t_depart, t_arrive, partial)
+            if implausible and not fault:
+                # A device with its own account of the stroke settles it: when that account
+                # disagrees, the wire lied (a line ringing) and the stroke is a MISMATCH, not a fault.
+                doubt = self._check_with_device(got, direction)
+                if doubt and got.report is not None and got.report.has_stamps:
+                    implausible = ""
         if implausible:
             # Not a stroke: kept with its stamps, not learned from, the drive off and a FAULT that says
             # what the hardware side reported.
@@ -733,7 +744,7 @@ class ControlLoop:
             # and this stroke's update (an AIC re-selection may take a millisecond) comes after it.
             self._next_dir = direction.opposite
             self._arm_or_defer(self._next_dir)  # the timing path ends here
-            doubt = self._check_with_device(got, direction)
+            doubt = doubt or self._check_with_device(got, direction)
             if doubt:
                 flags |= Flag.MISMATCH  # the device's account disagrees: kept, never learned
             if partial:

@@ -18,6 +18,7 @@ checks `mcu_stroke.StrokeAssembler`.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -25,7 +26,7 @@ from collections import deque
 from dataclasses import dataclass, field
 
 from .daq import DEFAULT_DEBOUNCE_NS, Daq, DaqDisconnected, DaqError, check_ns
-from .events import Direction, Event, EventKind, FaultCode
+from .events import Direction, Event, EventKind, FaultCode, StrokeReport
 from .mcu_clock import STAMP_AHEAD_NS, DeviceTimeline, fmt_ns
 from .mcu_link import DeviceClock, LinkStats, Transport, TransportLost
 from .mcu_protocol import (
@@ -177,6 +178,7 @@ class McuDaq(Daq):
             self._deliver,
             self._host_stamp,
             lambda: self._last_stamp_ns,
+            self._check_clock_then_report,
             name=self.name,
             stroke_timeout_ns=self.stroke_timeout_ns,
             link_timeout_ns=self.link_timeout_ns,
@@ -200,6 +202,8 @@ class McuDaq(Daq):
         self._arm_waiter: _Waiter | None = None
         self._pings: dict[int, int] = {}
         self._ping_token = 0
+        # A stroke's report waiting for the PONG that checks the clock at its end: (token, report, sent).
+        self._report_check: tuple[int, StrokeReport, int] | None = None
         self._last_rx_ns = 0
         self._next_ping_ns = 0
         self._dev_errors_base = (0, 0)
@@ -367,22 +371,18 @@ class McuDaq(Daq):
                 for s in waiter.seqs:
                     self._waiters.pop(s, None)
 
-    def _check_arm(self, arm: Arm) -> None:
-        """The ARM's ACK, before its COMMAND: a refusal names the device's limit; a lost frame (or
-        ACK) is sent again and waited for."""
+    def _rearm(self, arm: Arm) -> None:
+        """The COMMAND found nothing armed: the ARM's own ACK (the device answers in order, so it
+        is in by now if it was sent) says why. A refusal names the device's limits; a lost ARM or
+        ACK, or BUSY (armed while the device was still in the last stroke, its arrival on the wire
+        not its own), is armed again and must be taken."""
         waiter = self._arm_waiter
-        if waiter is not None and not waiter.done.is_set():
-            waiter.done.wait(self.reply_timeout_ns / 1e9)
         ack = waiter.ack if waiter is not None else None
         self._forget_arm()
-        if ack is None:
-            if waiter is not None:
+        if ack is None or ack.status in (Status.OK, Status.BUSY):
+            if ack is None:
                 self.stats.reply_timeouts += 1
-                self.stats.retransmits += 1
-            ack = self._request(arm, f"ARM stroke {arm.stroke}")
-        if ack.status == Status.BUSY:
-            # Armed while the device was still in the last stroke (its arrival on the wire was not
-            # its own): that stroke is over by the COMMAND's turn, so ask again now.
+            self.stats.retransmits += 1
             ack = self._request(arm, f"ARM stroke {arm.stroke}")
         if ack.status != Status.OK:
             self._armed_msg = None
@@ -403,7 +403,6 @@ class McuDaq(Daq):
         else:
             check_ns("t_cmd_ns", t_cmd_ns)
             cmd = Command(arm.stroke, self.timeline.to_raw_us(t_cmd_ns), 1)
-        self._check_arm(arm)
         with self._state:
             self.strokes.begin(arm.stroke, Direction(arm.direction))
             ctx = self.strokes.ctx
@@ -422,6 +421,19 @@ class McuDaq(Daq):
             self._armed_msg = None
             log.warning("%s: %s: following the stroke's own frames", self.name, exc)
             return t_sent if t_cmd_ns is None else t_cmd_ns
+        if ack.status == Status.NOT_ARMED:
+            self._rearm(arm)
+            ack = self._request(cmd, f"COMMAND stroke {arm.stroke}")
+        waiter = self._arm_waiter
+        arm_ack = waiter.ack if waiter is not None else None
+        self._forget_arm()  # a COMMAND taken proves its ARM was
+        if ack.status == Status.OK and arm_ack is not None and arm_ack.status != Status.OK:
+            with self._state:  # the device contradicts itself: its account of this stroke is in doubt
+                ctx = self.strokes.ctx
+                if ctx is not None and ctx.stroke == arm.stroke:
+                    ctx.doubts.append(
+                        f"its ARM was answered {_status_name(arm_ack.status)}, its COMMAND taken"
+                    )
         if ack.status != Status.OK:
             with self._state:
                 self.strokes.ctx = None
@@ -662,6 +674,10 @@ class McuDaq(Daq):
             self._send(Ping(self._ping_token))
         with self._state:
             self.strokes.poll(now)
+            check = self._report_check
+            if check is not None and now - check[2] > self.reply_timeout_ns:
+                self._report_check = None
+                self._finish_report(check[1], "no PONG came to check the device clock at the stroke's end")
         if now - self._last_rx_ns > self.link_timeout_ns:
             self.stats.silences += 1
             self._link_failed(f"device silent for {(now - self._last_rx_ns) // 1_000_000} ms")
@@ -755,6 +771,11 @@ class McuDaq(Daq):
                 w.done.set()
         elif isinstance(msg, Pong):
             t_send = self._pings.pop(msg.token, None)
+            check = self._report_check
+            if t_send is not None and check is not None and check[0] == msg.token:
+                self._report_check = None
+                doubt = self.timeline.check(msg.t_us, t_send, now)
+                self._finish_report(check[1], doubt)
             if t_send is not None:
                 action, why = self.timeline.sample(msg.t_us, t_send, now)
                 if action == "refuse" and not self._refuse_why:
@@ -785,6 +806,29 @@ class McuDaq(Daq):
         elif isinstance(msg, Boot):
             self._on_boot(msg)
         # HELLO_ACK outside a handshake and host-bound types from a confused peer are ignored.
+
+    def _check_clock_then_report(self, report: StrokeReport) -> None:
+        """A stroke's report (link thread, under the state lock): a PING now, and the report goes to
+        the loop with its PONG, which checks the device clock at the stroke's end."""
+        old = self._report_check
+        if old is not None:
+            self._finish_report(old[1], "")  # a report overtaken: its stroke's clock was checked before
+        self._ping_token = (self._ping_token + 1) % U32_MOD
+        token, now = self._ping_token, time.monotonic_ns()
+        self._pings[token] = now
+        self._report_check = (token, report, now)
+        try:
+            self._send(Ping(token))
+        except TransportLost:
+            self._report_check = None
+            self._finish_report(report, "")  # the link's loss ends the stroke its own way
+
+    def _finish_report(self, report: StrokeReport, doubt: str) -> None:
+        if doubt:
+            self.stats.clock_doubts += 1
+            detail = f"{report.detail}; {doubt}" if report.detail else doubt
+            report = dataclasses.replace(report, detail=detail)
+        self.strokes.deliver_report(report)
 
     def _on_boot(self, msg: Boot) -> None:
         """The device has just started (1.1): whatever it was doing is gone. Reported at once

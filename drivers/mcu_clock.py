@@ -37,6 +37,8 @@ STAMP_AHEAD_NS = 5_000_000
 MAX_CLOCK_RATE_ERROR_PPM = 5_000
 #: The rate is judged against the best sample (smallest round trip) of the session's first seconds.
 RATE_REF_WINDOW_NS = 2_000_000_000
+#: A PONG after a stroke may be this far off (past both round trips and the tolerated drift).
+CLOCK_CHECK_NS = 200_000
 #: PONGs in a row off the clock before it is judged (a jump, or a rate the tracking cannot follow).
 JUMP_SAMPLES = 3
 _OFFSET_WINDOW = 8
@@ -66,7 +68,9 @@ class DeviceTimeline:
         self._anchor_mid = 0
         self._rate_ref: tuple[int, int, int] | None = None  # (host mid, device ns, round trip)
         self._rate_off = 0
-        self._last_good: tuple[int, int] | None = None  # (host mid, device ns) of the last sample taken
+        self._last_good: tuple[int, int, int] | None = (
+            None  # (host mid, device ns, rtt) of the last sample taken
+        )
         self._off_run: list[tuple[int, int, int]] = []  # (host mid, device ns, rtt) of PONGs not taken
         self._bad_said_ns = -1_000_000_000
         #: Why the device's clock rate was refused ("" if it was not): its handshakes are refused too,
@@ -148,7 +152,7 @@ class DeviceTimeline:
         self._rate_off = 0
         self._anchor_mid = host_mid_ns
         self._rate_ref = (host_mid_ns, self.base_ns, rtt_ns)
-        self._last_good = (host_mid_ns, self.base_ns)
+        self._last_good = (host_mid_ns, self.base_ns, rtt_ns)
 
     def restarted(self, msg: HelloAck, t_recv: int, *, booted: bool, fw_before: int | None) -> bool:
         """At a handshake: is this another run of the device than the last session's (or the first)?
@@ -206,8 +210,25 @@ class DeviceTimeline:
         best = min(self._offsets)
         self.clock.offset_ns = best[1]
         self._basis = (best[0], best[2])
-        self._last_good = (mid, dev)
+        self._last_good = (mid, dev, rtt)
         return "", ""
+
+    def check(self, raw_us: int, t_send_ns: int, t_recv_ns: int) -> str:
+        """A PONG asked for at a stroke's end: is the device clock where the last sample taken puts
+        it (within both round trips and the worst tolerated drift since)? A device clock that
+        jumped just before a stroke makes all its stamps agree with each other and with the
+        commanded instant, while the stroke really ran that much off: only the clock tells.
+        Returns "" or what is wrong."""
+        last = self._last_good
+        if last is None:
+            return ""
+        rtt = t_recv_ns - t_send_ns
+        mid = (t_send_ns + t_recv_ns) // 2
+        off = self.dev_ns(raw_us) - (last[1] + (mid - last[0]))
+        tol = (rtt + last[2]) // 2 + (mid - last[0]) * MAX_CLOCK_RATE_ERROR_PPM // 1_000_000 + CLOCK_CHECK_NS
+        if abs(off) <= tol:
+            return ""
+        return f"the device clock was {fmt_ns(off)} off the host's at the stroke's end (within {fmt_ns(tol)})"
 
     def _judge_rate(self, mid: int, dev: int, rtt: int) -> str:
         """Three samples in a row off 1 us per us by more than MAX_CLOCK_RATE_ERROR_PPM past both
@@ -234,16 +255,18 @@ class DeviceTimeline:
         run.append((mid, dev, rtt))
         if len(run) < JUMP_SAMPLES:
             return "", ""
-        # Do the held samples agree with each other at 1 us per us (one step), or drift apart?
-        (m0, d0, r0), (m1, d1, r1) = run[0], run[-1]
-        drift = abs((d1 - d0) - (m1 - m0))
-        allowed = (r0 + r1) // 2 + (m1 - m0) * MAX_CLOCK_RATE_ERROR_PPM // 1_000_000 + STAMP_AHEAD_NS // 5
         self._off_run = []
-        if drift <= allowed:
-            return "resync", f"its clock jumped by {fmt_ns(jump)}"
-        last = self._last_good
-        if last is not None and m1 > last[0]:
-            self.rate_refusal = _rate_text(d1 - last[1], m1 - last[0])
+        # A rate the heartbeat cannot follow drifts at one steady slope through the held samples
+        # (and off 1 us per us past MAX_CLOCK_RATE_ERROR_PPM); anything else (one step, or two
+        # jumps in a row) is a clock that jumped: handshaken again, and judged afresh.
+        (m0, d0, r0), (m1, d1, r1), (m2, d2, r2) = run[0], run[len(run) // 2], run[-1]
+        slack = r0 + r1 + r2 + STAMP_AHEAD_NS // 5
+        drift01 = (d1 - d0) - (m1 - m0)
+        drift12 = (d2 - d1) - (m2 - m1)
+        steady = abs(drift12 * (m1 - m0) - drift01 * (m2 - m1)) <= slack * max(m2 - m1, m1 - m0)
+        fast = abs(drift01 + drift12) > (m2 - m0) * MAX_CLOCK_RATE_ERROR_PPM // 1_000_000 + slack
+        if steady and fast:
+            self.rate_refusal = _rate_text(d2 - d0, m2 - m0)
             return "refuse", self.rate_refusal
         return "resync", f"its clock jumped by {fmt_ns(jump)}"
 

@@ -93,6 +93,9 @@ class LinkStats:
     #: STARTs off the instant the host commanded, or whose `late_us` is not the lateness the host
     #: measures (beyond START_TOLERANCE_NS): the stroke is kept with a flag, not learned.
     start_mismatches: int = 0
+    #: Strokes whose end found the device clock off the host's (the PONG asked for at each
+    #: STROKE report): the stroke is flagged MISMATCH.
+    clock_doubts: int = 0
     #: COMMANDs none of whose tries was acknowledged: the stroke's own frames were followed.
     unacked_commands: int = 0
     #: Events dropped, oldest first, from the full queue between the link thread and the loop.

@@ -67,6 +67,7 @@ class StrokeAssembler:
         deliver: Callable[[Event], None],
         host_stamp: Callable[[], int],
         last_stamp: Callable[[], int],
+        submit: Callable[[StrokeReport], None] | None = None,
         *,
         name: str,
         stroke_timeout_ns: int,
@@ -78,6 +79,8 @@ class StrokeAssembler:
         self._host_stamp = host_stamp
         # A REPORT is an account, not an instant: it carries the stamp of the last event delivered.
         self._report_stamp = last_stamp
+        # Where a STROKE report's account goes: the driver checks the clock at its end first.
+        self._submit = submit or self.deliver_report
         self.name = name
         self.stroke_timeout_ns = stroke_timeout_ns
         self.link_timeout_ns = link_timeout_ns
@@ -232,6 +235,9 @@ class StrokeAssembler:
                 self.give_up(ctx, "no STROKE report came before its STOPPED")
         else:
             self._deliver(ev)
+        if ctx is not None and ctx.stroke == msg.stroke and not ctx.reported:
+            # The device sends a stroke's STROKE report before its STOPPED: this one was lost.
+            self.give_up(ctx, "its STROKE report did not come before its STOPPED")
 
     def on_stroke(self, msg: Stroke) -> None:
         ctx = self.ctx
@@ -270,6 +276,10 @@ class StrokeAssembler:
         self.no_start(ctx, "nor did its STROKE report give one")
         if (StrokeFlags.ARRIVED in flags and t_arrive is None) or t_start is None:
             ctx.doubts.append("its STROKE report's stamps are off the device clock")
+        if StrokeFlags.MISSED_EDGE in flags:
+            ctx.doubts.append("a stamp of it is a missed edge's, read back late (a noisy line)")
+        if StrokeFlags.EVENTS_LOST in flags:
+            ctx.doubts.append("the device lost interrupt events during it")
         report = StrokeReport(
             t_start_ns=t_start,
             t_depart_ns=t_depart,
@@ -278,6 +288,10 @@ class StrokeAssembler:
             has_stamps=True,
             detail="; ".join(ctx.doubts),
         )
+        self._submit(report)
+
+    def deliver_report(self, report: StrokeReport) -> None:
+        """The stroke's account, for the loop (after the driver's last checks)."""
         self._deliver(Event.report_event(self._report_stamp(), report))
 
     def on_fault(self, msg: Fault) -> None:
@@ -288,6 +302,8 @@ class StrokeAssembler:
             DeviceFault.HOST_SILENT: FaultCode.DISCONNECT,
             DeviceFault.SENSORS: FaultCode.SEQUENCE,
             DeviceFault.DRIVE: FaultCode.DRIVE,
+            # The firmware lost interrupt events (an edge storm): the stroke's account is gone.
+            DeviceFault.EVENTS_LOST: FaultCode.SEQUENCE,
         }.get(msg.code, FaultCode.DRIVE)
         what = (
             DeviceFault(msg.code).name if msg.code in DeviceFault._value2member_map_ else f"code {msg.code}"

@@ -39,6 +39,8 @@ class FaultyMcu(McuEmulator):
         self._line_busy_ns = 0
         #: The next stroke's start fires this much after its instant, and says it was on time.
         self.fire_late_ns = 0
+        #: Every ARM is refused with this status (None: the firmware decides).
+        self.refuse_arms: int | None = None
 
     def _send(self, msg: Message) -> None:
         tamper = self.tamper
@@ -75,11 +77,19 @@ class FaultyMcu(McuEmulator):
             return
         super()._fire(st, due_ns, gen)  # type: ignore[arg-type]
 
+    def _on_arm(self, seq: int, msg: object, now: int) -> None:
+        status = self.refuse_arms
+        if status is None:
+            super()._on_arm(seq, msg, now)  # type: ignore[arg-type]
+            return
+        self._ack(msg, seq, status, msg.stroke, now)  # type: ignore[arg-type, attr-defined]
+
     def behave(self) -> None:
         """From now on the device and its line behave: every pending injection is cleared."""
         with self._lock:
             self.tamper = None
             self.fire_late_ns = 0
+            self.refuse_arms = None
             self.latency_ns = 0
             self._trickle_frames = 0
             self._drop_next = self._corrupt_next = self._delay_next = self._rx_drop_next = 0
@@ -100,6 +110,25 @@ class FaultyMcu(McuEmulator):
         """The device clock starts again from clock_start_us, in session, without a BOOT."""
         with self._lock:
             self._t_boot_ns = time.monotonic_ns()
+
+    def ring(self, channel: int, after_ns: int, spacing_ns: int, duration_ns: int) -> None:
+        """Edges of `channel` from `after_ns` from now, every `spacing_ns` for `duration_ns`, on the
+        firmware's own timers (so they fall where they are meant to, whatever the host's load),
+        alternating from the level the sensor will not have then, each stamped when sent."""
+        with self._lock:
+            t0 = time.monotonic_ns() + after_ns
+            for i in range(max(1, duration_ns // spacing_ns)):
+
+                def edge(i: int = i) -> None:
+                    level = (
+                        1 - int(self.rig.sensors()[channel])
+                        if i % 2 == 0
+                        else int(self.rig.sensors()[channel])
+                    )
+                    self.said += 1
+                    McuEmulator._send(self, Edge(channel, level, self.device_us()))
+
+                self._at(t0 + i * spacing_ns, edge)
 
     def chatter(self, channel: int, spacing_ns: int, duration_ns: int) -> threading.Thread:
         """Edges of `channel`, alternating from the level it does not have now, every `spacing_ns`

@@ -21,6 +21,8 @@ FAST = {
 class StrokeSeen:
     t_cmd_ns: int
     events: list[Event] = field(default_factory=list)
+    report: Event | None = None
+    after: list[Event] = field(default_factory=list)
 
     def of(self, kind: EventKind) -> list[Event]:
         return [e for e in self.events if e.kind is kind]
@@ -38,16 +40,28 @@ class StrokeSeen:
 def run_stroke(
     daq: McuDaq, direction: Direction, delay_ns: int = 1_000_000, lead_ns: int = 2_000_000
 ) -> StrokeSeen:
-    """Arm, command at now + lead, and collect events until the stroke's STOP or a fault."""
+    """Arm, command at now + lead, and collect events until the stroke's STOP or a fault; an arrived
+    stroke's REPORT (the device's account, after the PONG that checks the clock) is `seen.report`."""
     daq.arm(direction, delay_ns)
     cmd = daq.command(daq.now_ns() + lead_ns)
     seen = StrokeSeen(cmd.t_cmd_ns)
     while True:
         ev = daq.recv(300_000_000)
         assert ev is not None, f"no event; so far {seen.events}"
+        if ev.kind is EventKind.REPORT:
+            seen.report = ev
+            continue
         seen.events.append(ev)
         if ev.kind in (EventKind.STOP, EventKind.FAULT):
-            return seen
+            break
+    while seen.report is None and ev.kind is EventKind.STOP and ev.detail == "arrived":
+        nxt = daq.recv(300_000_000)
+        assert nxt is not None, f"no REPORT after {seen.events}"
+        if nxt.kind is EventKind.REPORT:
+            seen.report = nxt
+        else:
+            seen.after.append(nxt)  # a bounce's edges may come before the PONG that lets it go
+    return seen
 
 
 def wait_for(pred, timeout_s: float = 3.0, step_s: float = 0.01) -> bool:

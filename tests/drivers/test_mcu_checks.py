@@ -245,10 +245,11 @@ def test_an_edge_older_than_the_sensor_snapshot_does_not_overwrite_it(tmp_path: 
     (a `switch` was then refused as "already rests at sensor ..."). Now an edge moves the levels
     only when it is newer than what they are as of; a newer one still does."""
     emu, link, port = faultmcu.plug(tmp_path, seed=41)
-    daq = _open(port)
+    # A slow heartbeat: the newer edge's levels stand until the next PONG, long enough to be seen.
+    daq = _open(port, heartbeat_ns=400 * MS, link_timeout_ns=2000 * MS, watchdog_ms=1500)
     try:
         assert wait_for(lambda: daq.levels() is not None)
-        time.sleep(3 * FAST["heartbeat_ns"] / 1e9)  # a fresh PONG: the mover rests at A
+        time.sleep(0.05)
         assert daq.levels() == (1, 0)
         emu.say(Edge(0, 0, (emu.device_us() - 100_000) % U32_MOD))  # "A released", 100 ms ago
         time.sleep(0.01)
