@@ -40,7 +40,14 @@ from .api import Api, Duration, find_socket
 from .run import Run
 from .types import Notification
 
-__all__ = ["Client", "ConnectionClosed", "Subscription", "UntrustedSocketError", "parse_address"]
+__all__ = [
+    "Client",
+    "ConnectionClosed",
+    "Subscription",
+    "UntrustedSocketError",
+    "estop_by_every_path",
+    "parse_address",
+]
 
 #: Seconds a call waits for its reply unless told otherwise.
 DEFAULT_TIMEOUT = 10.0
@@ -351,17 +358,49 @@ class Client(Api):
 
         The reply means the drive is off and nothing is scheduled. Over a Unix socket the call goes
         through the estop socket beside it (`<name>.estop.sock`): a connection and slots of its own,
-        so no flood on the main socket holds it up; this connection is the fallback.
+        so no flood on the main socket holds it up; this connection is the fallback (and a fresh
+        one after it: a full door keeps a few slots that take only an estop).
         """
         if self.family == "unix":
-            urgent = estop_socket_path(self.address)
-            if urgent.exists():
-                try:
-                    with Client(urgent, timeout=self.timeout, retry=False) as c:
-                        return c.call("estop")
-                except (ConnectionClosed, OSError):
-                    pass  # busy or gone: the main connection still carries it
+            try:
+                return _estop_on(estop_socket_path(self.address), self.timeout)
+            except (ConnectionClosed, OSError):
+                pass  # busy or gone: the main connection still carries it
         return self.call("estop")
+
+
+def _estop_on(path: str | os.PathLike[str], timeout: float | None) -> dict[str, Any]:
+    with Client(path, timeout=timeout, retry=False) as c:
+        return c.call("estop")  # type: ignore[no-any-return]
+
+
+def estop_by_every_path(
+    address: str | os.PathLike[str], *, timeout: float | None = DEFAULT_TIMEOUT, token: str | None = None
+) -> dict[str, Any]:
+    """An estop however the daemon's doors are held: its estop socket, then its main socket (or
+    TCP), each on a fresh connection, twice round; raises the last failure when none answered.
+
+    For `usmswitchctl estop`: it needs no connection made beforehand that a full door could refuse.
+    """
+    family, path, _ = parse_address(address)
+    tries: list[Any] = []
+    if family == "unix":
+        tries.append(lambda: _estop_on(estop_socket_path(path), timeout))
+
+    def main_door() -> dict[str, Any]:
+        with Client(address, timeout=timeout, token=token, retry=False) as c:
+            return c.call("estop")  # type: ignore[no-any-return]
+
+    tries.append(main_door)
+    last: Exception | None = None
+    for _ in range(2):  # a holder shed for us may take the slot back once; not twice in a row
+        for attempt in tries:
+            try:
+                return attempt()  # type: ignore[no-any-return]
+            except (ConnectionClosed, OSError) as exc:
+                last = exc
+    assert last is not None
+    raise last
 
 
 class Subscription:

@@ -190,27 +190,31 @@ class Methods:
             for d in DIRECTIONS[which]:
                 targets[d] = target_ns
         # Folded calls are one change: it may be late only if every call said so.
+        before = list(self.loop.targets)
         warnings = self.loop.set_targets(targets, allow_late=all(late for _, _, late, _ in batch))
-        self._targets_from_cycle = self.loop.cycle
-        self.store.record_event(
-            "target",
-            target_on_ns=targets[Direction.ON],
-            target_off_ns=targets[Direction.OFF],
-            calls=len(batch),
-            from_cycle=self.loop.cycle,
-        )
-        self.daemon.refresh_snapshot()
+        if targets != before:  # a call that changes nothing stores nothing (a flood of them, no rows)
+            self._targets_from_cycle = self.loop.cycle
+            self.store.record_event(
+                "target",
+                target_on_ns=targets[Direction.ON],
+                target_off_ns=targets[Direction.OFF],
+                calls=len(batch),
+                from_cycle=self.loop.cycle,
+            )
+            self.daemon.refresh_snapshot()
         return {**self._targets(), "warnings": warnings}
 
     def set_mode(self, params: list[Any]) -> Future[Any]:
         mode, open_delay_ns = params
 
         def apply() -> dict[str, Any]:
+            before = (self.loop.mode, self.loop.open_delay_ns)
             self.loop.set_mode(Mode(mode), open_delay_ns)
-            self.store.record_event(
-                "mode", mode=mode, open_delay_ns=self.loop.open_delay_ns, from_cycle=self.loop.cycle
-            )
-            self.daemon.refresh_snapshot()
+            if (self.loop.mode, self.loop.open_delay_ns) != before:  # a no-op stores nothing
+                self.store.record_event(
+                    "mode", mode=mode, open_delay_ns=self.loop.open_delay_ns, from_cycle=self.loop.cycle
+                )
+                self.daemon.refresh_snapshot()
             return {
                 "mode": str(self.loop.mode),
                 "open_delay_ns": self.loop.open_delay_ns,
@@ -345,6 +349,12 @@ class Methods:
 
     def set_drive(self, params: list[Any]) -> Future[Any]:
         (settings,) = params
+        # docs/protocol.md: a command fails with FAULT while FAULT is latched; reading (`{}`) is
+        # answered in any state.
+        if settings and self.loop.state is State.FAULT:
+            raise RpcError(
+                ErrorCode.FAULT, f"set_drive: FAULT is latched ({self.loop.fault_reason}): reset_fault first"
+            )
         done: Future[Any] = Future()
 
         def finished(fut: Future[dict[str, Any]]) -> None:
@@ -356,7 +366,7 @@ class Methods:
                 return
             applied = dict(fut.result())
             self.store.record_event("drive", **applied)
-            applied.setdefault("enabled", True)
+            applied.setdefault("enabled", self.loop.state is not State.FAULT)  # FAULT: the drive is off
             cond = self.loop.conditions()
             applied.setdefault("temperature_c", None if cond is None else cond.temperature_c)
             done.set_result(applied)

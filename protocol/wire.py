@@ -146,6 +146,9 @@ class Limits:
     max_connections: int = 64  # Unix socket
     max_tcp_connections: int = 8  # TCP, apart: unauthenticated peers cannot take Unix slots
     max_urgent_connections: int = 16  # the estop socket, apart from both
+    urgent_reserve: int = 4  # per door past its budget: connections that may only send auth and estop
+    urgent_hold_ns: int = 1_000_000_000  # how long such a reserved connection is kept
+    shed_idle_ns: int = 1_000_000_000  # a full door sheds its longest-idle holder once idle this long
     max_outstanding: int = 32  # per connection: calls waiting for the daemon
     max_forwarded: int = 256  # all connections: calls waiting for the daemon
     max_reads: int = 2  # history reads served from the records file at once (the rest wait)

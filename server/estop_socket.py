@@ -33,12 +33,13 @@ _TICK_S = 0.05  # deadlines are checked at least this often
 
 
 class _Peer:
-    __slots__ = ("deadline_ns", "fed", "frames", "frames_end", "sock", "unpacker")
+    __slots__ = ("deadline_ns", "fed", "frames", "frames_end", "last_ns", "sock", "unpacker")
 
-    def __init__(self, sock: socket.socket, deadline_ns: int) -> None:
+    def __init__(self, sock: socket.socket, now_ns: int, deadline_ns: int) -> None:
         self.sock = sock
         self.unpacker = msgpack.Unpacker(raw=False, max_buffer_size=MAX_FRAME_BYTES, max_ext_len=0)
         self.deadline_ns = deadline_ns
+        self.last_ns = now_ns  # connected, or its last request answered: the shedding order
         self.fed = self.frames = self.frames_end = 0
 
 
@@ -59,6 +60,8 @@ class EstopSocket:
         self._peers: dict[socket.socket, _Peer] = {}
         self._wake_r, self._wake_w = socket.socketpair()
         self._stopping = False
+        self._shed = 0  # connections shed for newcomers, since start
+        self._shed_logged_ns = 0
         self._thread = threading.Thread(target=self._run, name="rpc-estop-socket", daemon=True)
 
     def start(self) -> None:
@@ -108,14 +111,31 @@ class EstopSocket:
                 return
             most = self.limits.max_urgent_connections
             if len(self._peers) >= most:
-                _send_close(
-                    conn, _note(ErrorCode.BUSY, f"too many connections on the estop socket (max {most})")
+                # Every peer here is idle between requests (each is answered at once), so the
+                # one idle longest gives way: holders cannot lock a new estop out, only delay it
+                # by one accept. A newcomer is never the one shed.
+                oldest = min(self._peers.values(), key=lambda p: p.last_ns)
+                self._close(
+                    sel,
+                    oldest,
+                    ErrorCode.BUSY,
+                    f"too many connections on the estop socket (max {most}):"
+                    " this one, idle longest, gave way",
                 )
-                continue
+                self._shed += 1
+                self._log_shed(most)
             conn.setblocking(False)
-            peer = _Peer(conn, time.monotonic_ns() + self.limits.urgent_timeout_ns)
+            now = time.monotonic_ns()
+            peer = _Peer(conn, now, now + self.limits.urgent_timeout_ns)
             self._peers[conn] = peer
             sel.register(conn, selectors.EVENT_READ, peer)
+            self._read(sel, peer)  # its request is often there already: answer it before more accepts
+
+    def _log_shed(self, most: int) -> None:
+        now = time.monotonic_ns()
+        if now - self._shed_logged_ns >= 10_000_000_000:  # one line per 10 s, however many
+            self._shed_logged_ns = now
+            log.warning("rpc: estop socket full (max %d): idle connections shed, %d so far", most, self._shed)
 
     def _read(self, sel: selectors.BaseSelector, peer: _Peer) -> None:
         try:
@@ -144,6 +164,8 @@ class EstopSocket:
             return
         now = time.monotonic_ns()
         lim = self.limits
+        if out:
+            peer.last_ns = now
         partial = peer.frames_end < peer.fed
         peer.deadline_ns = now + (lim.frame_timeout_ns if partial else lim.idle_timeout_ns)
         if out:

@@ -74,6 +74,11 @@ _WEB = "web"
 _LINGER_S = 0.5
 _MAX_LINGERING = 256
 _HISTORY_CHUNK = 200
+# TCP auth back-off per peer address: free tries, then a wait doubling from 100 ms up to 30 s.
+_AUTH_FREE = 3
+_AUTH_BACKOFF_NS = 100_000_000
+_AUTH_MAX_NS = 30_000_000_000
+_AUTH_PEERS = 4096  # addresses remembered (the oldest forgotten first)
 _readers = threading.local()
 
 
@@ -200,6 +205,12 @@ class _Hub:
         self.subs: dict[str, set[_Conn]] = {t: set() for t in self.topics}
         self.conns: set[_Conn] = set()
         self.counts = dict.fromkeys(_KINDS, 0)  # open connections per listener kind
+        self.reserved = dict.fromkeys(_KINDS, 0)  # past the budget, for an estop (Limits.urgent_reserve)
+        self.shed = dict.fromkeys(_KINDS, 0)  # holders shed for newcomers, since start
+        self._shed_logged_ns = 0
+        self.auth_failures: dict[str, tuple[int, int]] = {}  # TCP peer address -> (failures, wait until)
+        self.auth_failed_total = 0
+        self._auth_logged_ns = 0
         self.lingering = 0  # closed connections still draining their client's last bytes
         self.pending: dict[int, tuple[_Conn, int, int]] = {}  # fid -> (conn, msgid, deadline_ns)
         self.urgent_pending: dict[int, tuple[_Conn, int, int]] = {}
@@ -241,6 +252,64 @@ class _Hub:
         if snap is None or (run is not None and self.snap_runs.get("stats") != run):
             return None
         return snap
+
+    def auth_backoff(self, peer: str) -> int:
+        """Nanoseconds this address must still wait before its next auth is even compared."""
+        entry = self.auth_failures.get(peer)
+        return 0 if entry is None else max(0, entry[1] - time.monotonic_ns())
+
+    def auth_failed(self, peer: str) -> None:
+        """Count a wrong token from `peer`: past _AUTH_FREE in a row, each costs a doubling wait."""
+        now = time.monotonic_ns()
+        count = self.auth_failures.pop(peer, (0, 0))[0] + 1
+        over = count - _AUTH_FREE
+        wait = 0 if over <= 0 else min(_AUTH_BACKOFF_NS << min(over - 1, 20), _AUTH_MAX_NS)
+        self.auth_failures[peer] = (count, now + wait)  # re-inserted: the dict stays oldest-first
+        while len(self.auth_failures) > _AUTH_PEERS:
+            del self.auth_failures[next(iter(self.auth_failures))]
+        self.auth_failed_total += 1
+        if now - self._auth_logged_ns >= 1_000_000_000 or count == 1:
+            self._auth_logged_ns = now
+            log.warning(
+                "rpc: TCP auth failed from %s (%d in a row, %d in all); next try after %s",
+                peer,
+                count,
+                self.auth_failed_total,
+                _s(wait) if wait else "no wait",
+            )
+
+    def full_text(self, kind: str, most: int) -> str:
+        """What a connection past a door's budget is told."""
+        where = "TCP" if kind == "tcp" else "Unix socket"
+        return f"too many connections on the {where} (max {most}); try again later (past it: estop only)"
+
+    def shed_one(self, kind: str, most: int) -> bool:
+        """Make room on a full door: close its unauthenticated holder, else its longest-idle one
+        (nothing outstanding, no request for `shed_idle_ns`; a subscription is no exemption)."""
+        now = time.monotonic_ns()
+        idle_enough = now - self.limits.shed_idle_ns
+        victim = None
+        best = (True, 0)
+        for conn in self.conns:
+            if conn.kind != kind or conn.reserved or conn.closed or conn.outstanding:
+                continue
+            proven = conn.authed and conn.frames > 0
+            if not proven or conn.last_req_ns <= idle_enough:
+                # Unauthenticated or silent since connecting first, then the longest idle.
+                rank = (proven, conn.last_req_ns)
+                if victim is None or rank < best:
+                    victim, best = conn, rank
+        if victim is None:
+            return False
+        how = "idle longest" if best[0] else "not authenticated" if not victim.authed else "silent"
+        victim.fatal(ErrorCode.BUSY, f"{self.full_text(kind, most)}: this connection, {how}, gave way")
+        self.shed[kind] += 1
+        if now - self._shed_logged_ns >= 10_000_000_000:  # one line per 10 s, however many
+            self._shed_logged_ns = now
+            log.warning(
+                "rpc: %s full (max %d): holders shed for newcomers, %d so far", kind, most, self.shed[kind]
+            )
+        return True
 
     def _too_many(self, conn: _Conn, msgid: int, method: str) -> bytes:
         return error_frame(
@@ -350,7 +419,11 @@ class _Hub:
                         )
                     )
         for conn in list(self.conns):
-            if conn.partial_since_ns is not None and now - conn.partial_since_ns > lim.frame_timeout_ns:
+            if conn.reserved:  # one deadline only: its hold
+                if now - conn.born_ns > lim.urgent_hold_ns:
+                    most = lim.max_tcp_connections if conn.tcp else lim.max_connections
+                    conn.fatal(ErrorCode.BUSY, self.full_text(conn.kind, most))
+            elif conn.partial_since_ns is not None and now - conn.partial_since_ns > lim.frame_timeout_ns:
                 conn.fatal(
                     ErrorCode.TIMEOUT, f"a frame begun and not finished within {_s(lim.frame_timeout_ns)}"
                 )
@@ -360,7 +433,12 @@ class _Hub:
                 )
             elif not conn.authed and now - conn.born_ns > lim.auth_timeout_ns:
                 conn.fatal(ErrorCode.UNAUTHORIZED, f"no auth within {_s(lim.auth_timeout_ns)}")
-            elif not conn.topics and not conn.outstanding and now - conn.last_req_ns > lim.idle_timeout_ns:
+            elif (
+                conn.authed
+                and not conn.topics
+                and not conn.outstanding
+                and now - conn.last_req_ns > lim.idle_timeout_ns
+            ):
                 conn.fatal(ErrorCode.TIMEOUT, f"idle for more than {_s(lim.idle_timeout_ns)}")
 
 
@@ -425,20 +503,34 @@ class _Conn(asyncio.Protocol):
         self.paused = False
         self.drop_pending = 0
         self.drop_total = 0
+        self.reserved = False  # taken past the door's budget: auth and estop only, briefly
 
     # asyncio callbacks
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport = cast(asyncio.Transport, transport)  # uvloop's: not subclasses
-        limits = self.hub.limits
-        most = limits.max_tcp_connections if self.tcp else limits.max_connections
-        if self.hub.counts[self.kind] >= most:
-            where = "TCP" if self.tcp else "Unix socket"
-            self.fatal(ErrorCode.BUSY, f"too many connections on the {where} (max {most}); try again later")
-            return
-        self.hub.conns.add(self)
-        self.hub.counts[self.kind] += 1
-        self.counted = True
+        hub = self.hub
+        limits = hub.limits
         transport.set_write_buffer_limits(high=limits.subscriber_buffer_bytes)
+        most = limits.max_tcp_connections if self.tcp else limits.max_connections
+        if hub.counts[self.kind] >= most and not hub.shed_one(self.kind, most):
+            # Past the budget with nobody to shed: a reserved slot that takes only auth and estop,
+            # so that no holder of every slot can keep an estop out of this door.
+            self.reserved = True
+            if hub.reserved[self.kind] >= limits.urgent_reserve:
+                oldest = min(
+                    (c for c in hub.conns if c.reserved and c.kind == self.kind and not c.closed),
+                    key=lambda c: c.born_ns,
+                    default=None,
+                )
+                if oldest is not None:
+                    oldest.fatal(ErrorCode.BUSY, hub.full_text(self.kind, most))
+            hub.conns.add(self)
+            hub.reserved[self.kind] += 1
+            self.counted = True
+            return
+        hub.conns.add(self)
+        hub.counts[self.kind] += 1
+        self.counted = True
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.closed = True
@@ -509,6 +601,10 @@ class _Conn(asyncio.Protocol):
         if not self.authed and method != "auth":
             self.fatal(ErrorCode.UNAUTHORIZED, "this TCP connection must send auth [token] first", msgid)
             return None
+        if self.reserved and method not in self.hub.urgent and method != "auth":
+            most = self.hub.limits.max_tcp_connections if self.tcp else self.hub.limits.max_connections
+            self.fatal(ErrorCode.BUSY, self.hub.full_text(self.kind, most), msgid)
+            return None
         try:
             if method not in self.hub.known:
                 raise RpcError(
@@ -551,6 +647,10 @@ class _Conn(asyncio.Protocol):
                 raise RpcError(ErrorCode.INVALID_PARAMS, f"{method} takes no params, got {len(params)}")
             raise RpcError(ErrorCode.UNAVAILABLE, f"{method}: nothing published yet")
         except RpcError as exc:
+            if method == "auth" and not self.authed:  # a token that is not a string: no second try
+                self.hub.auth_failed(self.peer_host())
+                self.fatal(ErrorCode.UNAUTHORIZED, exc.message, msgid)
+                return None
             return error_frame(msgid, exc.code, exc.message)
         except Exception as exc:  # a bug here must cost one request, not the server
             log.exception("rpc: %s failed", show(method))
@@ -573,11 +673,27 @@ class _Conn(asyncio.Protocol):
     def _auth(self, msgid: int, token: str) -> bytes | None:
         if not self.tcp or self.hub.token is None:
             return ok_frame(msgid, _TRUE)
+        peer = self.peer_host()
+        wait_ns = self.hub.auth_backoff(peer)
+        if wait_ns:  # not even compared: guessing from this address is slowed to the back-off's pace
+            self.fatal(
+                ErrorCode.UNAUTHORIZED,
+                f"too many failed auth attempts from {peer}: try again in {_s(wait_ns)}",
+                msgid,
+            )
+            return None
         if hmac.compare_digest(token.encode(), self.hub.token.encode()):
             self.authed = True
+            self.hub.auth_failures.pop(peer, None)
             return ok_frame(msgid, _TRUE)
+        self.hub.auth_failed(peer)
         self.fatal(ErrorCode.UNAUTHORIZED, "wrong token", msgid)
         return None
+
+    def peer_host(self) -> str:
+        """The peer's address without its port (the back-off is per address)."""
+        name = None if self.transport is None else self.transport.get_extra_info("peername")
+        return str(name[0]) if isinstance(name, tuple) and name else "?"
 
     def _subscribe(self, msgid: int, topics: list[str] | None, on: bool) -> bytes:
         wanted = self.hub.topics if topics is None else topics
@@ -661,7 +777,10 @@ class _Conn(asyncio.Protocol):
         if self.counted:
             self.counted = False
             self.hub.conns.discard(self)
-            self.hub.counts[self.kind] -= 1
+            if self.reserved:
+                self.hub.reserved[self.kind] -= 1
+            else:
+                self.hub.counts[self.kind] -= 1
 
 
 class _PanelConn(_Conn):

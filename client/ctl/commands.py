@@ -259,7 +259,11 @@ def cmd_reset(client: Client, args: argparse.Namespace) -> int:
 
 def cmd_estop(client: Client, args: argparse.Namespace) -> int:
     """Emergency stop: drive off now and latch FAULT (a successful estop exits 0)."""
-    result = client.estop()
+    return print_estop(client.estop(), args)
+
+
+def print_estop(result: dict[str, Any], args: argparse.Namespace) -> int:
+    """Say what an estop did (main() sends it by every path, with no Client made beforehand)."""
     if args.json:
         print_json(result)
     else:

@@ -9,24 +9,28 @@ Every command is one or two Client calls plus formatting: human units in ("12ms"
     3  cannot reach the daemon: no socket, connection refused or lost, no answer in --timeout
     4  the rig is in FAULT: `status` found FAULT latched, a command was refused with the FAULT
        code, or the stroke `switch` made ended in a stall, driver fault or emergency stop
+  141  the reader of our output went away (`usmswitchctl watch | head`), as a shell reports SIGPIPE
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
-import signal
+import os
 import sys
 from typing import Any
 
-from usmswitch.protocol.wire import ErrorCode, RpcError, estop_socket_path
+from usmswitch.protocol.wire import ErrorCode, RpcError
 
 from ..api import find_socket
-from ..connection import DEFAULT_TIMEOUT, Client, ConnectionClosed, parse_address
+from ..connection import DEFAULT_TIMEOUT, Client, ConnectionClosed, estop_by_every_path
 from .args import EXIT_CONNECT, EXIT_FAULT, EXIT_INTERRUPTED, EXIT_REFUSED, EXIT_USAGE, PROG, UsageError
-from .commands import COMMANDS
+from .commands import COMMANDS, print_estop
 from .exports import cmd_export, cmd_plot
 from .parser import build_parser, check_args
+
+EXIT_PIPE = 141
 
 
 def resolve_address(args: argparse.Namespace) -> str:
@@ -65,21 +69,13 @@ def _code_name(code: int) -> str:
         return "UNKNOWN"
 
 
-def estop_address(address: str) -> str:
-    """The estop socket beside a Unix socket when it is there (its own slots: a flood on the main
-    socket cannot lock an estop out), else the address itself."""
-    family, path, _ = parse_address(address)
-    if family == "unix" and estop_socket_path(path).exists():
-        return str(estop_socket_path(path))
-    return address
-
-
 def main(argv: list[str] | None = None) -> int:
     """Entry point of `usmswitchctl`."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    # A closed pipe (`usmswitchctl watch | head`) ends us quietly, as for other command-line tools.
-    signal.signal(signal.SIGPIPE, signal.SIG_DFL)
+    # SIGPIPE stays ignored (Python's default): a daemon closing the socket under a send must be an
+    # error we handle (an estop tries its next path), never a silent kill. A closed stdout
+    # (`usmswitchctl watch | head`) is a BrokenPipeError, ended quietly below.
     address = "the daemon"
     try:
         check_args(args)
@@ -88,8 +84,6 @@ def main(argv: list[str] | None = None) -> int:
         def connect() -> Client:
             nonlocal address
             address = resolve_address(args)  # only when needed: export from the file has no socket
-            if args.command == "estop":
-                address = estop_address(address)
             try:
                 return Client(address, timeout=timeout, token=args.token)
             except ValueError as exc:  # a malformed address, a TCP connection without a token
@@ -99,6 +93,13 @@ def main(argv: list[str] | None = None) -> int:
             return cmd_export(args, connect)
         if args.command == "plot":
             return cmd_plot(args, connect)
+        if args.command == "estop":
+            # No connection beforehand: the estop socket, then the main one, each fresh.
+            address = resolve_address(args)
+            try:
+                return print_estop(estop_by_every_path(address, timeout=timeout, token=args.token), args)
+            except ValueError as exc:
+                raise UsageError(str(exc)) from None
         with connect() as client:
             return COMMANDS[args.command](client, args)
     except UsageError as exc:
@@ -110,6 +111,10 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(args, EXIT_CONNECT, f"no answer from the daemon: {exc}")
     except ConnectionClosed as exc:
         return _fail(args, EXIT_CONNECT, f"lost the daemon: {exc}", exc.code)
+    except BrokenPipeError:  # our stdout's reader went away: nothing more to say to anyone
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the exit's flush
+        return EXIT_PIPE
     except OSError as exc:  # no socket file, refused, permission denied, unreachable host
         return _fail(args, EXIT_CONNECT, f"cannot connect to {address}: {exc.strerror or exc}")
     except KeyboardInterrupt:

@@ -1,0 +1,181 @@
+"""Issue 35: every door has its own budget, sheds its idle or unauthenticated holders first, and keeps
+an estop reachable however its slots are held. Real sockets, a real server process."""
+
+from __future__ import annotations
+
+import dataclasses
+import socket
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from rawsock import Raw
+
+from usmswitch.client import Client
+from usmswitch.protocol.wire import ErrorCode, Limits, RpcError
+from usmswitch.server.estop_socket import EstopSocket
+from usmswitch.server.rpc import RpcServer
+
+TOKEN = "t0ken-of-twenty-chars"
+
+
+class Estops:
+    """The urgent handler: counts estops."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.lock = threading.Lock()
+
+    def estop(self, params: list[Any]) -> dict[str, str]:
+        with self.lock:
+            self.count += 1
+        return {"state": "fault", "fault": "estop (socket)"}
+
+
+@pytest.fixture
+def estops() -> Estops:
+    return Estops()
+
+
+def _server(sockdir: Path, estops: Estops, limits: Limits) -> Iterator[RpcServer]:
+    srv = RpcServer(
+        {"status": lambda params: {"state": "idle"}},
+        unix_path=sockdir / "d.sock",
+        urgent={"estop": estops.estop},
+        urgent_path=sockdir / "d.estop.sock",
+        tcp=("127.0.0.1", 0),
+        tcp_token=TOKEN,
+        limits=limits,
+        busy_poll_ns=0,
+    )
+    srv.start()
+    assert srv.urgent_listener is not None
+    companion = EstopSocket(srv.urgent_listener, {"estop": estops.estop}, srv.limits)
+    companion.start()
+    try:
+        yield srv
+    finally:
+        companion.stop()
+        srv.stop()
+
+
+@pytest.fixture
+def small(sockdir: Path, estops: Estops) -> Iterator[RpcServer]:
+    """Small budgets (the defaults' shape): 4 Unix slots, 2 TCP, 4 on the estop socket."""
+    wanted = {
+        "max_connections": 4,
+        "max_tcp_connections": 2,
+        "max_urgent_connections": 4,
+        "urgent_reserve": 2,
+        "shed_idle_ns": 200_000_000,
+    }
+    # Only the fields this version has: the same test runs on 7f3fa01 and fails there for the bug.
+    have = {f.name for f in dataclasses.fields(Limits)}
+    yield from _server(sockdir, estops, Limits(**{k: v for k, v in wanted.items() if k in have}))
+
+
+def _hold_estop_socket(srv: RpcServer, n: int) -> list[Raw]:
+    """`n` estop-socket holders that answered a ping: idle, but alive and well behaved."""
+    holders = []
+    for _ in range(n):
+        raw = Raw(str(srv.urgent_path))
+        assert raw.call("ping") == [1, 1, None, "pong"]
+        holders.append(raw)
+    return holders
+
+
+def test_a_full_estop_socket_sheds_its_longest_idle_holder_for_an_estop(
+    small: RpcServer, estops: Estops
+) -> None:
+    """Item 1: 16 (here 4) holders of the estop socket's slots locked every estop out."""
+    holders = _hold_estop_socket(small, 4)
+    raw = Raw(str(small.urgent_path))
+    reply = raw.call("estop")
+    assert reply[2] is None and reply[3]["state"] == "fault", reply
+    assert estops.count == 1
+    # The one that gave way was the longest idle, and was told why.
+    [note] = holders[0].read_until_closed()
+    assert note[:2] == [2, "error"] and note[2][0][0] == ErrorCode.BUSY
+    assert "gave way" in note[2][0][1]
+    assert holders[1].call("ping", msgid=2)[3] == "pong"  # the others keep their slots
+
+
+def test_client_estop_gets_through_every_slot_held_on_both_sockets(small: RpcServer, estops: Estops) -> None:
+    """Item 2: every main slot subscribed plus every estop slot held: Client.estop() got 0 of 5."""
+    subscribed = []
+    for _ in range(4):
+        raw = Raw(str(small.unix_path))
+        assert raw.call("subscribe", ["stroke"])[2] is None
+        subscribed.append(raw)
+    holders = _hold_estop_socket(small, 4)
+    for _ in range(5):
+        with Client(str(small.unix_path), timeout=5) as c:
+            assert c.estop()["state"] == "fault"
+    assert estops.count == 5
+    for raw in (*subscribed, *holders):
+        raw.close()
+
+
+def test_subscribed_connections_are_shed_when_idle_and_their_slots_are_needed(small: RpcServer) -> None:
+    """Item 2: subscribed connections were exempt from idle reaping: 64 held the socket 660 s."""
+    subscribed = []
+    for _ in range(4):
+        raw = Raw(str(small.unix_path))
+        assert raw.call("subscribe", ["stroke"])[2] is None
+        subscribed.append(raw)
+    # Once they are idle past shed_idle_ns, a newcomer gets a slot of its own for any call.
+    for _ in range(200):
+        with Client(str(small.unix_path), timeout=5) as c:
+            try:
+                assert c.status()["state"] == "idle"
+                break
+            except RpcError as exc:  # not idle long enough yet: a reserved slot, estop only
+                assert exc.code == ErrorCode.BUSY
+                threading.Event().wait(0.05)
+    else:
+        raise AssertionError("no subscribed holder was ever shed")
+    notes = [raw.read_until_closed() for raw in subscribed[:1]]
+    assert notes[0][-1][2][0][0] == ErrorCode.BUSY and "idle longest" in notes[0][-1][2][0][1]
+
+
+def test_past_the_budget_a_reserved_slot_takes_only_an_estop(small: RpcServer, estops: Estops) -> None:
+    """Busy holders (calls just made) are not shed: a newcomer may still send an estop there."""
+    busy = [Raw(str(small.unix_path)) for _ in range(4)]
+    for raw in busy:
+        assert raw.call("ping")[2] is None
+    late = Raw(str(small.unix_path))
+    reply = late.call("status")
+    assert reply[2][0] == ErrorCode.BUSY and "estop only" in reply[2][1]
+    urgent = Raw(str(small.unix_path))
+    reply = urgent.call("estop")
+    assert reply[2] is None and estops.count == 1
+
+
+def test_tcp_auth_with_a_token_that_is_not_a_string_closes_the_connection(small: RpcServer) -> None:
+    """Item 8: `auth` with an int, bytes or nil kept the connection to its 5 s timeout."""
+    assert small.tcp_address is not None
+    for bad in (1234, b"t0ken-of-twenty-chars", None):
+        raw = Raw(small.tcp_address, socket.AF_INET)
+        raw.send([0, 1, "auth", [bad]])
+        msgs = raw.read_until_closed()
+        assert len(msgs) == 1 and msgs[0][2][0] == ErrorCode.UNAUTHORIZED, msgs
+
+
+def test_tcp_auth_failures_back_off_per_peer(small: RpcServer) -> None:
+    """Item 12: 3,659-3,911 wrong guesses a second, no back-off, no log line."""
+    assert small.tcp_address is not None
+    replies = []
+    for i in range(6):
+        raw = Raw(small.tcp_address, socket.AF_INET)
+        raw.send([0, 1, "auth", [f"wrong-guess-number-{i:04d}"]])
+        replies.append(raw.read_until_closed()[0][2])
+    assert all(r[0] == ErrorCode.UNAUTHORIZED for r in replies)
+    assert [r[1] for r in replies[:3]] == ["wrong token"] * 3
+    # Past three in a row, the next guesses are not even compared: each waits for the back-off.
+    assert any("too many failed auth attempts from 127.0.0.1" in r[1] for r in replies[3:]), replies
+    right = Raw(small.tcp_address, socket.AF_INET)
+    right.send([0, 1, "auth", [TOKEN]])
+    assert "too many failed auth attempts" in right.read_until_closed()[0][2][1]
+    # The log line: tests/client/test_estop_every_path.py reads it in the daemon's log.
