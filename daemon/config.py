@@ -261,6 +261,19 @@ class WebConfig:
     """[web]: the browser panel (docs/panel.md)."""
 
     listen: str = ""  # "" = no panel; "127.0.0.1:8790" (a bare port listens on loopback)
+    # Host names the panel answers to besides loopback's (a reverse proxy's public name); any other
+    # Host is refused (DNS rebinding).
+    allowed_hosts: tuple[str, ...] = ()
+
+
+def _host_names(key: str, v: Any) -> tuple[str, ...]:
+    """[web] allowed_hosts: a list of host names (no port, no scheme)."""
+    if not isinstance(v, list) or not all(isinstance(h, str) for h in v):
+        raise ConfigError(key, f'a list of host names, like ["rig-a.lab.example"], got {v!r}')
+    for h in v:
+        if not h or len(h) > 253 or (any(c in h for c in "/:@ ?#") and not h.startswith("[")):
+            raise ConfigError(key, f"{h!r} is not a host name (no port, scheme or path)")
+    return tuple(h.lower() for h in v)
 
 
 @dataclass(frozen=True)
@@ -492,7 +505,9 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     t.done()
     t = top.table("web")
     # "" (off), "host:port", or a bare port (on loopback).
-    web = WebConfig(listen=t.get("listen", listen_value, ""))
+    web = WebConfig(
+        listen=t.get("listen", listen_value, ""), allowed_hosts=t.get("allowed_hosts", _host_names, ())
+    )
     t.done()
     top.done()
     if driver.kind in ("serial", "usb") and control.stroke_timeout_ns > MAX_STROKE_TIMEOUT_NS:

@@ -473,6 +473,7 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         web=parse_listen(daemon.config.web.listen) if token is not None else None,
         web_token=None if token is None else token.token,
         web_token_file=None if token is None else token.path,
+        web_allowed_hosts=daemon.config.web.allowed_hosts,
         limits=Limits(max_connections=cfg.max_clients, max_tcp_connections=cfg.max_tcp_clients),
         log_format=daemon.config.daemon.log_format,
         log_level=daemon.config.daemon.log_level,

@@ -115,6 +115,7 @@ class RpcServer:
         web: tuple[str, int] | None = None,
         web_token: str | None = None,
         web_token_file: str | os.PathLike[str] | None = None,
+        web_allowed_hosts: Iterable[str] = (),
         isolation: str = "process",
         nice: int = 5,
         busy_poll_ns: int = DEFAULT_WINDOW_NS,
@@ -167,6 +168,7 @@ class RpcServer:
         self.web = web
         self.web_token = web_token
         self.web_token_file = None if web_token_file is None else str(web_token_file)
+        self.web_allowed_hosts = [str(h) for h in web_allowed_hosts]
         #: Where the panel listens once started (the port resolved when 0 was asked).
         self.web_address: tuple[str, int] | None = None
         #: Where the metrics page listens once started (the port resolved when 0 was asked).
@@ -396,6 +398,7 @@ class RpcServer:
             "topics": list(self.topics),
             "web_token": self.web_token if self.web is not None else None,
             "web_token_file": self.web_token_file,
+            "web_allowed_hosts": self.web_allowed_hosts,
             "lost": self.lost,
             # In a thread of the daemon's process, polling would hold the GIL against the loop.
             "busy_poll_ns": self.busy_poll_ns if self.isolation == "process" else 0,

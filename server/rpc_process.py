@@ -897,7 +897,10 @@ async def _serve(
             from usmswitch.web.panel import serve_panel  # aiohttp: only here
 
             panel_conn = _PanelConn(hub)
-            servers.append(await serve_panel(sock, panel_conn, cfg["web_token"], cfg["web_token_file"]))
+            hosts = frozenset(cfg.get("web_allowed_hosts", ()))
+            servers.append(
+                await serve_panel(sock, panel_conn, cfg["web_token"], cfg["web_token_file"], hosts)
+            )
             await panel_conn.call("subscribe", [["stroke", "state", "run"]])
             continue
         # create_server, not create_unix_server: the latter unlinks the path on close (3.13+),

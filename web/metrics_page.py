@@ -30,6 +30,7 @@ from prometheus_client.core import (
 from prometheus_client.exposition import choose_encoder
 
 from usmswitch.fleet.metrics import DIRECTION_NAMES, FEEDS, HISTOGRAMS, OUTCOMES, STATE_FEED, STROKES_FEED
+from usmswitch.web.door import Door, QuietLog
 
 log = logging.getLogger("usmswitch.rpc")
 STATES = ("idle", "cycling", "fault", "stopped")
@@ -42,11 +43,14 @@ HISTOGRAM_NAMES = {
         "Start lateness: motor start minus (command + delay), host-timed strokes.",
     ),
 }
-# HTTP: a request line or header longer than this is refused (aiohttp's parser, 400); a connection
-# that sends no whole request for this long, at its start or between scrapes, is closed (Prometheus
-# keeps one open per target and scrapes every 5-60 s); more connections than MAX_SCRAPERS at once
-# are answered 503 and closed. Pipelined requests wait in the kernel once aiohttp's queue is full.
+# HTTP (web/door.py): a request line or header longer than this is refused (aiohttp's parser, 400);
+# a request head begun must be complete within HEAD_TIMEOUT_S (408, closed: each byte restarts
+# nothing); a connection that sends nothing for IDLE_TIMEOUT_S, at its start or between scrapes, is
+# closed (Prometheus keeps one open per target and scrapes every 5-60 s); past MAX_SCRAPERS at once
+# the longest idle is shed for a newcomer, else the newcomer is answered 503 and closed. Pipelined
+# requests wait in the kernel once aiohttp's queue is full.
 MAX_LINE_BYTES = 8190
+HEAD_TIMEOUT_S = 5.0
 IDLE_TIMEOUT_S = 120.0
 MAX_SCRAPERS = 16
 #: Answers go out at most this often, all connections together (50 a second: Prometheus scrapes
@@ -244,25 +248,13 @@ async def _answer(page: MetricsPage, request: web.BaseRequest) -> web.StreamResp
     return reply
 
 
-class _TooMany(asyncio.Protocol):
-    """A connection beyond MAX_SCRAPERS: told so, and closed before anything is read."""
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        assert isinstance(transport, asyncio.Transport)
-        body = b"too many scrapes at once\n"
-        transport.write(
-            b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
-            b"Content-Length: %d\r\nConnection: close\r\n\r\n%s" % (len(body), body)
-        )
-        transport.close()
-
-
 async def serve_metrics(sock: socket.socket, source: Source) -> asyncio.Server:
     """Serve the page on a listening TCP socket the daemon bound (the server process's event loop)."""
     page = MetricsPage(source)
+    door = Door("metrics page", MAX_SCRAPERS, HEAD_TIMEOUT_S, IDLE_TIMEOUT_S)
 
     async def handler(request: web.BaseRequest) -> web.StreamResponse:
-        return await _answer(page, request)
+        return await door.handling(request, lambda r: _answer(page, r))
 
     server = web.Server(
         handler,
@@ -270,9 +262,6 @@ async def serve_metrics(sock: socket.socket, source: Source) -> asyncio.Server:
         max_line_size=MAX_LINE_BYTES,
         max_field_size=MAX_LINE_BYTES,
         access_log=None,
+        logger=QuietLog("metrics page"),
     )
-
-    def connection() -> asyncio.Protocol:
-        return _TooMany() if len(server.connections) >= MAX_SCRAPERS else server()
-
-    return await asyncio.get_running_loop().create_server(connection, sock=sock)
+    return await asyncio.get_running_loop().create_server(door.protocol_factory(server), sock=sock)

@@ -34,10 +34,28 @@ from typing import Any, Protocol
 from aiohttp import WSMsgType, web
 
 from usmswitch.protocol.wire import ErrorCode, RpcError
+from usmswitch.web.door import Door, QuietLog
 
 log = logging.getLogger("usmswitch.web")
 
 TOKEN_HEADER = "X-Usmswitch-Token"
+#: The cookie the URL's token is traded for on first load (HttpOnly, SameSite=Strict), as Jupyter does.
+TOKEN_COOKIE = "usmswitch_token"
+#: Host names the panel answers to besides `[web] allowed_hosts`: a page asked for as another name
+#: (DNS rebinding: `evil.example` resolving to 127.0.0.1) is refused before anything is read.
+LOOPBACK_HOSTS = frozenset({"127.0.0.1", "localhost", "::1", "[::1]"})
+#: Connections at once to the panel's port (web/door.py): a page and its assets take a few, a live
+#: feed one; past it the longest idle is shed for a newcomer, else 503.
+MAX_CONNECTIONS = 128
+#: A request head begun must be complete within this (408, closed; each byte restarts nothing);
+#: a connection silent this long at its start or between requests is closed.
+HEAD_TIMEOUT_S = 10.0
+IDLE_TIMEOUT_S = 60.0
+#: Live feeds kept for pages without the token: an operator's feed (the token's cookie) sheds the
+#: oldest of them when the feeds are full, so read-only holders never keep the operator out.
+MAX_READONLY_PANELS = 24
+#: JSON nesting a control's body may have (a control takes a flat object).
+MAX_JSON_DEPTH = 8
 #: Strokes kept for a panel that opens (a few seconds of history) or falls behind: ~10 s at 100/s.
 HISTORY_STROKES = 1000
 #: Live updates go out at most this often: 100 strokes a second are 10 per message.
@@ -110,8 +128,12 @@ def compact(rec: dict[str, Any]) -> list[Any]:
 class _Viewer:
     """One open live feed."""
 
-    def __init__(self, ws: web.WebSocketResponse, transport: asyncio.Transport | None) -> None:
+    def __init__(
+        self, ws: web.WebSocketResponse, transport: asyncio.Transport | None, operator: bool = False
+    ) -> None:
         self.ws = ws
+        self.operator = operator  # opened with the token (its cookie): never shed for a read-only one
+        self.opened = time.monotonic()
         self.transport = transport
         self.seq = 0  # the last stroke sent
         self.sending: asyncio.Task[None] | None = None
@@ -127,10 +149,19 @@ class _Viewer:
 class Panel:
     """The panel's state in the server process: the live buffer, the viewers, the latest figures."""
 
-    def __init__(self, backend: Backend, token: str | None, token_file: str | None) -> None:
+    def __init__(
+        self,
+        backend: Backend,
+        token: str | None,
+        token_file: str | None,
+        allowed_hosts: frozenset[str] = frozenset(),
+    ) -> None:
         self.backend = backend
         self.token = token
         self.token_file = token_file
+        self.allowed_hosts = LOOPBACK_HOSTS | {h.lower() for h in allowed_hosts}
+        self.feeds = 0  # live feeds open or opening: counted before any await (the cap is atomic)
+        self.closing: set[asyncio.Task[Any]] = set()  # feeds being closed for an operator's
         self.strokes: deque[tuple[int, list[Any]]] = deque(maxlen=HISTORY_STROKES)
         self.seq = 0
         self.viewers: set[_Viewer] = set()
@@ -258,13 +289,24 @@ class Panel:
 
     # -- controls ------------------------------------------------------------------------------------
     def authorized(self, request: web.BaseRequest) -> bool:
-        """Whether the request carries the daemon's token (constant-time comparison)."""
-        given = request.headers.get(TOKEN_HEADER, "")
+        """Whether the request carries the daemon's token, in its header or the cookie the URL's
+        token was traded for (constant-time comparison)."""
+        return any(
+            self.token_ok(given)
+            for given in (request.headers.get(TOKEN_HEADER, ""), request.cookies.get(TOKEN_COOKIE, ""))
+        )
+
+    def token_ok(self, given: str) -> bool:
+        """Whether `given` is the daemon's token."""
         return (
             self.token is not None
             and bool(given)
             and hmac.compare_digest(given.encode(), self.token.encode())
         )
+
+    def host_allowed(self, request: web.BaseRequest) -> bool:
+        """Whether the request's Host names this panel (loopback, or `[web] allowed_hosts`)."""
+        return host_name(request.headers.get("Host", "")) in self.allowed_hosts
 
     def refusal(self) -> str:
         where = f" (it is in {self.token_file}, readable by the socket's group)" if self.token_file else ""
@@ -291,12 +333,47 @@ def _error(status: int, message: str, code: int | None = None) -> web.Response:
 
 def same_origin(request: web.BaseRequest) -> bool:
     """No Origin (a script, curl) or the page's own: a page of another site open in the same browser
-    may not read the feed over WebSocket (which browsers let cross origins open) or post controls."""
+    may not read the feed over WebSocket (which browsers let cross origins open) or post controls.
+    The page's own is http (or https behind a TLS proxy) and the Host it was asked as."""
     origin = request.headers.get("Origin")
     if origin is None:
         return True
-    host = origin.partition("://")[2]
-    return bool(host) and host == request.headers.get("Host", "")
+    scheme, sep, host = origin.partition("://")
+    return (
+        bool(sep) and scheme in ("http", "https") and bool(host) and host == request.headers.get("Host", "")
+    )
+
+
+def host_name(host: str) -> str:
+    """The name part of a Host header, lower case: `127.0.0.1:8790` -> `127.0.0.1`, `[::1]:80` -> `[::1]`."""
+    host = host.strip().lower()
+    if host.startswith("["):
+        return host[: host.find("]") + 1] if "]" in host else host
+    return host.rpartition(":")[0] if host.count(":") == 1 else host
+
+
+def json_depth_ok(raw: bytes, most: int = MAX_JSON_DEPTH) -> bool:
+    """Whether a JSON text nests at most `most` deep (counted on its brackets outside strings,
+    before json.loads recurses: 2,000 nested `[` were a RecursionError and a 500)."""
+    depth = 0
+    in_str = escaped = False
+    for ch in raw:
+        if in_str:
+            if escaped:
+                escaped = False
+            elif ch == 0x5C:  # backslash
+                escaped = True
+            elif ch == 0x22:  # quote
+                in_str = False
+        elif ch == 0x22:
+            in_str = True
+        elif ch in (0x5B, 0x7B):  # [ {
+            depth += 1
+            if depth > most:
+                return False
+        elif ch in (0x5D, 0x7D):
+            depth -= 1
+    return True
 
 
 async def _no_icon() -> web.Response:
@@ -330,14 +407,29 @@ def _control_params(name: str, body: Any) -> tuple[str, list[Any]]:
     return method, params
 
 
-def make_app(panel: Panel) -> web.Application:
+def make_app(panel: Panel, door: Door | None = None) -> web.Application:
     """The panel's routes: the page and its assets, the live feed, the runs, the controls."""
     app = web.Application(client_max_size=MAX_BODY_BYTES)
     static = resources.files("usmswitch.web") / "static"
 
     async def index(request: web.Request) -> web.StreamResponse:
+        if "token" in request.query:
+            # The URL's token traded for a cookie, then a clean URL: the token stays out of the
+            # history, caches, Referer headers and proxies' logs (Jupyter's way). A wrong token is
+            # dropped from the URL too; the page is then read-only and says how to get the token.
+            rest = [(k, v) for k, v in request.query.items() if k != "token"]
+            clean = request.rel_url.with_query(rest).path_qs if rest else request.path
+            resp = web.HTTPSeeOther(location=clean, headers={"Cache-Control": "no-store"})
+            if panel.token_ok(request.query["token"]):
+                resp.set_cookie(
+                    TOKEN_COOKIE, request.query["token"], httponly=True, samesite="Strict", path="/"
+                )
+            return resp
         return web.Response(
-            body=(static / "index.html").read_bytes(), content_type="text/html", charset="utf-8"
+            body=(static / "index.html").read_bytes(),
+            content_type="text/html",
+            charset="utf-8",
+            headers={"Cache-Control": "no-store", "Referrer-Policy": "no-referrer"},
         )
 
     async def asset(request: web.Request) -> web.StreamResponse:
@@ -360,26 +452,44 @@ def make_app(panel: Panel) -> web.Application:
     async def live(request: web.Request) -> web.StreamResponse:
         if not same_origin(request):
             return _error(403, "the live feed is for the panel's own page (another site's Origin)")
-        if len(panel.viewers) >= MAX_PANELS:
-            return _error(503, f"too many open panels (max {MAX_PANELS}); close one")
-        ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=4096)
-        await ws.prepare(request)
-        if panel.status is None or time.monotonic() - panel.status_at > STATUS_EVERY_S:
-            await panel.refresh_status()
-        if panel.stats is None:
-            await panel.refresh_stats()
-        viewer = _Viewer(ws, request.transport)  # type: ignore[arg-type]
-        hello = panel.hello()
-        viewer.seq, viewer.stats_sent, viewer.status_sent = panel.seq, panel.stats, panel.status
-        await ws.send_str(json.dumps(hello, separators=(",", ":")))
-        panel.viewers.add(viewer)
+        operator = panel.authorized(request)
+        readonly = sum(1 for v in panel.viewers if not v.operator)
+        if not operator and readonly >= MAX_READONLY_PANELS:
+            return _error(503, f"too many read-only panels (max {MAX_READONLY_PANELS}); close one")
+        if panel.feeds >= MAX_PANELS:
+            # Full: an operator's feed takes the oldest read-only one's place; else refused.
+            oldest = min((v for v in panel.viewers if not v.operator), key=lambda v: v.opened, default=None)
+            if not operator or oldest is None:
+                return _error(503, f"too many open panels (max {MAX_PANELS}); close one")
+            panel.viewers.discard(oldest)
+            closing = asyncio.create_task(
+                oldest.ws.close(code=1013, message=b"replaced: the feeds are full and an operator opened one")
+            )
+            panel.closing.add(closing)
+            closing.add_done_callback(panel.closing.discard)
+        # Counted before the first await: a burst cannot pass the cap between the check and the count.
+        panel.feeds += 1
         try:
-            async for msg in ws:  # the page sends nothing; reading keeps pings answered
-                if msg.type == WSMsgType.ERROR:
-                    break
+            ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=4096)
+            await ws.prepare(request)
+            if panel.status is None or time.monotonic() - panel.status_at > STATUS_EVERY_S:
+                await panel.refresh_status()
+            if panel.stats is None:
+                await panel.refresh_stats()
+            viewer = _Viewer(ws, request.transport, operator)  # type: ignore[arg-type]
+            hello = panel.hello()
+            viewer.seq, viewer.stats_sent, viewer.status_sent = panel.seq, panel.stats, panel.status
+            await ws.send_str(json.dumps(hello, separators=(",", ":")))
+            panel.viewers.add(viewer)
+            try:
+                async for msg in ws:  # the page sends nothing; reading keeps pings answered
+                    if msg.type == WSMsgType.ERROR:
+                        break
+            finally:
+                panel.viewers.discard(viewer)
+            return ws
         finally:
-            panel.viewers.discard(viewer)
-        return ws
+            panel.feeds -= 1
 
     async def runs(request: web.Request) -> web.StreamResponse:
         try:
@@ -440,9 +550,13 @@ def make_app(panel: Panel) -> web.Application:
         if name not in CONTROLS:
             return _error(400, f"unknown control {name[:40]!r}; known: {', '.join(CONTROLS)}")
         raw = await request.read()
+        if not json_depth_ok(raw):
+            return _error(
+                400, f"{name}: the body nests deeper than {MAX_JSON_DEPTH} (a control is a flat object)"
+            )
         try:
             body = json.loads(raw) if raw.strip() else {}
-        except (ValueError, UnicodeDecodeError) as exc:
+        except (ValueError, UnicodeDecodeError, RecursionError) as exc:
             return _error(400, f"{name}: the body is not JSON: {exc}")
         try:
             method, params = _control_params(name, body)
@@ -458,6 +572,19 @@ def make_app(panel: Panel) -> web.Application:
         except web.HTTPRequestEntityTooLarge:
             return _error(413, f"a control's body is at most {MAX_BODY_BYTES} bytes")
 
+    async def known_host(request: web.Request, handler: Any) -> web.StreamResponse:
+        # Before anything else: a page asked for under another name is another site's (rebinding).
+        if not panel.host_allowed(request):
+            return _error(
+                403,
+                f"this panel answers to {', '.join(sorted(panel.allowed_hosts))};"
+                " add the name to [web] allowed_hosts to open it under another",
+            )
+        return await handler(request)  # type: ignore[no-any-return]
+
+    if door is not None:
+        app.middlewares.append(door.middleware())
+    app.middlewares.append(web.middleware(known_host))
     app.middlewares.append(web.middleware(too_large))
     app.router.add_get("/", index)
     app.router.add_get("/favicon.ico", lambda request: _no_icon())
@@ -473,24 +600,48 @@ def make_app(panel: Panel) -> web.Application:
 class PanelServer:
     """The running panel: its aiohttp runner and ticker; `close()` ends both."""
 
-    def __init__(self, runner: web.AppRunner, ticker: asyncio.Task[None], panel: Panel) -> None:
+    def __init__(
+        self,
+        runner: web.AppRunner,
+        ticker: asyncio.Task[None],
+        panel: Panel,
+        server: asyncio.Server,
+        door: Door,
+    ) -> None:
         self.runner = runner
         self.ticker = ticker
         self.panel = panel
+        self.server = server
+        self.door = door
 
     def close(self) -> None:
         """Stop serving (from the event loop's thread); open feeds are dropped with the process."""
         self.ticker.cancel()
+        self.door.close()
+        self.server.close()
         asyncio.get_running_loop().create_task(self.runner.cleanup())
 
 
 async def serve_panel(
-    sock: socket.socket, backend: Backend, token: str | None, token_file: str | None = None
+    sock: socket.socket,
+    backend: Backend,
+    token: str | None,
+    token_file: str | None = None,
+    allowed_hosts: frozenset[str] = frozenset(),
 ) -> PanelServer:
-    """Serve the panel on a listening TCP socket the daemon bound (the server process's event loop)."""
-    panel = Panel(backend, token, token_file)
-    runner = web.AppRunner(make_app(panel), access_log=None, handle_signals=False)
+    """Serve the panel on a listening TCP socket the daemon bound (the server process's event loop),
+    behind its door's budget (web/door.py)."""
+    panel = Panel(backend, token, token_file, allowed_hosts)
+    door = Door("panel", MAX_CONNECTIONS, HEAD_TIMEOUT_S, IDLE_TIMEOUT_S)
+    runner = web.AppRunner(
+        make_app(panel, door),
+        access_log=None,
+        handle_signals=False,
+        keepalive_timeout=IDLE_TIMEOUT_S,
+        logger=QuietLog("panel"),
+    )
     await runner.setup()
-    await web.SockSite(runner, sock).start()
+    assert runner.server is not None
+    server = await asyncio.get_running_loop().create_server(door.protocol_factory(runner.server), sock=sock)
     panel.seeding = asyncio.create_task(panel.seed())
-    return PanelServer(runner, asyncio.create_task(panel.ticker()), panel)
+    return PanelServer(runner, asyncio.create_task(panel.ticker()), panel, server, door)

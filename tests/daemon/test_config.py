@@ -392,10 +392,12 @@ def test_web_listen_from_file_and_flag(tmp_path: Path):
     cfg = load_config(write(tmp_path, "[web]\nlisten = 8790\n"), env=ENV)
     assert cfg.web.listen == "8790" and parse_listen(cfg.web.listen) == ("127.0.0.1", 8790)
     assert load_config(None, {"web": "[::1]:0"}, env=ENV).web.listen == "[::1]:0"
-    assert apply_overrides(cfg) == cfg and cfg.to_dict()["web"] == {"listen": "8790"}
+    assert apply_overrides(cfg) == cfg and cfg.to_dict()["web"] == {"listen": "8790", "allowed_hosts": []}
     with pytest.raises(ConfigError, match=r"web.listen: 'localhost' is not host:port"):
         load_config(write(tmp_path, '[web]\nlisten = "localhost"\n'), env=ENV)
-    with pytest.raises(ConfigError, match=r"web.port: unknown key \(known in \[web\]: listen\)"):
+    with pytest.raises(
+        ConfigError, match=r"web.port: unknown key \(known in \[web\]: allowed_hosts, listen\)"
+    ):
         load_config(write(tmp_path, "[web]\nport = 8790\n"), env=ENV)
 
 

@@ -135,8 +135,29 @@ def test_a_run_started_from_the_page_ends(rig: dict[str, Any], browser: Any, sho
     browser.save_screenshot(str(shots / "panel-live.png"))
 
 
+def test_the_urls_token_becomes_an_httponly_cookie_and_leaves_every_url(
+    rig: dict[str, Any], browser: Any
+) -> None:
+    """Issue 35, item 11: the token rode in the URL: in the Referer of 4 asset requests, in
+    Chromium's history and cache, and in a proxy's log. The server now trades it for a cookie the
+    page's script cannot read and redirects to the clean URL before the page loads."""
+    browser.delete_all_cookies()
+    browser.get(f"{rig['url']}?token={rig['token']}")
+    wait_for("the control badge", lambda: body(browser, "control") == "yes")
+    assert browser.current_url == rig["url"]
+    cookie = browser.get_cookie("usmswitch_token")
+    assert cookie is not None and cookie["value"] == rig["token"]
+    assert cookie["httpOnly"] is True and cookie["sameSite"] == "Strict"
+    assert rig["token"] not in browser.execute_script("return document.cookie")
+    history = browser.execute_cdp_cmd("Page.getNavigationHistory", {})["entries"]
+    assert history and not any(rig["token"] in e["url"] for e in history), history
+    # Every resource the page fetched was asked for under a URL without the token.
+    names = browser.execute_script("return performance.getEntries().map(e => e.name)")
+    assert names and not any(rig["token"] in n for n in names), names
+
+
 def test_without_the_token_the_page_is_refused(rig: dict[str, Any], browser: Any, shots: Path) -> None:
-    browser.execute_script("sessionStorage.clear()")
+    browser.delete_all_cookies()  # the token's cookie from the tests before
     browser.get(rig["url"])
     wait_for("the read-only badge", lambda: body(browser, "control") == "no")
     assert text(browser, "access") == "read-only"

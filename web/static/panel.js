@@ -1,21 +1,14 @@
 // The usmswitch panel: a plain client of the daemon's server process (web/panel.py).
 // Reads: the live feed (/api/live, a WebSocket), the runs (/api/runs). Controls: POST /api/control/NAME
-// with the token from the URL that `usmswitchctl web-url` prints; without it the page is read-only.
+// with the token's cookie (the URL `usmswitchctl web-url` prints sets it); without it, read-only.
 "use strict";
 
 const MAX_POINTS = 3000; // strokes kept on the plots (30 s at 100 strokes a second)
 const HIST_BINS = 41;
-const TOKEN_HEADER = "X-Usmswitch-Token";
 
-// -- the token: taken from the URL once, kept for this tab, removed from the address bar ------------
-const params = new URLSearchParams(location.search);
-if (params.has("token")) {
-  sessionStorage.setItem("usmswitch-token", params.get("token"));
-  params.delete("token");
-  const rest = params.toString();
-  history.replaceState(null, "", location.pathname + (rest ? "?" + rest : "") + location.hash);
-}
-const token = sessionStorage.getItem("usmswitch-token") || "";
+// -- the token: the server trades the URL's token for an HttpOnly, SameSite=Strict cookie and
+// redirects to the clean URL before this script runs (Jupyter's way), so the page never sees it and
+// it stays out of the history, caches and Referer headers. Same-origin requests carry the cookie.
 
 // -- units for people: 12.000 ms, 95.3 us ------------------------------------------------------------
 function fmtNs(ns) {
@@ -216,7 +209,7 @@ async function control(name, body) {
   try {
     const resp = await fetch("/api/control/" + name, {
       method: "POST",
-      headers: { "Content-Type": "application/json", [TOKEN_HEADER]: token },
+      headers: { "Content-Type": "application/json" },
       body: JSON.stringify(body || {}),
     });
     const data = await resp.json();
@@ -259,14 +252,13 @@ $("reset").addEventListener("click", () => control("reset"));
 async function session() {
   let data = { control: false, message: "" };
   try {
-    const resp = await fetch("/api/session", { headers: { [TOKEN_HEADER]: token } });
+    const resp = await fetch("/api/session");
     data = await resp.json();
   } catch (e) { /* the live feed's badge says the daemon is gone */ }
   document.body.dataset.control = data.control ? "yes" : "no";
   text("access", data.control ? "control" : "read-only");
   $("access").className = "badge " + (data.control ? "ok" : "warn");
   $("access").title = data.control ? "" : data.message;
-  if (!data.control && token) notice(data.message, true);
 }
 
 session();

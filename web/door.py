@@ -1,0 +1,262 @@
+"""A budget for one HTTP door (the panel, /metrics), as nginx's `limit_conn` and
+`client_header_timeout`: connections at once, and time to a complete request head.
+
+aiohttp keeps neither: it takes every connection the kernel hands it, and its keep-alive timer
+restarts on every byte, so a client dripping a byte every few seconds held a slot for ever. Here each
+connection is tracked from the accept: a request head must be complete within `head_s` of its first
+byte, an idle connection (no byte since its last answer) is closed after `idle_s`, and a door at its
+budget sheds its holder that is furthest from being useful (a head begun and not finished, then the
+longest idle) for the newcomer; with none to shed, the newcomer gets a short 503 and is closed before
+anything is read. Each is enforced before any work, and said in one log line per 10 s at most.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any, cast
+
+from aiohttp import web
+
+log = logging.getLogger("usmswitch.web")
+
+_LOG_EVERY_NS = 10_000_000_000
+_SWEEP_S = 0.25
+
+
+class _Entry:
+    __slots__ = ("active", "head_since", "idle_since", "transport")
+
+    def __init__(self, transport: asyncio.BaseTransport, now: float) -> None:
+        self.transport = transport
+        self.active = 0  # requests being handled (a live feed is one for its whole life)
+        self.head_since: float | None = None  # first byte of a request not yet handled
+        self.idle_since = now
+
+
+class Door:
+    """Connections and time-to-request budgets for one aiohttp server."""
+
+    def __init__(self, name: str, max_connections: int, head_s: float, idle_s: float) -> None:
+        self.name = name
+        self.max_connections = max_connections
+        self.head_s = head_s
+        self.idle_s = idle_s
+        self.conns: dict[asyncio.BaseTransport, _Entry] = {}
+        self.refused = self.shed = self.timed_out = 0
+        self._logged_ns = 0
+        self._sweeper: asyncio.Task[None] | None = None
+
+    # -- wiring ------------------------------------------------------------------------------------
+    def protocol_factory(
+        self, make: Callable[[], asyncio.BaseProtocol]
+    ) -> Callable[[], asyncio.BaseProtocol]:
+        """Wrap aiohttp's protocol factory (a web.Server) with this door's budget."""
+
+        def factory() -> asyncio.BaseProtocol:
+            if self._sweeper is None:
+                self._sweeper = asyncio.get_running_loop().create_task(self._sweep_forever())
+            return _Tracked(self, make())
+
+        return factory
+
+    def middleware(self) -> Any:
+        """An aiohttp middleware marking a connection busy while its request is handled."""
+
+        @web.middleware
+        async def tracked(request: web.Request, handler: Callable[[web.Request], Awaitable[Any]]) -> Any:
+            return await self.handling(request, handler)
+
+        return tracked
+
+    async def handling(self, request: web.BaseRequest, handler: Callable[[Any], Awaitable[Any]]) -> Any:
+        """Run `handler(request)` with its connection counted as busy (not shed, not timed out)."""
+        entry = self.conns.get(request.transport) if request.transport is not None else None
+        if entry is not None:
+            entry.active += 1
+            entry.head_since = None
+        try:
+            return await handler(request)
+        finally:
+            if entry is not None:
+                entry.active -= 1
+                entry.idle_since = time.monotonic()
+
+    def close(self) -> None:
+        """Stop the sweeper (the server is closing)."""
+        if self._sweeper is not None:
+            self._sweeper.cancel()
+
+    # -- the budget -------------------------------------------------------------------------------
+    def admit(self, transport: asyncio.BaseTransport) -> bool:
+        """Count a new connection, shedding a holder when full; False: refuse it."""
+        if len(self.conns) >= self.max_connections and not self._shed_one():
+            self.refused += 1
+            self._say(f"full (max {self.max_connections} connections): newcomers refused with 503")
+            return False
+        self.conns[transport] = _Entry(transport, time.monotonic())
+        return True
+
+    def _shed_one(self) -> bool:
+        victim = None
+        best: tuple[int, float] = (2, 0.0)
+        for entry in self.conns.values():
+            if entry.active:
+                continue
+            # A head begun and never finished first (slowloris), then the longest idle.
+            rank = (0, entry.head_since) if entry.head_since is not None else (1, entry.idle_since)
+            if victim is None or rank < best:
+                victim, best = entry, rank
+        if victim is None:
+            return False
+        self.shed += 1
+        self._say(f"full (max {self.max_connections} connections): idle holders shed for newcomers")
+        self._drop(victim)
+        return True
+
+    def _drop(self, entry: _Entry) -> None:
+        self.conns.pop(entry.transport, None)
+        entry.transport.close()
+
+    def data(self, transport: asyncio.BaseTransport) -> None:
+        entry = self.conns.get(transport)
+        if entry is not None and not entry.active and entry.head_since is None:
+            entry.head_since = time.monotonic()
+
+    def lost(self, transport: asyncio.BaseTransport) -> None:
+        self.conns.pop(transport, None)
+
+    def sweep(self) -> None:
+        """Close connections past their head or idle time (each byte restarts nothing)."""
+        now = time.monotonic()
+        for entry in list(self.conns.values()):
+            if entry.active:
+                continue
+            if entry.head_since is not None and now - entry.head_since > self.head_s:
+                late = True
+            elif entry.head_since is None and now - entry.idle_since > self.idle_s:
+                late = False
+            else:
+                continue
+            if late:
+                self.timed_out += 1
+                self._say(f"a request head not complete within {self.head_s:g} s: closed")
+                _write_close(entry.transport, 408, "Request Timeout", "request head not complete in time\n")
+                self.conns.pop(entry.transport, None)
+            else:
+                self._drop(entry)
+
+    async def _sweep_forever(self) -> None:
+        while True:
+            await asyncio.sleep(_SWEEP_S)
+            self.sweep()
+
+    def _say(self, what: str) -> None:
+        now = time.monotonic_ns()
+        if now - self._logged_ns >= _LOG_EVERY_NS:
+            self._logged_ns = now
+            log.warning(
+                "%s: %s (refused %d, shed %d, timed out %d so far)",
+                self.name,
+                what,
+                self.refused,
+                self.shed,
+                self.timed_out,
+            )
+
+
+class _Tracked(asyncio.Protocol):
+    """aiohttp's protocol behind the door: counted at connection_made, seen at each byte."""
+
+    def __init__(self, door: Door, inner: asyncio.BaseProtocol) -> None:
+        self.door = door
+        self.inner = cast(asyncio.Protocol, inner)
+        self.transport: asyncio.BaseTransport | None = None
+        self.admitted = False
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport
+        if not self.door.admit(transport):
+            _write_close(
+                transport, 503, "Service Unavailable", f"too many connections to the {self.door.name}\n"
+            )
+            return
+        self.admitted = True
+        self.inner.connection_made(transport)
+
+    def data_received(self, data: bytes) -> None:
+        if self.admitted:
+            assert self.transport is not None
+            self.door.data(self.transport)
+            self.inner.data_received(data)
+
+    def eof_received(self) -> bool | None:
+        return self.inner.eof_received() if self.admitted else None
+
+    def pause_writing(self) -> None:
+        if self.admitted:
+            self.inner.pause_writing()
+
+    def resume_writing(self) -> None:
+        if self.admitted:
+            self.inner.resume_writing()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self.transport is not None:
+            self.door.lost(self.transport)
+        if self.admitted:
+            self.inner.connection_lost(exc)
+
+
+def _write_close(transport: asyncio.BaseTransport, status: int, reason: str, body: str) -> None:
+    """A short answer and a close. uvloop's transports are not asyncio.Transport subclasses: duck-typed."""
+    data = body.encode()
+    writer = cast(asyncio.WriteTransport, transport)
+    with contextlib.suppress(RuntimeError, OSError):
+        writer.write(
+            b"HTTP/1.1 %d %s\r\nContent-Type: text/plain; charset=utf-8\r\nContent-Length: %d\r\n"
+            b"Connection: close\r\n\r\n%s" % (status, reason.encode(), len(data), data)
+        )
+    transport.close()
+
+
+class QuietLog:
+    """aiohttp's server logger: a bad request is one line, no traceback, at most one per 10 s
+    (40,000 malformed requests logged 25.7 MB of tracebacks in 29 s)."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.count = 0
+        self._logged_ns = 0
+
+    def _one(self, msg: str, args: tuple[Any, ...], exc: BaseException | None) -> None:
+        self.count += 1
+        now = time.monotonic_ns()
+        if now - self._logged_ns < _LOG_EVERY_NS:
+            return
+        self._logged_ns = now
+        text = msg % args if args else msg
+        why = f": {type(exc).__name__}: {str(exc)[:200]}" if exc is not None else ""
+        log.warning("%s: %s%s (%d such so far)", self.name, text, why, self.count)
+
+    def exception(self, msg: str, *args: Any, exc_info: Any = None, **kw: Any) -> None:
+        exc = exc_info if isinstance(exc_info, BaseException) else None
+        self._one(msg, args, exc)
+
+    def error(self, msg: str, *args: Any, exc_info: Any = None, **kw: Any) -> None:
+        self.exception(msg, *args, exc_info=exc_info)
+
+    def warning(self, msg: str, *args: Any, exc_info: Any = None, **kw: Any) -> None:
+        self.exception(msg, *args, exc_info=exc_info)
+
+    def info(self, msg: str, *args: Any, **kw: Any) -> None:
+        pass
+
+    def debug(self, msg: str, *args: Any, **kw: Any) -> None:
+        pass
+
+    def isEnabledFor(self, level: int) -> bool:
+        return level >= logging.WARNING
