@@ -248,3 +248,51 @@ def test_zz_the_log_holds_no_traceback(rig: dict[str, Any]) -> None:
     assert "AssertionError" not in err
     lines = [line for line in err.splitlines() if "Error handling request" in line or "BadStatusLine" in line]
     assert len(lines) <= 6, lines[:10]
+
+
+async def _open_feeds(url: str, n: int, cookie: str | None = None) -> tuple[list[Any], int, int]:
+    """Open `n` live feeds at once; (the open ones, how many opened, how many were refused)."""
+    ws_url = url.replace("http://", "ws://") + "api/live"
+    headers = {"Cookie": f"usmswitch_token={cookie}"} if cookie else {}
+    session = aiohttp.ClientSession()
+
+    async def one() -> Any:
+        try:
+            return await session.ws_connect(ws_url, headers=headers, heartbeat=None)
+        except aiohttp.WSServerHandshakeError as exc:
+            assert exc.status == 503, exc
+            return None
+
+    got = await asyncio.gather(*(one() for _ in range(n)))
+    opened = [ws for ws in got if ws is not None]
+    return [session, *opened], len(opened), n - len(opened)
+
+
+async def _close_all(held: list[Any]) -> None:
+    session, *feeds = held
+    for ws in feeds:
+        await ws.close()
+    await session.close()
+
+
+def test_the_live_feed_cap_is_atomic_and_never_keeps_the_operator_out(rig: dict[str, Any]) -> None:
+    """Item 5: the cap of 32 was checked before an await and counted after: bursts of 200 opened
+    64, 96, 79; and 32 held feeds (answering pings) kept the operator's feed at 503 for 75 s."""
+
+    async def main() -> tuple[list[int], bool]:
+        opened_per_burst = []
+        for _ in range(3):
+            held, opened, _ = await _open_feeds(rig["url"], 200)
+            opened_per_burst.append(opened)
+            await _close_all(held)
+            await asyncio.sleep(0.3)  # the server sees the closes
+        readonly, _, _ = await _open_feeds(rig["url"], 40)
+        operator, opened, _ = await _open_feeds(rig["url"], 1, cookie=rig["token"])
+        hello = json.loads((await operator[1].receive(timeout=10)).data) if opened else None
+        await _close_all(operator)
+        await _close_all(readonly)
+        return opened_per_burst, bool(hello and hello["type"] == "hello")
+
+    bursts, operator_served = asyncio.run(main())
+    assert all(n <= 32 for n in bursts), bursts
+    assert operator_served
