@@ -107,7 +107,10 @@ def test_from_row_names_the_bad_field():
 def test_flag_bits_are_distinct_and_unusable_covers_lost_strokes():
     values = [f.value for f in Flag]
     assert len(set(values)) == len(values) and all(v & (v - 1) == 0 for v in values)
-    assert UNUSABLE == Flag.STALL | Flag.FAULT | Flag.ESTOP | Flag.ABORTED | Flag.PARTIAL | Flag.IMPLAUSIBLE
+    assert UNUSABLE == (
+        Flag.STALL | Flag.FAULT | Flag.ESTOP | Flag.ABORTED | Flag.PARTIAL | Flag.IMPLAUSIBLE | Flag.MISMATCH
+    )
+    assert not UNUSABLE & Flag.NOISE  # chatter counted, the stroke still learned when nothing else is wrong
 
 
 # -- RecordStore -------------------------------------------------------------------------------------
