@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import concurrent.futures
+import contextlib
 import csv
 import hmac
 import importlib
@@ -983,6 +984,42 @@ def _loop_factory() -> Callable[[], asyncio.AbstractEventLoop] | None:
     return uvloop.new_event_loop
 
 
+def descriptors_needed(limits: Limits) -> int:
+    """Descriptors the server process may hold at once with every door at its budget: each door's
+    connections (and reserved slots), the connections draining their last bytes, the listeners,
+    channels, records readers and logs. The units' LimitNOFILE is set above it (docs/service.md)."""
+    from usmswitch.web.budgets import METRICS_CONNECTIONS, PANEL_CONNECTIONS  # no aiohttp
+
+    doors = limits.max_connections + limits.max_tcp_connections + 2 * limits.urgent_reserve
+    # A door sheds or refuses a newcomer only after accepting it: one more per door, briefly.
+    http = PANEL_CONNECTIONS + METRICS_CONNECTIONS + 2
+    readers = 3 * (limits.max_reads + 1)  # each reader thread: the file, its -wal and -shm
+    return doors + http + _MAX_LINGERING + readers + 64  # 64: listeners, channels, std streams, libs
+
+
+def fit_descriptors(limits: Limits) -> int:
+    """Raise this process's soft RLIMIT_NOFILE toward what the budgets need (up to the hard limit);
+    the soft limit after. A hard limit below the need is a warning naming both, never an exit."""
+    import resource
+
+    need = descriptors_needed(limits)
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != resource.RLIM_INFINITY and soft < need:
+        want = need if hard == resource.RLIM_INFINITY else min(need, hard)
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(resource.RLIMIT_NOFILE, (want, hard))
+            soft = want
+        if soft < need:
+            log.warning(
+                "rpc: %d descriptors allowed (hard limit %d), the doors' budgets need %d: raise"
+                " LimitNOFILE (docs/service.md); past it new connections wait in the kernel",
+                soft,
+                hard,
+                need,
+            )
+    return int(soft)
+
+
 def serve(chan_fd: int, urgent_fd: int, listeners: list[tuple[int, str]], nice: int = 0) -> None:
     """The server process's body: read the config from the channel, then serve until told to stop."""
     chan = socket.socket(fileno=chan_fd)
@@ -995,6 +1032,7 @@ def serve(chan_fd: int, urgent_fd: int, listeners: list[tuple[int, str]], nice: 
     if body is None:
         return
     cfg = msgpack.unpackb(body, raw=False)
+    fit_descriptors(Limits(**cfg["limits"]))
     renice(nice, "server", "the socket's clients compete with the loop for CPU at the loop's nice")
     socks = [(socket.socket(fileno=fd), kind) for fd, kind in listeners]
     for sock, _ in socks:

@@ -30,6 +30,7 @@ from prometheus_client.core import (
 from prometheus_client.exposition import choose_encoder
 
 from usmswitch.fleet.metrics import DIRECTION_NAMES, FEEDS, HISTOGRAMS, OUTCOMES, STATE_FEED, STROKES_FEED
+from usmswitch.web.budgets import METRICS_CONNECTIONS, METRICS_HEAD_S, METRICS_IDLE_S
 from usmswitch.web.door import Door, QuietLog
 
 log = logging.getLogger("usmswitch.rpc")
@@ -50,9 +51,9 @@ HISTOGRAM_NAMES = {
 # the longest idle is shed for a newcomer, else the newcomer is answered 503 and closed. Pipelined
 # requests wait in the kernel once aiohttp's queue is full.
 MAX_LINE_BYTES = 8190
-HEAD_TIMEOUT_S = 5.0
-IDLE_TIMEOUT_S = 120.0
-MAX_SCRAPERS = 16
+HEAD_TIMEOUT_S = METRICS_HEAD_S
+IDLE_TIMEOUT_S = METRICS_IDLE_S
+MAX_SCRAPERS = METRICS_CONNECTIONS
 #: Answers go out at most this often, all connections together (50 a second: Prometheus scrapes
 #: a target every few seconds). Scrapers hammering the page then wait for their turn instead of
 #: keeping the server process, and the machine's second core, busy.

@@ -34,6 +34,7 @@ from typing import Any, Protocol
 from aiohttp import WSMsgType, web
 
 from usmswitch.protocol.wire import ErrorCode, RpcError
+from usmswitch.web.budgets import PANEL_CONNECTIONS, PANEL_HEAD_S, PANEL_IDLE_S
 from usmswitch.web.door import Door, QuietLog
 
 log = logging.getLogger("usmswitch.web")
@@ -45,12 +46,12 @@ TOKEN_COOKIE = "usmswitch_token"
 #: (DNS rebinding: `evil.example` resolving to 127.0.0.1) is refused before anything is read.
 LOOPBACK_HOSTS = frozenset({"127.0.0.1", "localhost", "::1", "[::1]"})
 #: Connections at once to the panel's port (web/door.py): a page and its assets take a few, a live
-#: feed one; past it the longest idle is shed for a newcomer, else 503.
-MAX_CONNECTIONS = 128
-#: A request head begun must be complete within this (408, closed; each byte restarts nothing);
-#: a connection silent this long at its start or between requests is closed.
-HEAD_TIMEOUT_S = 10.0
-IDLE_TIMEOUT_S = 60.0
+#: feed one; past it the longest idle is shed for a newcomer, else 503. A request head begun must be
+#: complete within HEAD_TIMEOUT_S (408, closed; each byte restarts nothing); a connection silent
+#: IDLE_TIMEOUT_S at its start or between requests is closed.
+MAX_CONNECTIONS = PANEL_CONNECTIONS
+HEAD_TIMEOUT_S = PANEL_HEAD_S
+IDLE_TIMEOUT_S = PANEL_IDLE_S
 #: Live feeds kept for pages without the token: an operator's feed (the token's cookie) sheds the
 #: oldest of them when the feeds are full, so read-only holders never keep the operator out.
 MAX_READONLY_PANELS = 24

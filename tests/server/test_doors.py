@@ -4,6 +4,7 @@ an estop reachable however its slots are held. Real sockets, a real server proce
 from __future__ import annotations
 
 import dataclasses
+import resource
 import socket
 import threading
 from collections.abc import Iterator
@@ -179,3 +180,35 @@ def test_tcp_auth_failures_back_off_per_peer(small: RpcServer) -> None:
     right.send([0, 1, "auth", [TOKEN]])
     assert "too many failed auth attempts" in right.read_until_closed()[0][2][1]
     # The log line: tests/client/test_estop_every_path.py reads it in the daemon's log.
+
+
+def test_the_units_and_the_server_allow_the_descriptors_the_budgets_need(
+    sockdir: Path, estops: Estops
+) -> None:
+    """Item 4: the shipped units set no LimitNOFILE (1024) and the server process ran out of
+    descriptors under a flood; nothing was logged."""
+    from usmswitch.server.rpc_process import descriptors_needed
+
+    need = descriptors_needed(Limits())
+    root = Path(__file__).resolve().parents[2]
+    for unit in ("usmswitchd.service", "usmswitchd@.service"):
+        lines = (root / "systemd" / unit).read_text().splitlines()
+        [limit] = [line.split("=", 1)[1] for line in lines if line.startswith("LimitNOFILE=")]
+        assert int(limit) >= need + 512, (unit, limit, need)  # 512: the daemon's own process
+    # A server started under a low soft limit raises it to what its budgets need.
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if hard != resource.RLIM_INFINITY and hard < need:
+        pytest.skip(f"the hard limit here ({hard}) is below the need ({need})")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (256, hard))
+    try:
+        servers = _server(sockdir, estops, Limits())
+        srv = next(servers)
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+    try:
+        assert srv.server_pid is not None
+        limits = Path(f"/proc/{srv.server_pid}/limits").read_text()
+        [row] = [line for line in limits.splitlines() if line.startswith("Max open files")]
+        assert int(row.split()[3]) >= need, row
+    finally:
+        next(servers, None)
