@@ -50,6 +50,8 @@ from usmswitch.protocol.records_schema import (
 )
 from usmswitch.runtime.realtime import drop_realtime
 
+from .run_aggregates import AggregateKeeper, run_stats
+
 log = structlog.get_logger("usmswitch.records")
 
 #: How often an idle writer checks that its file is still the one at its path.
@@ -402,6 +404,8 @@ class RecordStore:
                 " VALUES ('schema_version', ?), ('created_wall_ns', ?)",
                 (str(SCHEMA_VERSION), str(time.time_ns())),
             )
+            self._aggregates = AggregateKeeper(SELECT_CYCLES, str(self.path))
+            self._aggregates.open(conn)
             # The -wal and -shm files exist now (SQLite gives them the main file's mode).
             self._restrict_files()
             st = os.stat(self.path)
@@ -584,7 +588,9 @@ class RecordStore:
                         backoff = min(2 * backoff, self._retry_ns[1])
                         break
                     self._count(counts)
-                    self._tell_committed(batch, {*counts[4], *(c for c, _ in counts[3])})
+                    rejected = {*counts[4], *(c for c, _ in counts[3])}
+                    self._fold_aggregates(conn, batch, rejected)
+                    self._tell_committed(batch, rejected)
                     next_check = time.monotonic_ns() + FILE_CHECK_NS
                     done += len(batch)
                     batch = []  # the records are on disk: hold none of them while idle
@@ -674,6 +680,24 @@ class RecordStore:
         self.rejected += rejected + len(unconvertible)
         self.events_written += events
 
+    def _fold_aggregates(self, conn: sqlite3.Connection, batch: list[Any], rejected: set[int]) -> None:
+        """The committed strokes into their runs' statistics (saved in a transaction of their own:
+        a failure there is logged and the save tried again, the strokes are safe already)."""
+        records = [r for r in batch if type(r) is CycleRecord and r.cycle not in rejected]
+        ended = {r.run_id for r in batch if type(r) is RunRecord and r.end_reason is not None}
+        try:
+            self._aggregates.fold(conn, records, ended)
+        except sqlite3.Error as exc:
+            log.warning("run statistics not saved", path=str(self.path), error=str(exc))
+
+    def run_stats(self, run_id: int) -> dict[str, Any] | None:
+        """A run's statistics from its aggregate kept as its strokes were written (None: no such
+        run, or one with none yet: scan its strokes, `stats.stats_of_records`)."""
+        run = self.run(run_id)
+        if run is None:
+            return None
+        return run_stats(self._reader(), self._select, run)
+
     def _tell_committed(self, batch: list[Any], rejected: set[int]) -> None:
         """Hand the records and runs now in the file to `on_commit` and `on_run`, in the order they
         were submitted (a subscriber sees only what is kept, and a run's end after its strokes)."""
@@ -740,6 +764,8 @@ class RecordStore:
             pass  # nothing was written since the last checkpoint removed it
         except OSError as exc:
             log.warning("record file WAL sync at close failed", path=str(self.path), error=str(exc))
+        with contextlib.suppress(sqlite3.Error):
+            self._aggregates.flush(conn)
         try:
             conn.execute("PRAGMA wal_checkpoint(PASSIVE)")
         except sqlite3.Error as exc:

@@ -1,0 +1,189 @@
+"""Each run's statistics kept in the records file as its strokes are written (`run_aggregates`).
+
+The record writer folds every committed stroke into its run's `RunAggregate` (protocol/aggregate.py)
+and saves it at most once a second and when the run ends, in a transaction of its own: a saved
+aggregate may lag its strokes by the last second, never lead them. A reader takes the saved one and
+folds in the strokes after its `last_cycle` (an indexed range read of at most a second of strokes),
+so `stats --run N` costs the same at 10^7 strokes as at 10. A file written before the table existed
+gets every run's aggregate built once, when a writer opens it, with a progress line. The full scan
+(`stats.stats_of_records`) stays: what the tests hold these against.
+
+The table is added with CREATE TABLE IF NOT EXISTS: readers that do not know it still read the file.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+import time
+from typing import Any
+
+import structlog
+
+from usmswitch.protocol.aggregate import RunAggregate
+from usmswitch.protocol.record import CycleRecord, Flag, RunRecord
+
+log = structlog.get_logger("usmswitch.records")
+
+TABLE = """
+CREATE TABLE IF NOT EXISTS run_aggregates (
+    run_id INTEGER PRIMARY KEY,
+    last_cycle INTEGER,
+    records INTEGER NOT NULL,
+    data BLOB NOT NULL
+);
+"""
+#: A run's aggregate is saved at most this often while it runs (and at its end).
+SAVE_EVERY_NS = 1_000_000_000
+_PROGRESS_EVERY_NS = 2_000_000_000
+_CHUNK = 5000
+
+
+def _fold_after(conn: sqlite3.Connection, select: str, agg: RunAggregate, run_id: int) -> None:
+    """Fold in the run's strokes after the aggregate's last cycle, in chunks."""
+    after = agg.last_cycle or 0
+    while True:
+        rows = conn.execute(
+            f"{select} WHERE run_id = ? AND cycle > ? ORDER BY cycle LIMIT ?", (run_id, after, _CHUNK)
+        ).fetchall()
+        if not rows:
+            return
+        for r in rows:
+            agg.add(CycleRecord.from_row(r))
+        after = agg.last_cycle or after
+
+
+def load(conn: sqlite3.Connection, select: str, run_id: int) -> RunAggregate | None:
+    """The run's aggregate, up to its last stroke in the file; None if none was ever saved."""
+    try:
+        row = conn.execute("SELECT data FROM run_aggregates WHERE run_id = ?", (run_id,)).fetchone()
+    except sqlite3.OperationalError:  # a file from before the table: no aggregates yet
+        return None
+    if row is None:
+        return None
+    agg = RunAggregate(bytes(row[0]))
+    _fold_after(conn, select, agg, run_id)
+    return agg
+
+
+def run_stats(conn: sqlite3.Connection, select: str, run: RunRecord) -> dict[str, Any] | None:
+    """A run's statistics in the shape of `stats.stats_of_records`, from its aggregate (None: the run
+    has none yet, the caller scans its strokes)."""
+    agg = load(conn, select, run.run_id)
+    if agg is None:
+        return None
+    out: dict[str, Any] = {
+        "run": run.to_dict(),
+        "first_cycle": agg.first_cycle,
+        "last_cycle": agg.last_cycle,
+        "all": agg.both.snapshot(),
+    }
+    for d, name in ((0, "on"), (1, "off")):
+        snap = agg.per[d].snapshot()
+        row = None
+        if agg.last_cycle is not None:
+            # The direction's last stroke: the model it used (a short backward range read).
+            row = conn.execute(
+                f"{select} WHERE run_id = ? AND direction = ? AND cycle <= ? ORDER BY cycle DESC LIMIT 1",
+                (run.run_id, d, agg.last_cycle),
+            ).fetchone()
+        rec = None if row is None else CycleRecord.from_row(row)
+        snap["order"] = None if rec is None else rec.order
+        snap["coefficients"] = [] if rec is None else list(rec.coefficients)
+        snap["ready"] = rec is not None and not rec.flags & Flag.WARMUP
+        snap["target_ns"] = None if rec is None else rec.target_ns
+        out[name] = snap
+    return out
+
+
+class AggregateKeeper:
+    """The record writer's running aggregates, one per run it wrote strokes of."""
+
+    def __init__(self, select: str, path: str) -> None:
+        self._select = select
+        self._path = path
+        self._aggs: dict[int, RunAggregate] = {}
+        self._dirty: set[int] = set()
+        self._saved_ns: dict[int, int] = {}
+        #: Saving failed (the file's trouble is the writer's to report): tried again at the next save.
+        self.last_error: str | None = None
+
+    def open(self, conn: sqlite3.Connection) -> None:
+        """Create the table; build the aggregate of every run that has none (once, with progress)."""
+        conn.executescript(TABLE)
+        missing = [
+            r[0]
+            for r in conn.execute(
+                "SELECT run_id FROM runs WHERE run_id NOT IN (SELECT run_id FROM run_aggregates)"
+                " ORDER BY run_id"
+            )
+        ]
+        if not missing:
+            return
+        t0 = said = time.monotonic_ns()
+        strokes = 0
+        for i, run_id in enumerate(missing, 1):
+            agg = RunAggregate()
+            _fold_after(conn, self._select, agg, run_id)
+            self._write(conn, run_id, agg)
+            strokes += agg.records
+            now = time.monotonic_ns()
+            if now - said >= _PROGRESS_EVERY_NS or i == len(missing):
+                said = now
+                log.info(
+                    "building run statistics",
+                    path=self._path,
+                    runs=f"{i}/{len(missing)}",
+                    strokes=strokes,
+                    seconds=round((now - t0) / 1e9, 1),
+                )
+
+    def fold(self, conn: sqlite3.Connection, records: list[CycleRecord], ended: set[int]) -> None:
+        """Committed strokes folded in; saved at most once a second per run, and at a run's end."""
+        for rec in records:
+            run_id = rec.run_id
+            if run_id is None:
+                continue
+            agg = self._aggs.get(run_id)
+            if agg is None:
+                agg = load(conn, self._select, run_id)
+                if agg is None:
+                    agg = RunAggregate()
+                    _fold_after(conn, self._select, agg, run_id)  # strokes before this process's
+                    self._aggs[run_id] = agg
+                    self._dirty.add(run_id)
+                    continue  # this record is in the file: folded just now
+                self._aggs[run_id] = agg
+                if agg.last_cycle is not None and rec.cycle <= agg.last_cycle:
+                    continue
+            if agg.last_cycle is not None and rec.cycle <= agg.last_cycle:
+                continue  # already folded (read from the file)
+            agg.add(rec)
+            self._dirty.add(run_id)
+        self.save(conn, force=ended)
+
+    def save(self, conn: sqlite3.Connection, force: set[int] | None = None) -> None:
+        now = time.monotonic_ns()
+        for run_id in list(self._dirty):
+            if (force and run_id in force) or now - self._saved_ns.get(run_id, 0) >= SAVE_EVERY_NS:
+                try:
+                    self._write(conn, run_id, self._aggs[run_id])
+                except sqlite3.Error as exc:
+                    self.last_error = str(exc)
+                    return
+                self.last_error = None
+                self._dirty.discard(run_id)
+                self._saved_ns[run_id] = now
+        for run_id in force or ():
+            self._aggs.pop(run_id, None)  # an ended run takes no more strokes: hold nothing for it
+            self._saved_ns.pop(run_id, None)
+
+    def flush(self, conn: sqlite3.Connection) -> None:
+        """Save every aggregate not yet saved (the writer is closing)."""
+        self.save(conn, force=set(self._dirty))
+
+    @staticmethod
+    def _write(conn: sqlite3.Connection, run_id: int, agg: RunAggregate) -> None:
+        conn.execute(
+            "INSERT OR REPLACE INTO run_aggregates (run_id, last_cycle, records, data) VALUES (?, ?, ?, ?)",
+            (run_id, agg.last_cycle, agg.records, agg.to_bytes()),
+        )

@@ -1,0 +1,166 @@
+"""Issue 36: a run's statistics kept as its strokes are written (daemon/run_aggregates.py) are the
+full scan's (`stats_of_records`): exact for counts, mean, std and max, the quantiles within the
+sketch's stated error; a file written before them gets them built once; a reader folds in the
+strokes after the last save, so nothing lags."""
+
+from __future__ import annotations
+
+import math
+import sqlite3
+import sys
+from pathlib import Path
+
+import pytest
+
+from usmswitch.daemon.records import RecordStore
+from usmswitch.protocol.aggregate import QUANTILE_ABSOLUTE_ERROR_NS, QUANTILE_RELATIVE_ERROR
+from usmswitch.protocol.stats import stats_of_records
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_loop import make_loop
+
+MS = 1_000_000
+EXACT = ("count", "strokes", "late", "stalls", "bounces", "faults", "implausible", "mismatched")
+MAX = ("operating_max_abs_ns", "total_max_abs_ns", "error_max_abs_ns", "max_abs_error_pct")
+MOMENTS = (
+    "operating_mean_ns",
+    "operating_std_ns",
+    "total_mean_ns",
+    "total_std_ns",
+    "error_mean_ns",
+    "error_std_ns",
+)
+QUANTILES = ("abs_error_p50_ns", "abs_error_p95_ns", "abs_error_p99_ns", "lateness_p50_ns", "lateness_p99_ns")
+
+
+def assert_same(kept: dict, scan: dict) -> None:
+    """The kept statistics against the scan: what the issue asks of them, figure by figure."""
+    assert (kept["first_cycle"], kept["last_cycle"]) == (scan["first_cycle"], scan["last_cycle"])
+    for part in ("on", "off", "all"):
+        k, s = kept[part], scan[part]
+        for key in (*EXACT, *MAX):
+            assert k[key] == s[key], (part, key, k[key], s[key])
+        assert k["commissioning"] == s["commissioning"], part
+        for key in MOMENTS:  # Welford's floats against exact integer sums, rounded to 0.1 ns alike
+            assert k[key] == pytest.approx(s[key], rel=1e-9, abs=0.11), (part, key)
+        for key in QUANTILES:
+            if s[key] is None:
+                assert k[key] is None, (part, key)
+                continue
+            bound = max(QUANTILE_RELATIVE_ERROR * s[key], QUANTILE_ABSOLUTE_ERROR_NS)
+            assert abs(k[key] - s[key]) <= bound, (part, key, k[key], s[key])
+        if part != "all":
+            for key in ("order", "coefficients", "ready", "target_ns"):
+                assert k[key] == s[key], (part, key)
+
+
+def run_strokes(path: Path, count: int, *, faults: dict | None = None) -> RecordStore:
+    """`count` strokes in virtual time, in runs: a stall ends a run, a reset starts the next."""
+    store = RecordStore(path)
+    loop, _daq, _ = make_loop(
+        target_ns=12 * MS, sink=store.submit, seed=17, faults=faults, stroke_timeout_ns=30 * MS
+    )
+    loop.run_sink = store.submit_run
+    done = 0
+    while done < count:
+        before = loop.cycle
+        loop.run_cycles(30 * MS, min(count - done, count // 2 + 1))
+        done += loop.cycle - before
+        if loop.state.value == "fault":
+            loop.reset_fault()
+    assert store.flush(30_000_000_000)
+    return store
+
+
+def test_kept_statistics_are_the_full_scans(tmp_path: Path) -> None:
+    """20,000 strokes in two runs with bounces, spurious edges and stalls: every run's kept
+    statistics are its scan's, read while the writer runs and after the file is reopened."""
+    faults = {"probability": {"bounce": 0.02, "spurious": 0.02, "stall": 0.001}}
+    store = run_strokes(tmp_path / "records.sqlite", 20_000, faults=faults)
+    try:
+        runs = store.runs()
+        assert len(runs) >= 2 and sum(r.last_cycle - r.first_cycle + 1 for r in runs) == 20_000
+        for run in runs:
+            kept = store.run_stats(run.run_id)
+            assert kept is not None
+            assert_same(kept, stats_of_records(store.iter_records(run_id=run.run_id), run))
+        assert any(store.run_stats(r.run_id)["all"]["stalls"] for r in runs)  # the faults were there
+    finally:
+        store.close()
+    with RecordStore(tmp_path / "records.sqlite", readonly=True) as again:
+        for run in again.runs():
+            assert_same(
+                again.run_stats(run.run_id), stats_of_records(again.iter_records(run_id=run.run_id), run)
+            )
+
+
+def test_a_reader_folds_in_the_strokes_after_the_last_save(tmp_path: Path) -> None:
+    """The writer saves a running run's aggregate at most once a second: a reader in between folds
+    the strokes after it in, so the figures are never behind the file."""
+    path = tmp_path / "records.sqlite"
+    store = RecordStore(path)
+    try:
+        loop, _daq, _ = make_loop(target_ns=12 * MS, sink=store.submit, seed=5)
+        loop.run_sink = store.submit_run
+        run = loop.start_cycling(30 * MS, 0)  # open-ended: the run stays open
+        for _ in range(3000):
+            loop._cycle_once()
+        assert store.flush(10_000_000_000)
+        con = sqlite3.connect(path)
+        saved = con.execute("SELECT records FROM run_aggregates WHERE run_id = ?", (run.run_id,)).fetchone()
+        con.close()
+        kept = store.run_stats(run.run_id)
+        scan = stats_of_records(store.iter_records(run_id=run.run_id), store.run(run.run_id))
+        assert_same(kept, scan)
+        assert kept["all"]["strokes"] == 3000
+        assert saved is None or saved[0] <= 3000
+        loop.stop_cycling("stopped")
+    finally:
+        store.close()
+
+
+def test_a_file_from_before_them_gets_them_built_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A records file written before the table (simulated: the table dropped) gets every run's
+    aggregate built when a writer opens it, with a progress line; older readers that do not know
+    the table read the file as before (it is an added table, nothing else changes)."""
+    path = tmp_path / "records.sqlite"
+    run_strokes(path, 6000).close()
+    con = sqlite3.connect(path)
+    con.execute("DROP TABLE run_aggregates")
+    con.commit()
+    con.close()
+    with RecordStore(path, readonly=True) as old:
+        assert all(old.run_stats(r.run_id) is None for r in old.runs())  # none yet: the scan answers
+    store = RecordStore(path)  # a writer: builds them
+    try:
+        out = capsys.readouterr()
+        assert "building run statistics" in out.out + out.err
+        for run in store.runs():
+            assert_same(
+                store.run_stats(run.run_id), stats_of_records(store.iter_records(run_id=run.run_id), run)
+            )
+    finally:
+        store.close()
+
+
+def test_exact_moments_stay_exact_where_floats_would_drift() -> None:
+    """Integer sums: a mean and std over values near 2^40 ns that a float running sum would blur."""
+    from fractions import Fraction
+
+    from usmswitch.protocol.aggregate import ExactRunning
+    from usmswitch.protocol.stats import Running
+
+    r = ExactRunning()
+    values = [2**40 + (i % 7) for i in range(100_000)]
+    for v in values:
+        r.add(v)
+    n = len(values)
+    mean = Fraction(sum(values), n)
+    var = sum((v - mean) ** 2 for v in values) / (n - 1)  # exact, as a fraction
+    assert r.mean == float(mean) and math.isclose(r.std, math.sqrt(var), rel_tol=1e-15)
+    w = Running()  # Welford in floats, what the loop's windows use: off in the 7th digit here
+    for v in values:
+        w.add(v)
+    assert not math.isclose(w.std, math.sqrt(var), rel_tol=1e-9)
