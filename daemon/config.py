@@ -26,7 +26,7 @@ from usmswitch.drivers.serial_mcu import DEFAULT_BAUD
 from usmswitch.fleet.pg_schema import check_url, redact_url
 from usmswitch.predictor import DEFAULT_MODEL, MAX_ORDER, MODELS, check_stroke_ns, min_samples
 from usmswitch.predictor.factory import OPTIONS as PREDICTOR_OPTIONS
-from usmswitch.protocol.sockets import default_socket_path
+from usmswitch.protocol.sockets import default_socket_path, weak_token
 from usmswitch.protocol.units import format_ns
 from usmswitch.server.busy_poll import DEFAULT_WINDOW_NS
 from usmswitch.sim import FaultPlan
@@ -220,7 +220,7 @@ class SocketConfig:
     mode: int = field(default=0o660, metadata={"octal": True})
     group: str = ""  # "" = the daemon's own group
     tcp: str = ""  # "" = no TCP; "127.0.0.1:7770"
-    tcp_token: str = ""  # required with tcp
+    tcp_token: str = ""  # "" with tcp: the daemon makes one at each start (usmswitchd.tcp-token)
     max_clients: int = 64  # Unix socket connections served at once
     max_tcp_clients: int = 8  # TCP connections (authenticated or not) served at once, apart from Unix
     busy_poll_ns: int = DEFAULT_WINDOW_NS  # poll this long after a request while a core is spare; 0 = off
@@ -614,13 +614,10 @@ def _socket(t: Table, env: Mapping[str, str]) -> SocketConfig:
             parse_host_port(tcp)
         except ValueError as exc:
             raise ConfigError(t.key("tcp"), str(exc)) from None
-        if not token:
-            raise ConfigError(t.key("tcp_token"), "required when socket.tcp is set (clients send it first)")
-        if len(token) < MIN_TOKEN_CHARS:
-            raise ConfigError(
-                t.key("tcp_token"),
-                f"{len(token)} characters is too short to resist guessing (>= {MIN_TOKEN_CHARS})",
-            )
+        # No token: the daemon makes one at each start (docs/protocol.md, TCP); a weak one is refused.
+        why = weak_token(token, MIN_TOKEN_CHARS) if token else None
+        if why is not None:
+            raise ConfigError(t.key("tcp_token"), f"too weak: {why}; leave it out and the daemon makes one")
     cfg = SocketConfig(
         path=t.get("path", path_value, default_socket_path(env)),
         mode=mode,

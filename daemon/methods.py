@@ -21,7 +21,7 @@ import structlog
 from usmswitch.drivers import Daq, DaqError, Direction
 from usmswitch.fleet.metrics import FEEDS
 from usmswitch.protocol.record import CycleRecord, RunRecord
-from usmswitch.protocol.sockets import web_token_path
+from usmswitch.protocol.sockets import tcp_token_path, web_token_path
 from usmswitch.protocol.version import PACKAGE_VERSION
 from usmswitch.protocol.wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, estop_socket_path
 from usmswitch.server.estop_socket import EstopSocket
@@ -454,13 +454,17 @@ def start_rpc(daemon: Daemon) -> RpcServer:
     cfg.path.parent.mkdir(parents=True, exist_ok=True)
     # The panel's token, beside the socket and for the socket's group (daemon/web_token.py).
     token = TokenFile(web_token_path(cfg.path), cfg.group or None) if daemon.config.web.listen else None
+    # TCP without a configured token: one made here, in a file beside the socket for its group.
+    tcp_token = (
+        TokenFile(tcp_token_path(cfg.path), cfg.group or None) if cfg.tcp and not cfg.tcp_token else None
+    )
     server = RpcServer(
         methods.table(),
         unix_path=cfg.path,
         mode=cfg.mode,
         group=cfg.group or None,
         tcp=parse_host_port(cfg.tcp) if cfg.tcp else None,
-        tcp_token=cfg.tcp_token or None,
+        tcp_token=cfg.tcp_token or (None if tcp_token is None else tcp_token.token),
         urgent=methods.urgent(),
         urgent_path=estop_socket_path(cfg.path),
         records_path=daemon.store.path,
@@ -485,9 +489,13 @@ def start_rpc(daemon: Daemon) -> RpcServer:
     try:
         server.start()
     except BaseException:
-        if token is not None:
-            token.stop()
+        for made in (token, tcp_token):
+            if made is not None:
+                made.stop()
         raise
+    if tcp_token is not None:
+        server.companions.append(tcp_token)
+        log.info("tcp token made", token_file=str(tcp_token.path))
     if token is not None:
         server.companions.append(token)
         assert server.web_address is not None

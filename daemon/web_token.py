@@ -1,6 +1,7 @@
-"""The browser panel's token: made at each start, kept in a file beside the socket that only the
-socket's group may read (mode 0640), removed at stop. Whoever may use the socket may act from the
-panel, and nobody else (Jupyter's tokened URL, with the socket's group as the audience)."""
+"""The browser panel's token (and the TCP socket's when none is configured): made at each start,
+kept in a file beside the socket that only the socket's group may read (mode 0640), removed at stop.
+Whoever may use the socket may act from the panel, and nobody else (Jupyter's tokened URL, with the
+socket's group as the audience)."""
 
 from __future__ import annotations
 

@@ -145,6 +145,29 @@ def client_socket_paths(env: Mapping[str, str] | None = None) -> list[Path]:
     return list(dict.fromkeys(paths))
 
 
+def tcp_token_path(socket_path: str | os.PathLike[str]) -> Path:
+    """The TCP token the daemon made because none was configured, beside the socket
+    (`usmswitchd.sock` -> `usmswitchd.tcp-token`), mode 0640 and the socket's group."""
+    p = Path(socket_path)
+    return p.with_name(f"{p.stem}.tcp-token")
+
+
+def weak_token(token: str, least: int = 16) -> str | None:
+    """Why `token` is too weak to guard a TCP socket (None: it will do): shorter than `least`,
+    white space at its ends or only, fewer than 8 different characters, or a shorter text repeated
+    (`aaaaaaaaaaaaaaaa`, `passwordpassword` and 16 spaces were all taken)."""
+    if len(token) < least:
+        return f"{len(token)} characters is too short to resist guessing (>= {least})"
+    if token != token.strip() or not token.strip():
+        return "it begins or ends with white space"
+    for size in range(1, len(token) // 2 + 1):
+        if len(token) % size == 0 and token[:size] * (len(token) // size) == token:
+            return f"it is {token[:size]!r} repeated"
+    if len(set(token)) < 8:
+        return f"it has {len(set(token))} different characters (>= 8)"
+    return None
+
+
 def web_token_path(socket_path: str | os.PathLike[str]) -> Path:
     """The browser panel's token beside the socket (`usmswitchd.sock` -> `usmswitchd.web-token`):
     mode 0640 and the socket's group, so whoever may use the socket may act from the panel."""

@@ -192,14 +192,20 @@ def test_file_values_and_units(tmp_path: Path):
         ("[sim.faults]\nrain = 1", "sim.faults: faults: unknown key(s) ['rain']"),
         ('[cycle]\nperiod = "10ms"', "cycle.period: 10.000 ms is not longer than the target 12.000 ms"),
         ("[cycle]\ncount = -1", "cycle.count: -1 is outside the allowed range (>= 0)"),
-        ('[socket]\ntcp = "127.0.0.1:7770"', "socket.tcp_token: required when socket.tcp is set"),
+        # Issue 35: weak tokens refused (no token at all: the daemon makes one).
+        ('[socket]\ntcp = "127.0.0.1:7770"\ntcp_token = "aaaaaaaaaaaaaaaa"', "socket.tcp_token: too weak"),
+        (
+            '[socket]\ntcp = "127.0.0.1:7770"\ntcp_token = "passwordpassword"',
+            "socket.tcp_token: too weak: it is 'password' repeated",
+        ),
+        ('[socket]\ntcp = "127.0.0.1:7770"\ntcp_token = "                "', "socket.tcp_token: too weak"),
         (
             '[socket]\ntcp = "localhost"\ntcp_token = "0123456789abcdef"',
             "socket.tcp: 'localhost' is not host:port",
         ),
         (
             '[socket]\ntcp = "127.0.0.1:7770"\ntcp_token = "short"',
-            "socket.tcp_token: 5 characters is too short",
+            "socket.tcp_token: too weak: 5 characters is too short",
         ),
         ("[socket]\nmode = 0o066", "socket.mode: 0o66 leaves the daemon's own user without read and write"),
         ('[socket]\ngroup = "no-such-group-here"', "socket.group: no group named 'no-such-group-here'"),

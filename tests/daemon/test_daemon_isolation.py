@@ -184,7 +184,8 @@ def test_history_is_served_from_the_records_file_by_the_server_process(rig: Rig)
 def test_tcp_clients_cannot_take_unix_slots(tmp_path: Path) -> None:
     port = _free_port()
     cfg = tmp_path / "d.toml"
-    cfg.write_text(f'[socket]\ntcp = "127.0.0.1:{port}"\ntcp_token = "{"t" * 20}"\nmax_tcp_clients = 4\n')
+    token = "t0ken-of-twenty-chars"
+    cfg.write_text(f'[socket]\ntcp = "127.0.0.1:{port}"\ntcp_token = "{token}"\nmax_tcp_clients = 4\n')
     rig = Rig(tmp_path, "--config", str(cfg))
     try:
         tcp = [Raw(("127.0.0.1", port), socket.AF_INET) for _ in range(4)]
