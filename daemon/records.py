@@ -97,7 +97,12 @@ class RecordStore:
         driver: str | None = None,
         rig: str | None = None,
         file_mode: int = 0o640,
+        wait_when_behind: int = 0,
     ) -> None:
+        """`wait_when_behind`: past this many records not yet written, `submit` waits for the writer
+        to catch up to half of it (0: never waits). For a loop in virtual time, which makes strokes
+        faster than SQLite takes them: waiting costs it nothing, piling them up costs memory and,
+        past `max_pending`, records."""
         self.path = Path(path)
         self.readonly = readonly
         #: Stamped on every record submitted without its own (the daemon's driver and rig).
@@ -121,6 +126,13 @@ class RecordStore:
         self._readers: list[sqlite3.Connection] = []
         self._readers_lock = threading.Lock()
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        if wait_when_behind < 0 or (wait_when_behind and wait_when_behind >= max_pending):
+            raise ValueError(f"wait_when_behind must be in 0..max_pending-1, got {wait_when_behind}")
+        self._wait_when_behind = wait_when_behind
+        self._caught_up = threading.Condition()
+        #: Times `submit` waited for the writer (wait_when_behind), and for how long in all.
+        self.waits = 0
+        self.waited_ns = 0
         self._closed = False
         self._last_submitted_cycle: int | None = None
         #: Records handed to `submit`.
@@ -170,6 +182,20 @@ class RecordStore:
         self.submitted += 1
         self._last_submitted_cycle = record.cycle
         self._queue.put(record)
+        if self._wait_when_behind and self.backlog > self._wait_when_behind:
+            self._wait_for_writer()
+
+    def _wait_for_writer(self) -> None:
+        """Block until the backlog is half the limit (or the writer fails: then records wait in
+        memory as they would in real time, bounded by max_pending)."""
+        t0 = time.monotonic_ns()
+        self.waits += 1
+        with self._caught_up:
+            while (
+                self.backlog > self._wait_when_behind // 2 and self._writer_error is None and not self._closed
+            ):
+                self._caught_up.wait(0.1)
+        self.waited_ns += time.monotonic_ns() - t0
 
     def record_event(self, kind: str, /, **fields: Any) -> None:
         """Queue an event (target or mode change, fault, reset, estop ...) in order with the records."""
@@ -588,6 +614,9 @@ class RecordStore:
                         backoff = min(2 * backoff, self._retry_ns[1])
                         break
                     self._count(counts)
+                    if self._wait_when_behind:
+                        with self._caught_up:
+                            self._caught_up.notify_all()
                     rejected = {*counts[4], *(c for c, _ in counts[3])}
                     self._fold_aggregates(conn, batch, rejected)
                     self._tell_committed(batch, rejected)

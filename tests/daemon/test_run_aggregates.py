@@ -164,3 +164,22 @@ def test_exact_moments_stay_exact_where_floats_would_drift() -> None:
     for v in values:
         w.add(v)
     assert not math.isclose(w.std, math.sqrt(var), rel_tol=1e-9)
+
+
+def test_in_virtual_time_the_loop_waits_for_the_writer(tmp_path: Path) -> None:
+    """Issue 36: in virtual time the loop makes strokes faster than SQLite takes them, and they
+    piled up in memory (871k waiting at 764 MB in a 2x10^6 run; past max_pending, dropped). With
+    `wait_when_behind` (the daemon sets it for a virtual clock) `submit` waits: the backlog stays
+    under the limit and every stroke is written."""
+    store = RecordStore(tmp_path / "records.sqlite", wait_when_behind=400, max_batch=200)
+    worst = [0]
+    try:
+        loop, _daq, _ = make_loop(target_ns=12 * MS, sink=store.submit, seed=3)
+        loop.listeners.append(lambda _r: worst.__setitem__(0, max(worst[0], store.backlog)))
+        store.on_commit = lambda recs: None
+        loop.run_cycles(30 * MS, 20_000)
+        assert store.flush(30_000_000_000)
+        assert store.count() == 20_000 and store.dropped == 0
+        assert worst[0] <= 401, worst[0]
+    finally:
+        store.close()
