@@ -98,7 +98,10 @@ def test_the_event_queue_is_bounded_and_an_overflow_in_a_stroke_is_a_fault(tmp_p
         while (ev := daq.recv(200 * MS)) is not None:
             seen.append(ev)
         faults = [e for e in seen if e.kind is EventKind.FAULT]
-        assert faults and faults[0].fault is FaultCode.SEQUENCE and "events lost" in faults[0].detail
+        # The queue's own SEQUENCE fault; on a loaded machine the emulator's late-firing START can
+        # be stamped before a flood edge already sent, an order fault of its own beside it.
+        lost = [f for f in faults if f.fault is FaultCode.SEQUENCE and "events lost" in f.detail]
+        assert lost, faults
         assert run_stroke(daq, Direction.OFF if emu.rig.sensors()[1] else Direction.ON).events[-1].detail == (
             "arrived"
         )
