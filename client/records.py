@@ -19,6 +19,7 @@ rig's records from the PostgreSQL copy the daemons ship, and `open_records(sourc
 
 from __future__ import annotations
 
+import json
 import os
 import sqlite3
 from abc import ABC, abstractmethod
@@ -61,6 +62,16 @@ class RecordsSource(ABC):
             for r in rows:
                 yield CycleRecord.from_row(r).to_dict()
             after = rows[-1]["cycle"]
+
+    def table_rows(
+        self, first: int = 1, last: int | None = None, chunk: int = 20_000, run: int | None = None
+    ) -> Iterator[tuple[Any, ...]]:
+        """The same records as `records`, as the file's rows (FIELDS order, coefficients as JSON
+        text): for exports, which write them as they are (`record_csv.csv_rows_of_table`)."""
+        for rec in self.records(first, last, chunk, run):
+            yield tuple(
+                json.dumps([float(c) for c in rec[f]]) if f == "coefficients" else rec[f] for f in FIELDS
+            )
 
     @abstractmethod
     def _chunk(self, after: int, last: int, run: int | None, n: int) -> list[Any]:
@@ -186,12 +197,31 @@ class RecordsFile(RecordsSource):
         rows = self._db.execute("SELECT * FROM runs ORDER BY run_id").fetchall()
         return [RunRecord.from_row(r).to_dict() for r in rows]
 
-    def _chunk(self, after: int, last: int, run: int | None, n: int) -> list[Any]:
+    def table_rows(
+        self, first: int = 1, last: int | None = None, chunk: int = 20_000, run: int | None = None
+    ) -> Iterator[tuple[Any, ...]]:
+        """The file's rows as they are, in chunks of plain tuples (no record, no dict made)."""
+        after = first - 1
+        stop = last if last is not None else (1 << 63) - 1
+        if run is not None:
+            self.run(run)
+        c = FIELDS.index("cycle")
+        while True:
+            rows = self._chunk(after, stop, run, chunk, plain=True)
+            if not rows:
+                return
+            yield from rows
+            after = rows[-1][c]
+
+    def _chunk(self, after: int, last: int, run: int | None, n: int, plain: bool = False) -> list[Any]:
         where, args = ("", ()) if run is None else (" AND run_id = ?", (run,))
         sql = (
             f"SELECT {self._columns} FROM cycles WHERE cycle > ? AND cycle <= ?{where} ORDER BY cycle LIMIT ?"
         )
-        return self._db.execute(sql, (after, last, *args, n)).fetchall()
+        cur = self._db.cursor()
+        if plain:
+            cur.row_factory = None  # plain tuples: what an export writes as they are
+        return cur.execute(sql, (after, last, *args, n)).fetchall()
 
     def _column_values(self, field: str, first: int, last: int) -> list[Any]:
         if f'"{field}"' not in self._columns:

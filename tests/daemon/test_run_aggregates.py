@@ -183,3 +183,28 @@ def test_in_virtual_time_the_loop_waits_for_the_writer(tmp_path: Path) -> None:
         assert worst[0] <= 401, worst[0]
     finally:
         store.close()
+
+
+def test_an_export_from_the_file_is_the_records_csv_at_sqlites_speed(tmp_path: Path) -> None:
+    """Issue 36: `usmswitchctl export --from FILE` wrote each stroke through a record and a dict
+    (43-67 us a stroke). It now writes the file's rows as they are: the same CSV, byte for byte,
+    as the record path writes (strokes with stalls, bounces, None cells, coefficients)."""
+    import io
+    import subprocess
+
+    from usmswitch.client.records import RecordsFile
+    from usmswitch.protocol.record_csv import write_csv
+
+    faults = {"probability": {"bounce": 0.05, "spurious": 0.05, "stall": 0.002}}
+    path = tmp_path / "records.sqlite"
+    run_strokes(path, 3000, faults=faults).close()
+    with RecordsFile(path) as records:
+        old = io.StringIO()
+        write_csv(records.records(), old)
+    out = tmp_path / "all.csv"
+    ctl = [sys.executable, "-m", "usmswitch.client.ctl.main", "export", "--from", str(path)]
+    ctl += ["--csv", str(out)]
+    done = subprocess.run(ctl, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert out.read_text() == old.getvalue()
+    assert out.read_text().count("\n") == 3001
