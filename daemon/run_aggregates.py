@@ -20,7 +20,8 @@ from typing import Any
 import structlog
 
 from usmswitch.protocol.aggregate import RunAggregate
-from usmswitch.protocol.record import CycleRecord, Flag, RunRecord
+from usmswitch.protocol.record import CycleRecord, RunRecord
+from usmswitch.protocol.stats import model_of
 
 log = structlog.get_logger("usmswitch.records")
 
@@ -86,12 +87,7 @@ def run_stats(conn: sqlite3.Connection, select: str, run: RunRecord) -> dict[str
                 f"{select} WHERE run_id = ? AND direction = ? AND cycle <= ? ORDER BY cycle DESC LIMIT 1",
                 (run.run_id, d, agg.last_cycle),
             ).fetchone()
-        rec = None if row is None else CycleRecord.from_row(row)
-        snap["order"] = None if rec is None else rec.order
-        snap["coefficients"] = [] if rec is None else list(rec.coefficients)
-        snap["ready"] = rec is not None and not rec.flags & Flag.WARMUP
-        snap["target_ns"] = None if rec is None else rec.target_ns
-        out[name] = snap
+        out[name] = {**snap, **model_of(None if row is None else CycleRecord.from_row(row))}
     return out
 
 

@@ -17,8 +17,8 @@ from typing import Any
 import msgpack
 from hdrh.histogram import HdrHistogram
 
-from .record import CycleRecord, Flag
-from .stats import COMMISSIONING_KEPT, _rank
+from .record import CycleRecord
+from .stats import DirectionStats, _rank
 
 #: The sketch's bounds: 1 us discernible, up to an hour, 3 significant digits (0.1 %).
 SKETCH_LOWEST_NS = 1_000
@@ -107,87 +107,48 @@ class Sketch:
     def encode(self) -> bytes:
         return self.hist.encode() if self.hist.get_total_count() else b""
 
+    def raw(self) -> bytes:
+        """Nothing: a sketch keeps no values (`DirectionStats.snapshot` asks; the quantiles are ours)."""
+        return b""
 
-class DirectionAggregate:
-    """One direction's (or both's) figures, folded as `stats.DirectionStats.add_record` folds them."""
+
+class DirectionAggregate(DirectionStats):
+    """One direction's (or both's) figures: `DirectionStats` itself (its folding, so the two never
+    differ), over exact sums and sketches instead of floats and windows, and as state to keep."""
 
     def __init__(self, state: dict[str, Any] | None = None) -> None:
+        super().__init__(window=1)
         st = state or {}
-        self.operating = ExactRunning(*st.get("operating", ()))
-        self.total = ExactRunning(*st.get("total", ()))
-        self.error = ExactRunning(*st.get("error", ()))
-        self.abs_error = Sketch(st.get("abs_error"))
-        self.abs_lateness = Sketch(st.get("abs_lateness"))
+        self.operating = ExactRunning(*st.get("operating", ()))  # type: ignore[assignment]
+        self.total = ExactRunning(*st.get("total", ()))  # type: ignore[assignment]
+        self.error = ExactRunning(*st.get("error", ()))  # type: ignore[assignment]
+        self.lateness = ExactRunning()  # type: ignore[assignment]  # not reported: not kept
+        self.abs_error = Sketch(st.get("abs_error"))  # type: ignore[assignment]
+        self.abs_lateness = Sketch(st.get("abs_lateness"))  # type: ignore[assignment]
         self.max_abs_error_pct = float(st.get("max_abs_error_pct", 0.0))
         self.late, self.stalls, self.bounces, self.faults = st.get("counters", (0, 0, 0, 0))
         self.implausible = int(st.get("implausible", 0))
         self.mismatched = int(st.get("mismatched", 0))
-        self.commissioning: list[dict[str, int | None]] = list(st.get("commissioning", ()))
+        self.commissioning = list(st.get("commissioning", ()))
 
-    def add_record(self, rec: CycleRecord) -> None:
-        flags = rec.flags
-        if flags & (Flag.IMPLAUSIBLE | Flag.MISMATCH):
-            if flags & Flag.IMPLAUSIBLE:
-                self.implausible += 1
-            else:
-                self.mismatched += 1
-            self.faults += bool(flags & Flag.FAULT)
-            return
-        commissioning = bool(flags & Flag.COMMISSIONING) and rec.error_ns is not None
-        if commissioning and len(self.commissioning) < COMMISSIONING_KEPT:
-            self.commissioning.append(
-                {
-                    "cycle": rec.cycle,
-                    "direction": rec.direction,
-                    "error_ns": rec.error_ns,
-                    "t_hat_ns": rec.t_hat_ns,
-                }
-            )
-        if rec.operating_ns is not None:
-            self.operating.add(rec.operating_ns)
-        if not commissioning:
-            if rec.total_ns is not None:
-                self.total.add(rec.total_ns)
-            if rec.error_ns is not None:
-                self.error.add(rec.error_ns)
-                self.abs_error.add(abs(rec.error_ns))
-                if rec.target_ns > 0:
-                    pct = 100.0 * abs(rec.error_ns) / rec.target_ns
-                    self.max_abs_error_pct = max(self.max_abs_error_pct, pct)
-        if rec.lateness_ns is not None:
-            self.abs_lateness.add(rec.lateness_ns)
-        self.late += bool(flags & Flag.LATE)
-        self.stalls += bool(flags & Flag.STALL) and not commissioning
-        self.bounces += bool(flags & Flag.BOUNCE)
-        self.faults += bool(flags & Flag.FAULT)
-
-    def snapshot(self) -> dict[str, Any]:
-        """The figures in the shape of `DirectionStats.snapshot()`."""
-        strokes = (
-            self.error.count + self.stalls + len(self.commissioning) + self.implausible + self.mismatched
-        )
-        out: dict[str, Any] = {"count": self.operating.count, "strokes": strokes}
-        out.update(self.operating.as_dict("operating"))
-        out.update(self.total.as_dict("total"))
-        out.update(self.error.as_dict("error"))
-        out["max_abs_error_pct"] = round(self.max_abs_error_pct, 4)
-        p50, p95, p99 = self.abs_error.quantiles((50, 95, 99))
+    def snapshot(self, raw: bool = False) -> dict[str, Any]:
+        """The figures in the shape of `DirectionStats.snapshot()`, the quantiles the sketches'."""
+        out = super().snapshot(raw=True)
+        for key in ("abs_error_raw", "abs_lateness_raw"):
+            out.pop(key)
+        p50, p95, p99 = self.abs_error.quantiles((50, 95, 99))  # type: ignore[attr-defined]
         out.update(abs_error_p50_ns=p50, abs_error_p95_ns=p95, abs_error_p99_ns=p99)
-        out.update(late=self.late, stalls=self.stalls, bounces=self.bounces, faults=self.faults)
-        out["commissioning"] = list(self.commissioning)
-        out["implausible"] = self.implausible
-        out["mismatched"] = self.mismatched
-        l50, l99, l999, lmax = self.abs_lateness.quantiles((50, 99, 99.9, 100))
+        l50, l99, l999, lmax = self.abs_lateness.quantiles((50, 99, 99.9, 100))  # type: ignore[attr-defined]
         out.update(lateness_p50_ns=l50, lateness_p99_ns=l99, lateness_p99_9_ns=l999, lateness_max_ns=lmax)
         return out
 
     def state(self) -> dict[str, Any]:
         return {
-            "operating": self.operating.state(),
-            "total": self.total.state(),
-            "error": self.error.state(),
-            "abs_error": self.abs_error.encode(),
-            "abs_lateness": self.abs_lateness.encode(),
+            "operating": self.operating.state(),  # type: ignore[attr-defined]
+            "total": self.total.state(),  # type: ignore[attr-defined]
+            "error": self.error.state(),  # type: ignore[attr-defined]
+            "abs_error": self.abs_error.encode(),  # type: ignore[attr-defined]
+            "abs_lateness": self.abs_lateness.encode(),  # type: ignore[attr-defined]
             "max_abs_error_pct": self.max_abs_error_pct,
             "counters": [self.late, self.stalls, self.bounces, self.faults],
             "implausible": self.implausible,

@@ -266,11 +266,15 @@ def stats_of_records(records: Iterable[CycleRecord], run: RunRecord | None = Non
         "all": both.snapshot(),
     }
     for d, name in ((0, "on"), (1, "off")):
-        snap = per[d].snapshot()
-        rec = last[d]
-        snap["order"] = None if rec is None else rec.order
-        snap["coefficients"] = [] if rec is None else list(rec.coefficients)
-        snap["ready"] = rec is not None and not rec.flags & Flag.WARMUP
-        snap["target_ns"] = None if rec is None else rec.target_ns
-        out[name] = snap
+        out[name] = {**per[d].snapshot(), **model_of(last[d])}
     return out
+
+
+def model_of(rec: CycleRecord | None) -> dict[str, Any]:
+    """A direction's model as its last stroke (`rec`, None: none) used it, for a stats reply."""
+    return {
+        "order": None if rec is None else rec.order,
+        "coefficients": [] if rec is None else list(rec.coefficients),
+        "ready": rec is not None and not rec.flags & Flag.WARMUP,
+        "target_ns": None if rec is None else rec.target_ns,
+    }
