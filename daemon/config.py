@@ -247,6 +247,10 @@ class RecordsConfig:
     """[records]: copies of the records beyond this machine (the local SQLite file stays the source)."""
 
     postgres_url: str = ""  # "" = no shipping; "postgresql://usmswitch@db.lab/usmswitch"
+    # Retention (daemon/retention.py): old ended runs moved to records-archive.sqlite; 0 = no limit.
+    keep_strokes: int = 0
+    keep_days: int = 0
+    keep_bytes: int = 0
 
 
 @dataclass(frozen=True)
@@ -497,7 +501,12 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
 
     t = top.table("records")
     # "" (off) or a postgresql:// URL naming a database.
-    records = RecordsConfig(postgres_url=t.get("postgres_url", checked_text(check_url), ""))
+    records = RecordsConfig(
+        postgres_url=t.get("postgres_url", checked_text(check_url), ""),
+        keep_strokes=table_int(t, "keep_strokes", 0, 0, None) or 0,
+        keep_days=table_int(t, "keep_days", 0, 0, 36_500) or 0,
+        keep_bytes=t.get("keep_bytes", byte_size, 0),
+    )
     t.done()
     t = top.table("metrics")
     # "" (off), "host:port", or a bare port (on loopback).
@@ -518,6 +527,33 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
             f" limit, {format_ns(MAX_STROKE_TIMEOUT_NS)} (docs/mcu-protocol.md, ARM)",
         )
     return Config(daemon, driver, sim, control, cycle, realtime, socket, modbus, records, metrics, web)
+
+
+_BYTE_UNITS = {
+    "B": 1,
+    "KB": 10**3,
+    "MB": 10**6,
+    "GB": 10**9,
+    "TB": 10**12,
+    "KiB": 2**10,
+    "MiB": 2**20,
+    "GiB": 2**30,
+}
+
+
+def byte_size(key: str, v: object) -> int:
+    """A size in bytes: an integer, or text with its unit ("2GB", "500 MiB"); 0 for none."""
+    if isinstance(v, int) and not isinstance(v, bool) and v >= 0:
+        return v
+    if isinstance(v, str):
+        num = v.strip().rstrip("".join(sorted({c for u in _BYTE_UNITS for c in u})))
+        unit = v.strip()[len(num) :].strip()
+        if num.strip().isascii() and num.strip().isdigit() and unit in _BYTE_UNITS:
+            return int(num) * _BYTE_UNITS[unit]
+    units = ", ".join(_BYTE_UNITS)
+    raise ConfigError(
+        key, f"expected bytes as an integer or text with a unit ({units}), e.g. '2GB'; got {v!r}"
+    )
 
 
 def _control(t: Table) -> ControlConfig:

@@ -50,6 +50,7 @@ from usmswitch.protocol.records_schema import (
 )
 from usmswitch.runtime.realtime import drop_realtime
 
+from .retention import Retention
 from .run_aggregates import AggregateKeeper, run_stats
 
 log = structlog.get_logger("usmswitch.records")
@@ -157,6 +158,8 @@ class RecordStore:
         #: Called on the writer thread with each run row once committed, in order with the records:
         #: a run's end reaches it after every stroke of the run has reached `on_commit`.
         self.on_run: Callable[[RunRecord], None] | None = None
+        #: The retention policy the writer applies when idle (daemon/retention.py; None: keep all).
+        self.retention: Retention | None = None
         #: Called before each batch is written: the daemon makes it wait while the loop is about
         #: to start a stroke (the writer's Python work would hold the GIL the loop needs).
         self.gate: Callable[[], object] = lambda: None
@@ -590,6 +593,12 @@ class RecordStore:
                     "record writer backlog full: oldest records dropped", dropped=lost, path=str(self.path)
                 )
             now = time.monotonic_ns()
+            retention = self.retention
+            if not pending and self._writer_error is None and retention is not None and retention.due(now):
+                try:
+                    retention.apply(conn)
+                except sqlite3.Error as exc:  # the strokes stay where they are: tried again later
+                    log.warning("retention failed", path=str(self.path), error=str(exc))
             if not pending and self._writer_error is None and now >= next_check:
                 next_check = now + FILE_CHECK_NS
                 try:

@@ -46,6 +46,7 @@ from .loop import (
 )
 from .methods import start_rpc
 from .records import RecordStore, RecordStoreError
+from .retention import Retention, RetentionPolicy
 from .rig_memory import RigMemory
 from .sdnotify import Notifier
 from .sensitivity_memory import Sensitivities, SensitivityMemory
@@ -308,6 +309,15 @@ class Daemon:
                 log_level=cfg.daemon.log_level,
                 gate=self.loop.wait_turn,
             )
+        policy = RetentionPolicy(cfg.records.keep_strokes, cfg.records.keep_days, cfg.records.keep_bytes)
+        if policy.active:
+            # Never a stroke the PostgreSQL copy lacks: the shipper's last cycle bounds what moves.
+            shipped = (
+                (lambda: shipper.status().get("shipped_cycle") or 0)
+                if shipper is not None
+                else (lambda: None)
+            )
+            self.store.retention = Retention(policy, self.store.path, shipped=shipped)
         rpc = self.rpc if self.rpc is not None and self.rpc.metrics is not None else None
         self.fleet = Fleet(
             self.store, self.loop, rig=cfg.daemon.rig, driver=self.daq.name, feeds=rpc, shipper=shipper

@@ -1,0 +1,115 @@
+"""Issue 36: retention. Old ended runs move, whole, from the records file to records-archive.sqlite
+beside it while the policy is exceeded; never a run in progress, never a stroke not yet shipped;
+the archive reads as a records file (export --from, the dataframe); the file stays bounded."""
+
+from __future__ import annotations
+
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from usmswitch.client.records import RecordsFile
+from usmswitch.daemon.config import load_config
+from usmswitch.daemon.config_values import ConfigError
+from usmswitch.daemon.records import RecordStore
+from usmswitch.daemon.retention import ARCHIVE_FILE, Retention, RetentionPolicy
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_loop import make_loop
+
+MS = 1_000_000
+
+
+def _runs_of(store: RecordStore, loop: object, n_runs: int, strokes: int) -> None:
+    for _ in range(n_runs):
+        loop.run_cycles(30 * MS, strokes)  # type: ignore[attr-defined]
+    assert store.flush(30_000_000_000)
+
+
+def _wait_applied(store: RecordStore, runs: int) -> None:
+    import time
+
+    end = time.monotonic() + 20
+    while store.retention.runs_archived < runs:  # type: ignore[union-attr]
+        assert time.monotonic() < end, store.retention.runs_archived  # type: ignore[union-attr]
+        time.sleep(0.02)
+
+
+def test_old_runs_move_whole_to_the_archive_and_the_file_stays_bounded(tmp_path: Path) -> None:
+    path = tmp_path / "records.sqlite"
+    store = RecordStore(path)
+    store.retention = Retention(RetentionPolicy(keep_strokes=1000), path, check_every_ns=0)
+    try:
+        loop, _daq, _ = make_loop(sink=store.submit, seed=4)
+        loop.run_sink = store.submit_run
+        _runs_of(store, loop, 6, 400)  # 2,400 strokes in six ended runs
+        _wait_applied(store, 4)
+        kept = [(r.run_id, r.first_cycle, r.last_cycle) for r in store.runs()]
+        assert store.count() <= 1000 and kept == [(5, 1601, 2000), (6, 2001, 2400)], kept
+        size_after_six = path.stat().st_size
+        # Six more: the file holds as many strokes as before, in the pages the moves freed.
+        _runs_of(store, loop, 6, 400)
+        _wait_applied(store, 10)
+        assert store.count() <= 1000
+        assert path.stat().st_size <= size_after_six * 1.25, (path.stat().st_size, size_after_six)
+        # An open run is never moved, however old the policy says the file is.
+        run = loop.start_cycling(30 * MS, 0)
+        for _ in range(1200):
+            loop._cycle_once()
+        assert store.flush(10_000_000_000)
+        store.retention._next_ns = 0  # look again now
+        store.flush(1_000_000_000)
+        assert store.run(run.run_id) is not None and store.count() >= 1200
+        loop.stop_cycling("stopped")
+    finally:
+        store.close()
+    archive = tmp_path / ARCHIVE_FILE
+    with RecordsFile(archive) as old:
+        assert [r["run_id"] for r in old.runs()][:4] == [1, 2, 3, 4]
+        assert len(old) >= 4000
+        assert old.run(1)["last_cycle"] == 400
+    out = tmp_path / "run1.csv"
+    cmd = [sys.executable, "-m", "usmswitch.client.ctl.main", "export", "--from", str(archive)]
+    done = subprocess.run([*cmd, "--run", "1", "--csv", str(out)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert out.read_text().count("\n") == 401
+    with RecordStore(archive, readonly=True) as a:  # the statistics moved with the strokes
+        assert a.run_stats(1)["all"]["strokes"] == 400
+
+
+def test_nothing_the_postgresql_copy_lacks_is_moved(tmp_path: Path) -> None:
+    path = tmp_path / "records.sqlite"
+    store = RecordStore(path)
+    shipped = [600]
+    store.retention = Retention(
+        RetentionPolicy(keep_strokes=100), path, shipped=lambda: shipped[0], check_every_ns=0
+    )
+    try:
+        loop, _daq, _ = make_loop(sink=store.submit, seed=6)
+        loop.run_sink = store.submit_run
+        _runs_of(store, loop, 4, 300)
+        _wait_applied(store, 2)
+        assert [r.run_id for r in store.runs()] == [3, 4]  # runs 1 and 2 (cycles 1-600) shipped: moved
+        shipped[0] = 1200
+        store.retention._next_ns = 0
+        loop.run_cycles(30 * MS, 10)
+        assert store.flush(10_000_000_000)
+        _wait_applied(store, 4)
+    finally:
+        store.close()
+    con = sqlite3.connect(tmp_path / ARCHIVE_FILE)
+    assert con.execute("SELECT count(*) FROM cycles").fetchone()[0] == 1200
+    con.close()
+
+
+def test_the_policy_keys_and_their_errors(tmp_path: Path) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[records]\nkeep_strokes = 10000000\nkeep_days = 90\nkeep_bytes = "2GB"\n')
+    records = load_config(cfg).records
+    assert (records.keep_strokes, records.keep_days, records.keep_bytes) == (10_000_000, 90, 2 * 10**9)
+    cfg.write_text('[records]\nkeep_bytes = "2 parsecs"\n')
+    with pytest.raises(ConfigError, match=r"records\.keep_bytes"):
+        load_config(cfg)
