@@ -69,8 +69,7 @@ def parse_duration_ns(value: str | int) -> int:
     m = _DURATION.match(value)
     if m is None:
         raise ValueError(
-            f"duration {value!r}: not a number with a unit ({_UNIT_NAMES}), e.g. '12ms'"
-            " (ASCII digits)"
+            f"duration {value!r}: not a number with a unit ({_UNIT_NAMES}), e.g. '12ms' (ASCII digits)"
         )
     unit = m["unit"]
     try:
