@@ -17,6 +17,7 @@ import sqlite3
 import time
 from typing import Any
 
+import msgpack
 import structlog
 
 from usmswitch.protocol.aggregate import RunAggregate
@@ -30,7 +31,8 @@ CREATE TABLE IF NOT EXISTS run_aggregates (
     run_id INTEGER PRIMARY KEY,
     last_cycle INTEGER,
     records INTEGER NOT NULL,
-    data BLOB NOT NULL
+    data BLOB NOT NULL,
+    summary BLOB
 );
 """
 #: A run's aggregate is saved at most this often while it runs (and at its end).
@@ -66,26 +68,49 @@ def load(conn: sqlite3.Connection, select: str, run_id: int) -> RunAggregate | N
     return agg
 
 
-def run_stats(conn: sqlite3.Connection, select: str, run: RunRecord) -> dict[str, Any] | None:
-    """A run's statistics in the shape of `stats.stats_of_records`, from its aggregate (None: the run
-    has none yet, the caller scans its strokes)."""
-    agg = load(conn, select, run.run_id)
-    if agg is None:
-        return None
-    out: dict[str, Any] = {
-        "run": run.to_dict(),
+def _summary(agg: RunAggregate) -> dict[str, Any]:
+    """What a reply shows of an aggregate: its figures, without the sketches."""
+    return {
         "first_cycle": agg.first_cycle,
         "last_cycle": agg.last_cycle,
         "all": agg.both.snapshot(),
+        "on": agg.per[0].snapshot(),
+        "off": agg.per[1].snapshot(),
     }
+
+
+def run_stats(conn: sqlite3.Connection, select: str, run: RunRecord) -> dict[str, Any] | None:
+    """A run's statistics in the shape of `stats.stats_of_records`, from its aggregate (None: the run
+    has none yet, the caller scans its strokes). A run with no stroke after its last save (every
+    ended run) is answered from the saved figures alone, without decoding its sketches."""
+    try:
+        row = conn.execute(
+            "SELECT last_cycle, summary FROM run_aggregates WHERE run_id = ?", (run.run_id,)
+        ).fetchone()
+    except sqlite3.OperationalError:  # a file from before the table
+        return None
+    if row is None:
+        return None
+    after = conn.execute(
+        "SELECT 1 FROM cycles WHERE run_id = ? AND cycle > ? LIMIT 1", (run.run_id, row[0] or 0)
+    ).fetchone()
+    if after is None and row[1] is not None:
+        figures = msgpack.unpackb(bytes(row[1]), raw=False)
+    else:
+        agg = load(conn, select, run.run_id)
+        if agg is None:
+            return None
+        figures = _summary(agg)
+    out: dict[str, Any] = {"run": run.to_dict(), **figures}
+    last = figures["last_cycle"]
     for d, name in ((0, "on"), (1, "off")):
-        snap = agg.per[d].snapshot()
+        snap = figures[name]
         row = None
-        if agg.last_cycle is not None:
+        if last is not None:
             # The direction's last stroke: the model it used (a short backward range read).
             row = conn.execute(
                 f"{select} WHERE run_id = ? AND direction = ? AND cycle <= ? ORDER BY cycle DESC LIMIT 1",
-                (run.run_id, d, agg.last_cycle),
+                (run.run_id, d, last),
             ).fetchone()
         out[name] = {**snap, **model_of(None if row is None else CycleRecord.from_row(row))}
     return out
@@ -180,6 +205,7 @@ class AggregateKeeper:
     @staticmethod
     def _write(conn: sqlite3.Connection, run_id: int, agg: RunAggregate) -> None:
         conn.execute(
-            "INSERT OR REPLACE INTO run_aggregates (run_id, last_cycle, records, data) VALUES (?, ?, ?, ?)",
-            (run_id, agg.last_cycle, agg.records, agg.to_bytes()),
+            "INSERT OR REPLACE INTO run_aggregates (run_id, last_cycle, records, data, summary)"
+            " VALUES (?, ?, ?, ?, ?)",
+            (run_id, agg.last_cycle, agg.records, agg.to_bytes(), msgpack.packb(_summary(agg))),
         )
