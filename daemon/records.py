@@ -378,6 +378,25 @@ class RecordStore:
                 yield CycleRecord.from_row(r)
             after = rows[-1]["cycle"]
 
+    def table_chunks(
+        self, first: int = 1, last: int | None = None, run_id: int | None = None, chunk: int = 10_000
+    ) -> Iterator[list[tuple[Any, ...]]]:
+        """The records as the file's rows (FIELDS order, coefficients as JSON text), a chunk of plain
+        tuples at a time, each its own short read: what an export writes as it is."""
+        after = first - 1
+        stop = last if last is not None else (1 << 63) - 1
+        where, args = self._where(run_id=run_id)
+        where = f"{where} AND" if where else " WHERE"
+        sql = f"{self._select}{where} cycle > ? AND cycle <= ? ORDER BY cycle LIMIT ?"
+        while True:
+            cur = self._reader().cursor()
+            cur.row_factory = None
+            rows = cur.execute(sql, (*args, after, stop, chunk)).fetchall()
+            if not rows:
+                return
+            yield rows
+            after = rows[-1][0]
+
     def runs(self, n: int = 20) -> list[RunRecord]:
         """The last `n` runs, oldest first (none in a file from before runs)."""
         if self.schema_version < 3:
