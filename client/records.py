@@ -210,6 +210,15 @@ class RecordsFile(RecordsSource):
             rows = self._chunk(after, stop, run, chunk, plain=True)
             if not rows:
                 return
+            # A cell that would not read back as a record is an error, as it is through records():
+            # checked by SQLite over the chunk's range, not by Python a row.
+            bad = self._db.execute(
+                "SELECT cycle FROM cycles WHERE cycle > ? AND cycle <= ? AND NOT json_valid(coefficients)"
+                " LIMIT 1",
+                (after, rows[-1][c]),
+            ).fetchone()
+            if bad is not None:
+                raise RecordsFileError(f"{self.path}: cycle {bad[0]}: its coefficients are not JSON")
             yield from rows
             after = rows[-1][c]
 

@@ -394,6 +394,13 @@ class RecordStore:
             rows = cur.execute(sql, (*args, after, stop, chunk)).fetchall()
             if not rows:
                 return
+            bad = cur.execute(
+                "SELECT cycle FROM cycles WHERE cycle > ? AND cycle <= ? AND NOT json_valid(coefficients)"
+                " LIMIT 1",
+                (after, rows[-1][0]),
+            ).fetchone()
+            if bad is not None:  # as a record's read would: a cell that is not what it should be
+                raise ValueError(f"record file {self.path}: cycle {bad[0]}: its coefficients are not JSON")
             yield rows
             after = rows[-1][0]
 
