@@ -6,8 +6,8 @@ busy that process is (a connection flood, large history replies), and the thread
 daemon's helper priority. What an attacker can do to it is bounded: a few connections
 (`Limits.max_urgent_connections`), frames of a few hundred bytes, a request within
 `Limits.urgent_timeout_ns` of connecting and a frame finished within `Limits.frame_timeout_ns`.
-Work that is not an estop (accepting, refusing, timing out) waits its turn behind the loop's start
-(`gate`); an estop never does.
+Work that is not an estop (accepting more than one connection at a time, refusing, timing out) waits
+its turn behind the loop's start (`gate`); an estop never does.
 """
 
 from __future__ import annotations
@@ -100,8 +100,14 @@ class EstopSocket:
             sel.close()
 
     def _accept(self, sel: selectors.BaseSelector) -> None:
-        self.gate()
+        # The first connection of a round is taken at once, its request read and an estop answered
+        # (a new connection is how usmswitchctl sends one: waiting for the loop's start cost it up to
+        # 10 ms); any more wait their turn behind the loop's start, as the rest of this thread's work.
+        first = True
         while True:
+            if not first:
+                self.gate()
+            first = False
             try:
                 conn, _ = self.sock.accept()
             except (BlockingIOError, InterruptedError):

@@ -362,7 +362,9 @@ class RpcServer:
             os.chmod(path, self.mode)
             if self.gid is not None:
                 os.chown(path, -1, self.gid)
-            sock.listen(128)
+            # A deep backlog: a flood of connections waits there, to be shed or refused at the
+            # accept, instead of making a client's connect fail at once (EAGAIN on a full backlog).
+            sock.listen(1024)
         except OSError as exc:
             sock.close()
             path.unlink(missing_ok=True)
