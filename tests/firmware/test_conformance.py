@@ -167,15 +167,19 @@ def test_arm_checks_and_command_refusals(device: Device) -> None:
 
 def test_retransmitted_command_and_late_start(device: Device) -> None:
     hello = _hello(device)
+    t0 = time.monotonic()
     device.send(mp.Arm(3, 0, 1000, 100_000), 1)
     t_cmd = (hello.t_us - 20_000) % U32  # 20 ms in the past: the start is late by ~19 ms
     device.send(mp.Command(3, t_cmd, 1), 2)
     device.send(mp.Command(3, (t_cmd + 5) % U32, 1), 3)  # a retransmission: the original instant
+    # ~19 ms, and as much again as the COMMAND took to reach a device whose clock runs on the
+    # wall's (the Python emulator on a loaded machine; in lockstep the chip waits for it).
+    slack_us = int((time.monotonic() - t0) * 1e6)
     got = _msgs(device.run(40_000))
     acks = [m for m in got if isinstance(m, mp.Ack)]
     assert [(a.acked_seq, a.status, a.t_us) for a in acks[1:]] == [(2, 0, t_cmd), (3, 0, t_cmd)]
     (start,) = [m for m in got if isinstance(m, mp.Start)]
-    assert 18_000 < start.late_us < 25_000
+    assert 18_000 < start.late_us < 25_000 + slack_us, (start.late_us, slack_us)
     (stroke,) = [m for m in got if isinstance(m, mp.Stroke)]
     assert stroke.flags & mp.StrokeFlags.LATE and stroke.flags & mp.StrokeFlags.ARRIVED
 
