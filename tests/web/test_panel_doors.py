@@ -239,17 +239,6 @@ def test_bad_http_requests_are_one_log_line_without_a_traceback(rig: dict[str, A
     rig["bad_requests_sent"] = True
 
 
-def test_zz_the_log_holds_no_traceback(rig: dict[str, Any]) -> None:
-    """Items 6 and 9, read last: stop the daemon and look at what it logged under the loads above."""
-    if not rig.get("bad_requests_sent"):
-        pytest.skip("runs after the bad requests")
-    err = stop(rig["proc"]).decode(errors="replace")
-    assert "Traceback" not in err, err[-3000:]
-    assert "AssertionError" not in err
-    lines = [line for line in err.splitlines() if "Error handling request" in line or "BadStatusLine" in line]
-    assert len(lines) <= 6, lines[:10]
-
-
 async def _open_feeds(url: str, n: int, cookie: str | None = None) -> tuple[list[Any], int, int]:
     """Open `n` live feeds at once; (the open ones, how many opened, how many were refused)."""
     ws_url = url.replace("http://", "ws://") + "api/live"
@@ -296,3 +285,14 @@ def test_the_live_feed_cap_is_atomic_and_never_keeps_the_operator_out(rig: dict[
     bursts, operator_served = asyncio.run(main())
     assert all(n <= 32 for n in bursts), bursts
     assert operator_served
+
+
+def test_zz_the_log_holds_no_traceback(rig: dict[str, Any]) -> None:
+    """Items 6 and 9, read last: stop the daemon and look at what it logged under the loads above."""
+    if not rig.get("bad_requests_sent"):
+        pytest.skip("runs after the bad requests")
+    err = stop(rig["proc"]).decode(errors="replace")
+    assert "Traceback" not in err, err[-3000:]
+    assert "AssertionError" not in err
+    lines = [line for line in err.splitlines() if "Error handling request" in line or "BadStatusLine" in line]
+    assert len(lines) <= 6, lines[:10]
