@@ -15,6 +15,7 @@ EXIT_CONNECT = 3
 EXIT_FAULT = 4
 #: What a shell reports for a process ended by Ctrl-C; used when a command other than watch is cut.
 EXIT_INTERRUPTED = 130
+EXIT_PIPE = 141  # our stdout's reader went away (`watch | head`), as a shell shows SIGPIPE
 
 PROG = "usmswitchctl"
 DIRECTION_NAMES = ("on", "off")

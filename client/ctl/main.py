@@ -25,12 +25,19 @@ from usmswitch.protocol.wire import ErrorCode, RpcError
 
 from ..api import find_socket
 from ..connection import DEFAULT_TIMEOUT, Client, ConnectionClosed, estop_by_every_path
-from .args import EXIT_CONNECT, EXIT_FAULT, EXIT_INTERRUPTED, EXIT_REFUSED, EXIT_USAGE, PROG, UsageError
+from .args import (
+    EXIT_CONNECT,
+    EXIT_FAULT,
+    EXIT_INTERRUPTED,
+    EXIT_PIPE,
+    EXIT_REFUSED,
+    EXIT_USAGE,
+    PROG,
+    UsageError,
+)
 from .commands import COMMANDS, print_estop
 from .exports import cmd_export, cmd_plot
 from .parser import build_parser, check_args
-
-EXIT_PIPE = 141
 
 
 def resolve_address(args: argparse.Namespace) -> str:

@@ -79,7 +79,7 @@ def test_every_exit_code_is_documented(repo_root: Path) -> None:
     section = text[text.index("## Exit codes") :]
     documented = {int(m) for m in re.findall(r"^\| (\d+) \|", section, re.M)}
     codes = {v for k, v in vars(ctl_args).items() if k.startswith("EXIT_")}
-    assert documented == codes == {0, 1, 2, 3, 4, 130}
+    assert documented == codes == {0, 1, 2, 3, 4, 130, 141}
 
 
 def test_a_failed_export_leaves_no_partial_file(tmp_path: Path) -> None:
