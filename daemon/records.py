@@ -649,19 +649,21 @@ class RecordStore:
                         backoff = min(2 * backoff, self._retry_ns[1])
                         break
                     self._count(counts)
+                    if self._writer_error is not None:  # the strokes are in: said at once
+                        log.info("record writer recovered", path=str(self.path), after=self._writer_error)
+                        self._writer_error = None
+                        backoff = self._retry_ns[0]
                     if self._wait_when_behind:
                         with self._caught_up:
                             self._caught_up.notify_all()
                     rejected = {*counts[4], *(c for c, _ in counts[3])}
-                    self._fold_aggregates(conn, batch, rejected)
                     self._tell_committed(batch, rejected)
+                    # The runs' statistics after what waits on the strokes (subscribers, the
+                    # shipper, the recovery): their own transaction, its failure only logged.
+                    self._fold_aggregates(conn, batch, rejected)
                     next_check = time.monotonic_ns() + FILE_CHECK_NS
                     done += len(batch)
                     batch = []  # the records are on disk: hold none of them while idle
-                    if self._writer_error is not None:
-                        log.info("record writer recovered", path=str(self.path), after=self._writer_error)
-                        self._writer_error = None
-                        backoff = self._retry_ns[0]
             elif not pending and self._writer_error is not None and now >= retry_at:
                 # Failing with nothing to write (the file vanished while idle): recovered only
                 # if the path names our file again.
@@ -749,6 +751,7 @@ class RecordStore:
         a failure there is logged and the save tried again, the strokes are safe already)."""
         records = [r for r in batch if type(r) is CycleRecord and r.cycle not in rejected]
         ended = {r.run_id for r in batch if type(r) is RunRecord and r.end_reason is not None}
+        self.gate()  # Python work: not while the loop is about to start a stroke
         try:
             self._aggregates.fold(conn, records, ended)
         except sqlite3.Error as exc:

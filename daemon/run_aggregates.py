@@ -35,8 +35,9 @@ CREATE TABLE IF NOT EXISTS run_aggregates (
     summary BLOB
 );
 """
-#: A run's aggregate is saved at most this often while it runs (and at its end).
-SAVE_EVERY_NS = 1_000_000_000
+#: A run's aggregate is saved at most this often while it runs (and at its end). The save encodes its
+#: sketches in Python on the record writer's thread, holding the GIL the loop may need: rarely.
+SAVE_EVERY_NS = 10_000_000_000
 _PROGRESS_EVERY_NS = 2_000_000_000
 _CHUNK = 5000
 
@@ -145,7 +146,7 @@ class AggregateKeeper:
         for i, run_id in enumerate(missing, 1):
             agg = RunAggregate()
             _fold_after(conn, self._select, agg, run_id)
-            self._write(conn, run_id, agg)
+            self._write(conn, run_id, agg, summary=True)
             strokes += agg.records
             now = time.monotonic_ns()
             if now - said >= _PROGRESS_EVERY_NS or i == len(missing):
@@ -184,10 +185,11 @@ class AggregateKeeper:
 
     def save(self, conn: sqlite3.Connection, force: set[int] | None = None) -> None:
         now = time.monotonic_ns()
-        for run_id in list(self._dirty):
-            if (force and run_id in force) or now - self._saved_ns.get(run_id, 0) >= SAVE_EVERY_NS:
+        ending = {r for r in force or () if r in self._aggs}  # saved with their figures, dirty or not
+        for run_id in sorted(self._dirty | ending):
+            if run_id in ending or now - self._saved_ns.get(run_id, 0) >= SAVE_EVERY_NS:
                 try:
-                    self._write(conn, run_id, self._aggs[run_id])
+                    self._write(conn, run_id, self._aggs[run_id], summary=run_id in ending)
                 except sqlite3.Error as exc:
                     self.last_error = str(exc)
                     return
@@ -203,9 +205,12 @@ class AggregateKeeper:
         self.save(conn, force=set(self._dirty))
 
     @staticmethod
-    def _write(conn: sqlite3.Connection, run_id: int, agg: RunAggregate) -> None:
+    def _write(conn: sqlite3.Connection, run_id: int, agg: RunAggregate, *, summary: bool) -> None:
+        """The aggregate's row; with its figures (`summary`) once the run has ended: the quantiles
+        are a walk of the sketches in Python, done once, not at every save of a running run."""
+        figures = msgpack.packb(_summary(agg)) if summary else None
         conn.execute(
             "INSERT OR REPLACE INTO run_aggregates (run_id, last_cycle, records, data, summary)"
             " VALUES (?, ?, ?, ?, ?)",
-            (run_id, agg.last_cycle, agg.records, agg.to_bytes(), msgpack.packb(_summary(agg))),
+            (run_id, agg.last_cycle, agg.records, agg.to_bytes(), figures),
         )
