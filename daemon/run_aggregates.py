@@ -1,9 +1,9 @@
 """Each run's statistics kept in the records file as its strokes are written (`run_aggregates`).
 
 The record writer folds every committed stroke into its run's `RunAggregate` (protocol/aggregate.py)
-and saves it at most once a second and when the run ends, in a transaction of its own: a saved
-aggregate may lag its strokes by the last second, never lead them. A reader takes the saved one and
-folds in the strokes after its `last_cycle` (an indexed range read of at most a second of strokes),
+and saves it every 10 s and when the run ends, in a transaction of its own: a saved
+aggregate may lag its strokes by the last seconds, never lead them. A reader takes the saved one and
+folds in the strokes after its `last_cycle` (an indexed range read of at most 10 s of strokes),
 so `stats --run N` costs the same at 10^7 strokes as at 10. A file written before the table existed
 gets every run's aggregate built once, when a writer opens it, with a progress line. The full scan
 (`stats.stats_of_records`) stays: what the tests hold these against.
@@ -160,7 +160,7 @@ class AggregateKeeper:
                 )
 
     def fold(self, conn: sqlite3.Connection, records: list[CycleRecord], ended: set[int]) -> None:
-        """Committed strokes folded in; saved at most once a second per run, and at a run's end."""
+        """Committed strokes folded in; saved every SAVE_EVERY_NS per run, and at a run's end."""
         for rec in records:
             run_id = rec.run_id
             if run_id is None:
