@@ -199,6 +199,7 @@ class McuDaq(HandshakeMixin, Daq):
         self._ping_token = 0
         # A stroke's report waiting for the PONG that checks the clock at its end: (token, report, sent).
         self._report_check: tuple[int, StrokeReport, int] | None = None
+        self._report_ping: int | None = None  # its PING, to send once the frames in hand are handled
         self._last_rx_ns = 0
         self._next_ping_ns = 0
         self._dev_errors_base = (0, 0)
@@ -517,6 +518,7 @@ class McuDaq(HandshakeMixin, Daq):
             with self._state:
                 for seq, msg in frames:
                     self._handle(seq, msg, now)
+            self._send_report_ping()
             if self._refuse_why:
                 why, self._refuse_why = self._refuse_why, ""
                 self._link_failed(why)
@@ -669,20 +671,31 @@ class McuDaq(HandshakeMixin, Daq):
         # HELLO_ACK outside a handshake and host-bound types from a confused peer are ignored.
 
     def _check_clock_then_report(self, report: StrokeReport) -> None:
-        """A stroke's report (link thread, under the state lock): a PING now, and the report goes to
-        the loop with its PONG, which checks the device clock at the stroke's end."""
+        """A stroke's report (link thread, under the state lock): a PING as soon as the frames in
+        hand are handled, and the report goes to the loop with its PONG, which checks the device
+        clock at the stroke's end. (Not sent here: a write takes the write lock, which a caller's
+        request holds while it takes the state lock; the other order deadlocked.)"""
         old = self._report_check
         if old is not None:
             self._finish_report(old[1], "")  # a report overtaken: its stroke's clock was checked before
         self._ping_token = (self._ping_token + 1) % U32_MOD
-        token, now = self._ping_token, time.monotonic_ns()
-        self._pings[token] = now
-        self._report_check = (token, report, now)
+        self._report_check = (self._ping_token, report, time.monotonic_ns())
+        self._report_ping = self._ping_token
+
+    def _send_report_ping(self) -> None:
+        """The PING a stroke's report waits for (link thread, outside the state lock)."""
+        with self._state:
+            token, self._report_ping = self._report_ping, None
+            if token is None:
+                return
+            self._pings[token] = time.monotonic_ns()
         try:
             self._send(Ping(token))
         except TransportLost:
-            self._report_check = None
-            self._finish_report(report, "")  # the link's loss ends the stroke its own way
+            with self._state:
+                check, self._report_check = self._report_check, None
+                if check is not None:
+                    self._finish_report(check[1], "")  # the link's loss ends the stroke its own way
 
     def _finish_report(self, report: StrokeReport, doubt: str) -> None:
         if doubt:

@@ -33,8 +33,9 @@ def _check_stroke(seen, direction: Direction, delay_ns: int, emu_stroke) -> None
     arr = seen.edge(direction.dest, 1)
     assert start.direction is direction
     assert seen.t_cmd_ns < start.t_ns < dep.t_ns < arr.t_ns
-    # The device fired the start exactly `delay` after the command, on its own clock (1 us ticks).
-    assert abs(start.t_ns - seen.t_cmd_ns - delay_ns) <= 1_000
+    # The device fired the start exactly `delay` after the command, on its own clock (1 us ticks;
+    # the instant goes to the device's microseconds and the start's stamp comes back: two roundings).
+    assert abs(start.t_ns - seen.t_cmd_ns - delay_ns) <= 2_000
     # The operating time equals the rig model's, to the device clock's resolution and drift.
     true_op = emu_stroke.t_arrive_ns - emu_stroke.t_start_ns
     assert abs((arr.t_ns - start.t_ns) - true_op) <= 2_000
@@ -151,7 +152,9 @@ def test_delayed_reply_is_retransmitted_once(rig) -> None:
 def test_lost_arm_is_rearmed_by_the_command(rig) -> None:
     emu, _, daq = rig
     emu.inject_rx_drop(1)  # the ARM never reaches the device
-    seen = run_stroke(daq, Direction.ON)
+    # The COMMAND's NOT_ARMED, the ARM again and the COMMAND again are three round trips before
+    # the instant: a lead that holds them on a loaded machine (2 ms read 469 us late under CI).
+    seen = run_stroke(daq, Direction.ON, lead_ns=50_000_000)
     _check_stroke(seen, Direction.ON, 1_000_000, emu.log[-1])
     assert wait_for(lambda: daq.link_stats()["device_rx_lost"] == 1)
 
