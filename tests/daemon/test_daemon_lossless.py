@@ -184,10 +184,13 @@ def test_a_deleted_records_file_latches_fault_stops_cycling_and_the_exit_counts_
 # -- a real full file system ------------------------------------------------------------------------
 @pytest.fixture
 def small_fs(tmp_path: Path) -> Iterator[Path]:
+    # 16 MiB: room for the WAL SQLite grows between checkpoints (1,000 pages, ~4 MiB; at 2 MiB the
+    # daemon filled the disk by itself 120 strokes in, before a busy test had subscribed). fill()
+    # makes it full when the test means it.
     mnt = tmp_path / "fs"
     mnt.mkdir()
     r = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", "size=2m,mode=0755", "tmpfs", str(mnt)], capture_output=True, text=True
+        ["mount", "-t", "tmpfs", "-o", "size=16m,mode=0755", "tmpfs", str(mnt)], capture_output=True, text=True
     )
     if r.returncode != 0:
         if os.environ.get("CI") == "true":
