@@ -37,6 +37,7 @@ from urllib.parse import quote
 import structlog
 
 from usmswitch.protocol.record import UNUSABLE, CycleRecord, RunRecord
+from usmswitch.protocol.record_csv import BadCell, csv_text_chunks
 from usmswitch.protocol.records_schema import (
     INSERT_CYCLE,
     INSERT_EVENT,
@@ -378,31 +379,16 @@ class RecordStore:
                 yield CycleRecord.from_row(r)
             after = rows[-1]["cycle"]
 
-    def table_chunks(
+    def csv_chunks(
         self, first: int = 1, last: int | None = None, run_id: int | None = None, chunk: int = 10_000
-    ) -> Iterator[list[tuple[Any, ...]]]:
-        """The records as the file's rows (FIELDS order, coefficients as JSON text), a chunk of plain
-        tuples at a time, each its own short read: what an export writes as it is."""
-        after = first - 1
-        stop = last if last is not None else (1 << 63) - 1
-        where, args = self._where(run_id=run_id)
-        where = f"{where} AND" if where else " WHERE"
-        sql = f"{self._select}{where} cycle > ? AND cycle <= ? ORDER BY cycle LIMIT ?"
-        while True:
-            cur = self._reader().cursor()
-            cur.row_factory = None
-            rows = cur.execute(sql, (*args, after, stop, chunk)).fetchall()
-            if not rows:
-                return
-            bad = cur.execute(
-                "SELECT cycle FROM cycles WHERE cycle > ? AND cycle <= ? AND NOT json_valid(coefficients)"
-                " LIMIT 1",
-                (after, rows[-1][0]),
-            ).fetchone()
-            if bad is not None:  # as a record's read would: a cell that is not what it should be
-                raise ValueError(f"record file {self.path}: cycle {bad[0]}: its coefficients are not JSON")
-            yield rows
-            after = rows[-1][0]
+    ) -> Iterator[tuple[int, int, str]]:
+        """The records as CSV text (record_csv's lines), `chunk` strokes a read, each chunk's text
+        built by SQLite in one short statement: (strokes, last cycle, text). What the panel's export
+        streams (issue 36: within 2x `sqlite3 -csv`); ValueError where a cell is not what it should be."""
+        try:
+            yield from csv_text_chunks(self._reader(), first, last, run_id, chunk)
+        except BadCell as exc:
+            raise ValueError(f"record file {self.path}: {exc}") from None
 
     def runs(self, n: int = 20) -> list[RunRecord]:
         """The last `n` runs, oldest first (none in a file from before runs)."""

@@ -7,7 +7,10 @@ numbers for a person reading the sheet; `CycleRecord.from_row` reads it back and
 from __future__ import annotations
 
 import csv
+import functools
+import io
 import json
+import sqlite3
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from typing import IO, Any
 
@@ -81,3 +84,140 @@ def write_csv(records: Iterable[Mapping[str, Any]], out: IO[str]) -> int:
         writer.writerow(csv_row(rec))
         n += 1
     return n
+
+
+# -- the same CSV made by SQLite: a chunk of rows as one string (issue 36) --------------------------
+#
+# The csv module writes ~1 us of Python a cell; `sqlite3 -csv` none. Here SQLite builds each line's
+# text (printf over the columns) and a chunk's lines into one string (group_concat), so Python
+# touches one string per chunk. The cells are the csv module's, byte for byte: integers and text as
+# they are, text quoted (quotes doubled) when it holds a character that makes this Python's csv
+# writer quote, None empty; what SQLite cannot say the same way (a float's repr, the flag names, a
+# cell of an unexpected type) is handed to a Python function by the same rules.
+
+
+def _quoting_chars() -> tuple[str, ...]:
+    """The characters that make this Python's csv writer (lineterminator "\n") quote a cell."""
+    out = []
+    for ch in (",", '"', "\n", "\r", "\t", " ", ";", "'"):
+        buf = io.StringIO()
+        csv.writer(buf, lineterminator="\n").writerow([f"a{ch}b", 0])
+        if buf.getvalue().startswith('"'):
+            out.append(ch)
+    return tuple(out)
+
+
+_QUOTING = _quoting_chars()
+
+
+def csv_cell(value: Any) -> str:
+    """One cell as the csv module writes it (None empty, a float its repr, text quoted when needed)."""
+    if type(value) is float:
+        return repr(value)
+    if value is None:
+        return ""
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerow([value, 0])
+    return buf.getvalue()[: -len(",0\n")]
+
+
+@functools.lru_cache(maxsize=4096)
+def _flags_cell(flags: Any) -> str:
+    name = flag_names(flags)
+    return "" if name == "-" else csv_cell(name)
+
+
+def _direction_cell(direction: Any) -> str:
+    return csv_cell(direction_name(direction))
+
+
+#: The Python functions the CSV SQL calls, by name: (number of arguments, function).
+CSV_SQL_FUNCTIONS: dict[str, tuple[int, Any]] = {
+    "usm_csv_cell": (1, csv_cell),
+    "usm_csv_flags": (1, _flags_cell),
+    "usm_csv_direction": (1, _direction_cell),
+}
+
+
+def register_csv_functions(conn: sqlite3.Connection) -> None:
+    """Give a connection the functions `csv_line_sql` calls."""
+    for name, (nargs, fn) in CSV_SQL_FUNCTIONS.items():
+        conn.create_function(name, nargs, fn, deterministic=True)
+
+
+def _cell_sql(name: str, decltype: str | None) -> str:
+    x = f'"{name}"'
+    if decltype is None:  # a column an older file lacks: None, an empty cell
+        return "''"
+    kind = decltype.upper()
+    if "INT" in kind:
+        return f"CASE typeof({x}) WHEN 'integer' THEN {x} WHEN 'null' THEN '' ELSE usm_csv_cell({x}) END"
+    if "CHAR" in kind or "TEXT" in kind or "CLOB" in kind:
+        special = " OR ".join(f"instr({x}, char({ord(c)}))" for c in _QUOTING)
+        quoted = f"'\"' || replace({x}, '\"', '\"\"') || '\"'"
+        return (
+            f"CASE WHEN typeof({x}) <> 'text' THEN usm_csv_cell({x})"
+            f" WHEN {special} THEN {quoted} ELSE {x} END"
+        )
+    return f"CASE WHEN {x} IS NULL THEN '' ELSE usm_csv_cell({x}) END"  # REAL: repr, in Python
+
+
+def csv_line_sql(columns: Mapping[str, str | None]) -> str:
+    """The SQL expression of one cycles row's CSV line (CSV_HEADER order, no line end): `columns`
+    maps each column the table has to its declared type; a FIELDS name missing reads empty."""
+    cells = [_cell_sql(f, columns.get(f)) for f in FIELDS]  # a typeless column: "", not None
+    cells.append("CASE direction WHEN 0 THEN 'on' WHEN 1 THEN 'off' ELSE usm_csv_direction(direction) END")
+    cells.append("CASE flags WHEN 0 THEN '' ELSE usm_csv_flags(flags) END")
+    return "printf('" + ",".join(["%s"] * len(cells)) + "', " + ", ".join(cells) + ")"
+
+
+def csv_header_line() -> str:
+    """The CSV's first line, as the csv module writes CSV_HEADER."""
+    buf = io.StringIO()
+    csv.writer(buf, lineterminator="\n").writerow(CSV_HEADER)
+    return buf.getvalue()
+
+
+class BadCell(ValueError):
+    """A stroke's cell would not read back as a record (its coefficients are not JSON)."""
+
+    def __init__(self, cycle: int) -> None:
+        super().__init__(f"cycle {cycle}: its coefficients are not JSON")
+        self.cycle = cycle
+
+
+def csv_text_chunks(
+    conn: sqlite3.Connection,
+    first: int = 1,
+    last: int | None = None,
+    run_id: int | None = None,
+    chunk: int = 10_000,
+) -> Iterator[tuple[int, int, str]]:
+    """The CSV lines (each ending "\n") of the records file's strokes from cycle `first` to `last`
+    (of one run), `chunk` strokes a read, each read its own short statement: (strokes, the last
+    cycle, text) per chunk, built by SQLite. BadCell where a stroke's coefficients are not JSON
+    (as a record's read refuses them), before that chunk's text is given."""
+    register_csv_functions(conn)
+    cur = conn.cursor()
+    cur.row_factory = None  # plain tuples, whatever the connection's rows are
+    columns = {r[1]: r[2] for r in cur.execute("PRAGMA table_info(cycles)")}
+    where = " AND run_id = ?" if run_id is not None else ""
+    if run_id is not None and "run_id" not in columns:
+        return  # a file from before runs has no run's strokes
+    sql = (
+        "SELECT count(*), max(cycle), group_concat(line, char(10)),"
+        " min(CASE WHEN ok THEN NULL ELSE cycle END)"
+        f" FROM (SELECT cycle, {csv_line_sql(columns)} AS line, json_valid(coefficients) AS ok"
+        f" FROM cycles WHERE cycle > ? AND cycle <= ?{where} ORDER BY cycle LIMIT ?)"
+    )
+    after = first - 1
+    stop = last if last is not None else (1 << 63) - 1
+    args = () if run_id is None else (run_id,)
+    while True:
+        n, top, text, bad = cur.execute(sql, (after, stop, *args, chunk)).fetchone()
+        if not n:
+            return
+        if bad is not None:
+            raise BadCell(bad)
+        yield n, top, text + "\n"
+        after = top

@@ -4,23 +4,22 @@ PostgreSQL copy (`--from`)."""
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import sqlite3
 import sys
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import IO, Any
+from typing import IO
 
 from usmswitch.protocol.record import CycleRecord as Record
-from usmswitch.protocol.record_csv import CSV_HEADER, csv_rows_of_table
+from usmswitch.protocol.record_csv import csv_header_line
 
 from ..connection import Client
-from ..records import RecordsFileError
+from ..records import RecordsFileError, RecordsSource
 from ..sources import open_records
 from ..types import CycleRecord
 from .args import EXIT_OK, UsageError
-from .output import print_json, write_csv
+from .output import ExportProgress, print_json, write_csv
 
 
 def _records_from(
@@ -63,53 +62,46 @@ def _source(args: argparse.Namespace) -> str | None:
     return args.source if args.source is not None else args.state_dir
 
 
-def _write(records: Iterable[CycleRecord] | _TableRows, out: IO[str], where: str) -> int:
+def _write(records: Iterable[CycleRecord] | _CsvChunks, out: IO[str], where: str, progress: bool) -> int:
     """write_csv, with a records source that fails midway (a corrupt row, a file gone) named as such."""
     try:
-        if isinstance(records, _TableRows):
-            return _write_table_rows(records.rows, out)
+        if isinstance(records, _CsvChunks):
+            return records.write(out, progress)
         return write_csv(records, out)
     except (RecordsFileError, sqlite3.Error, ValueError) as exc:
         raise UsageError(f"export: reading the records failed partway through {where}: {exc}") from None
 
 
-class _TableRows:
-    """A file's rows as they are, for an export at the speed of SQLite (no record, no dict)."""
+class _CsvChunks:
+    """A records source's strokes as CSV text a chunk at a time (built by SQLite for a records file:
+    issue 36), written as they come; a progress bar on a terminal's stderr past a second."""
 
-    def __init__(self, rows: Iterator[tuple[Any, ...]]) -> None:
-        self.rows = rows
+    def __init__(self, records: RecordsSource, first: int, last: int | None, run: int | None) -> None:
+        self.records, self.first, self.last, self.run = records, first, last, run
 
-
-def _write_table_rows(rows: Iterator[tuple[Any, ...]], out: IO[str]) -> int:
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(CSV_HEADER)
-    n = 0
-    batch: list[tuple[Any, ...]] = []
-    for row in csv_rows_of_table(rows):
-        batch.append(row)
-        if len(batch) == 10_000:
-            writer.writerows(batch)
-            n += len(batch)
-            batch.clear()
-    writer.writerows(batch)
-    return n + len(batch)
+    def write(self, out: IO[str], progress: bool) -> int:
+        n = 0
+        with self.records:
+            span = self.records.cycle_span(self.first, self.last, self.run) if progress else None
+            out.write(csv_header_line())
+            with ExportProgress(span, sys.stderr if progress else None) as bar:
+                for strokes, last_cycle, text in self.records.csv_chunks(self.first, self.last, self.run):
+                    out.write(text)
+                    n += strokes
+                    bar.update(last_cycle, n)
+        return n
 
 
-def _table_rows_from(
+def _csv_chunks_from(
     source: str | Path, first: int, last: int | None, run: int | None, rig: str | None
-) -> _TableRows:
+) -> _CsvChunks:
     try:
         records = open_records(source, rig)
         if run is not None:
             records.run(run)
     except RecordsFileError as exc:
         raise UsageError(f"export: {exc}") from None
-
-    def rows() -> Iterator[tuple[Any, ...]]:
-        with records:
-            yield from records.table_rows(first, last, run=run)
-
-    return _TableRows(rows())
+    return _CsvChunks(records, first, last, run)
 
 
 def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
@@ -117,7 +109,7 @@ def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
     if args.csv is None:
         raise UsageError("export needs --csv FILE (or --csv - for standard output)")
     if _source(args) is not None:
-        records: Iterable[CycleRecord] | _TableRows = _table_rows_from(
+        records: Iterable[CycleRecord] | _CsvChunks = _csv_chunks_from(
             _source(args), args.first, args.last, args.run, args.rig if args.source else None
         )
     else:
@@ -126,13 +118,13 @@ def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
         with connect() as client:
             records = client.history(args.n, args.run)
     if args.csv == "-":
-        n = _write(records, sys.stdout, "standard output")
+        n = _write(records, sys.stdout, "standard output", not args.json)
         sys.stdout.flush()
     else:
         tmp = Path(f"{args.csv}.partial")
         try:
             with open(tmp, "w", newline="", encoding="utf-8") as fh:
-                n = _write(records, fh, args.csv)
+                n = _write(records, fh, args.csv, not args.json)
             os.replace(tmp, args.csv)  # a reader never sees half a file
         except OSError as exc:
             raise UsageError(f"export: cannot write {args.csv}: {exc.strerror or exc}") from None

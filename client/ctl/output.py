@@ -458,6 +458,61 @@ class CycleProgress:
             self._progress.stop()
 
 
+class ExportProgress:
+    """An export's progress bar on a terminal (rich), by cycle through the span exported: shown
+    once the export has taken a second, never on a pipe or a file (`out` None: never)."""
+
+    AFTER_NS = 1_000_000_000
+
+    def __init__(self, span: tuple[int, int] | None, out: IO[str] | None) -> None:
+        self.span = span
+        self.out = out if out is not None and _isatty(out) else None
+        self._t0 = time.monotonic_ns()
+        self._progress: Any = None
+        self._task: Any = None
+
+    def __enter__(self) -> ExportProgress:
+        return self
+
+    def update(self, last_cycle: int, strokes: int) -> None:
+        """The last cycle written so far, and how many strokes."""
+        if self.out is None or self.span is None:
+            return
+        first, last = self.span
+        if self._progress is None:
+            if time.monotonic_ns() - self._t0 < self.AFTER_NS:
+                return
+            from rich.console import Console  # a terminal's export past a second only
+            from rich.progress import (
+                BarColumn,
+                Progress,
+                TaskProgressColumn,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
+
+            self._progress = Progress(
+                TextColumn("export"),
+                BarColumn(),
+                TaskProgressColumn(),
+                TextColumn("{task.fields[strokes]:,} strokes"),
+                TimeElapsedColumn(),
+                TimeRemainingColumn(),
+                console=Console(file=self.out),
+                transient=True,
+            )
+            self._progress.start()
+            self._task = self._progress.add_task("export", total=last - first + 1, strokes=0)
+        self._progress.update(self._task, completed=last_cycle - first + 1, strokes=strokes)
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if self._progress is not None:
+            self._progress.stop()
+
+
 def _isatty(stream: IO[str]) -> bool:
     with contextlib.suppress(AttributeError, ValueError):
         return stream.isatty()
