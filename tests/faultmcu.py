@@ -12,9 +12,10 @@ clock without a restart. Importable from any test (tests/conftest.py puts this f
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from usmswitch.drivers.mcu_protocol import Edge, Message, Start, Stroke
@@ -201,3 +202,14 @@ def plug(tmp_path: Path, **kwargs: object) -> tuple[FaultyMcu, PtyLink, Path]:
     path = tmp_path / "usmswitch"
     link = PtyLink(emu, path).plug()
     return emu, link, path
+
+
+@contextlib.contextmanager
+def plugged(tmp_path: Path, **kwargs: object) -> Iterator[tuple[FaultyMcu, Path]]:
+    """plug(), then the pty closed and the emulator stopped on the way out (its log stays readable)."""
+    emu, link, path = plug(tmp_path, **kwargs)
+    try:
+        yield emu, path
+    finally:
+        link.close()
+        emu.stop()

@@ -34,22 +34,17 @@ def test_stamps_off_the_device_clock_are_rejected_and_outlive_nothing(tmp_path: 
     reference a whole wrap (71.6 min) ahead, so every later stamp was 'from the future' and every
     stroke stalled; an edge stamped 1 s behind during a stroke ended it as 'edge order'. Now each is
     rejected against the device clock, counted, and the 20 strokes after them are clean."""
-    emu, link, port = faultmcu.plug(tmp_path, seed=7)
-    try:
-        with daemon(tmp_path, port) as (c, _):
-            now = emu.device_us()
-            for ahead in (2**31 - 1, 2**32 - 2, 10_000_000):  # while idle
-                emu.say(Edge(1, 0, (now + ahead) % U32_MOD))
-            time.sleep(0.2)
+    with faultmcu.plugged(tmp_path, seed=7) as (emu, port), daemon(tmp_path, port) as (c, _):
+        now = emu.device_us()
+        for ahead in (2**31 - 1, 2**32 - 2, 10_000_000):  # while idle
+            emu.say(Edge(1, 0, (now + ahead) % U32_MOD))
+        time.sleep(0.2)
 
-            def behind(s: Start) -> list[Message]:
-                return [s, Edge(0, 1, (s.t_us - 1_000_000) % U32_MOD)]
+        def behind(s: Start) -> list[Message]:
+            return [s, Edge(0, 1, (s.t_us - 1_000_000) % U32_MOD)]
 
-            emu.tamper = faultmcu.start_of_stroke(5, behind)  # during the 5th stroke
-            st = run(c, 60 * MS, 20)
-    finally:
-        link.close()
-        emu.stop()
+        emu.tamper = faultmcu.start_of_stroke(5, behind)  # during the 5th stroke
+        st = run(c, 60 * MS, 20)
     got = rows(tmp_path)
     assert st["state"] == "idle", st["fault"]
     assert len(got) == 20 and not [r for r in got if r[1] & (FAULT | STALL)], got
@@ -65,43 +60,38 @@ def test_a_start_naming_another_stroke_is_not_this_strokes_start(tmp_path: Path)
     early made the operating time 3 ms long). Now it is rejected and counted: the stroke's own START
     is used; a stroke that gets none ends with FAULT 'edge order' saying so, and after reset_fault the
     strokes go on."""
-    emu, link, port = faultmcu.plug(tmp_path, seed=8)
-    try:
-        with daemon(tmp_path, port) as (c, _):
+    with faultmcu.plugged(tmp_path, seed=8) as (emu, port), daemon(tmp_path, port) as (c, _):
 
-            def early_foreign(s: Start) -> list[Message]:
-                other = dataclasses.replace(s, stroke=(s.stroke + 7) % 65536, t_us=(s.t_us - 3000) % U32_MOD)
-                return [other, s]
+        def early_foreign(s: Start) -> list[Message]:
+            other = dataclasses.replace(s, stroke=(s.stroke + 7) % 65536, t_us=(s.t_us - 3000) % U32_MOD)
+            return [other, s]
 
-            emu.tamper = faultmcu.start_of_stroke(3, early_foreign)
-            st = run(c, 60 * MS, 6)
-            assert st["state"] == "idle", st["fault"]
-            clean = rows(tmp_path)
-            true_ns = [s.t_arrive_ns - s.t_start_ns for s in emu.log]
+        emu.tamper = faultmcu.start_of_stroke(3, early_foreign)
+        st = run(c, 60 * MS, 6)
+        assert st["state"] == "idle", st["fault"]
+        clean = rows(tmp_path)
+        true_ns = [s.t_arrive_ns - s.t_start_ns for s in emu.log]
 
-            replaced: set[int] = set()
-            starts = [0]
+        replaced: set[int] = set()
+        starts = [0]
 
-            def foreign_only(msg: Message) -> list[Message]:
-                if isinstance(msg, Start):
-                    starts[0] += 1
-                    if starts[0] == 2:
-                        replaced.add(msg.stroke)
-                        return [dataclasses.replace(msg, stroke=(msg.stroke + 7) % 65536)]
-                if isinstance(msg, Stroke) and msg.stroke in replaced:
-                    return []  # and no report to rebuild its start from
-                return [msg]
+        def foreign_only(msg: Message) -> list[Message]:
+            if isinstance(msg, Start):
+                starts[0] += 1
+                if starts[0] == 2:
+                    replaced.add(msg.stroke)
+                    return [dataclasses.replace(msg, stroke=(msg.stroke + 7) % 65536)]
+            if isinstance(msg, Stroke) and msg.stroke in replaced:
+                return []  # and no report to rebuild its start from
+            return [msg]
 
-            emu.tamper = foreign_only
-            st = run(c, 60 * MS, 4)
-            emu.tamper = None
-            assert st["state"] == "fault"
-            fault = st["fault"]
-            c.reset_fault()
-            after = run(c, 60 * MS, 4)
-    finally:
-        link.close()
-        emu.stop()
+        emu.tamper = foreign_only
+        st = run(c, 60 * MS, 4)
+        emu.tamper = None
+        assert st["state"] == "fault"
+        fault = st["fault"]
+        c.reset_fault()
+        after = run(c, 60 * MS, 4)
     assert len(clean) == 6 and not [r for r in clean if r[1] & FAULT], clean
     assert abs(clean[2][4] - true_ns[2]) < 50_000, (clean[2], true_ns[2])  # its own start, not 3 ms early
     assert fault.startswith("edge order: stroke ") and "has no START of its own" in fault, fault
@@ -121,15 +111,11 @@ def test_a_device_that_cannot_delay_as_long_as_the_targets_is_refused(tmp_path: 
     """Item 3: a device whose HELLO_ACK said max_delay_us 100 passed the handshake and then every
     stroke raised ValueError inside the loop ('internal error'). Now the daemon refuses to start,
     naming the device's value and the host's need."""
-    emu, link, port = faultmcu.plug(tmp_path, seed=9, max_delay_us=100)
-    try:
+    with faultmcu.plugged(tmp_path, seed=9, max_delay_us=100) as (emu, port):
         sock = tmp_path / "d.sock"
         args = ["--driver", "serial", "--port", str(port), "--target", "12ms"]
         proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False, socket=sock))
         _, err = proc.communicate(timeout=30)
-    finally:
-        link.close()
-        emu.stop()
     assert proc.returncode != 0
     text = err.decode()
     assert "delays a start by at most 100.0 us (HELLO_ACK max_delay_us 100)" in text, text[-2000:]
@@ -143,18 +129,16 @@ def test_a_target_beyond_the_devices_longest_delay_is_refused_at_the_call(tmp_pa
     from usmswitch.client import TargetUnreachable
     from usmswitch.protocol.wire import InvalidParams
 
-    emu, link, port = faultmcu.plug(tmp_path, seed=10, max_delay_us=15_000)
-    try:
-        with daemon(tmp_path, port) as (c, _):
-            assert run(c, 100 * MS, 2)["state"] == "idle"
-            with pytest.raises(TargetUnreachable, match=r"longer than the device.s longest, 15\.000 ms"):
-                c.set_target(40 * MS)
-            with pytest.raises(InvalidParams, match=r"device.s longest start delay, 15\.000 ms"):
-                c.set_mode("open", "20ms")
-            st = run(c, 100 * MS, 2)
-    finally:
-        link.close()
-        emu.stop()
+    with (
+        faultmcu.plugged(tmp_path, seed=10, max_delay_us=15_000) as (_, port),
+        daemon(tmp_path, port) as (c, _),
+    ):
+        assert run(c, 100 * MS, 2)["state"] == "idle"
+        with pytest.raises(TargetUnreachable, match=r"longer than the device.s longest, 15\.000 ms"):
+            c.set_target(40 * MS)
+        with pytest.raises(InvalidParams, match=r"device.s longest start delay, 15\.000 ms"):
+            c.set_mode("open", "20ms")
+        st = run(c, 100 * MS, 2)
     assert st["state"] == "idle", st["fault"]
     got = rows(tmp_path)
     assert len(got) == 4 and not [r for r in got if r[1] & FAULT], got
@@ -171,31 +155,26 @@ def test_a_flood_of_valid_edges_is_bounded_between_device_and_loop(tmp_path: Pat
     """Item 4: between two strokes of a run nothing reads the driver, and its queue grew with every
     valid EDGE frame at line speed (tens of MB a second). Now it holds at most MAX_QUEUED_EVENTS:
     the oldest are dropped and counted, the daemon's memory stays flat and the strokes stay clean."""
-    emu, link, port = faultmcu.plug(tmp_path, seed=11)
-    try:
-        with daemon(tmp_path, port) as (c, proc):
-            run(c, 60 * MS, 2)
-            rss0 = _rss_kb(proc.pid)  # type: ignore[attr-defined]
-            sent = [0]
-            peak = [rss0]
+    with faultmcu.plugged(tmp_path, seed=11) as (emu, port), daemon(tmp_path, port) as (c, proc):
+        run(c, 60 * MS, 2)
+        rss0 = _rss_kb(proc.pid)  # type: ignore[attr-defined]
+        sent = [0]
+        peak = [rss0]
 
-            def flood_after_each_stroke() -> None:
-                seen = 2
-                while seen < 5:
-                    while emu.strokes_arrived == seen:
-                        time.sleep(0.001)
-                    seen = emu.strokes_arrived
-                    time.sleep(0.03)
-                    sent[0] += emu.flood(0.7, channel=1 - int(emu.rig.sensors()[0] == 0))
-                    peak[0] = max(peak[0], _rss_kb(proc.pid))  # type: ignore[attr-defined]
+        def flood_after_each_stroke() -> None:
+            seen = 2
+            while seen < 5:
+                while emu.strokes_arrived == seen:
+                    time.sleep(0.001)
+                seen = emu.strokes_arrived
+                time.sleep(0.03)
+                sent[0] += emu.flood(0.7, channel=1 - int(emu.rig.sensors()[0] == 0))
+                peak[0] = max(peak[0], _rss_kb(proc.pid))  # type: ignore[attr-defined]
 
-            t = threading.Thread(target=flood_after_each_stroke, daemon=True)
-            t.start()
-            st = run(c, 1_000 * MS, 4)
-            t.join(10)
-    finally:
-        link.close()
-        emu.stop()
+        t = threading.Thread(target=flood_after_each_stroke, daemon=True)
+        t.start()
+        st = run(c, 1_000 * MS, 4)
+        t.join(10)
     got = rows(tmp_path)
     dropped = st["driver_counters"].get("events_dropped")
     print(f"\nflood: {sent[0]} frames, RSS {rss0} kB -> peak {peak[0]} kB, {dropped} dropped")

@@ -18,49 +18,44 @@ pytestmark = pytest.mark.realtime
 
 
 def test_a_lone_arrival_is_a_glitch_and_an_arrival_before_the_departure_is_not_a_stroke(tmp_path) -> None:
-    emu, link, port = faultmcu.plug(tmp_path, seed=8)
-    try:
-        with daemon(tmp_path, port) as (c, _):
-            # 1. An arrival 1 us after the 3rd start, no departure: it was recorded as a clean 1 us
-            #    stroke (and learned: the next stroke of that direction 10 ms off).
-            def lone_arrival(s: Start) -> list[Message]:
-                return [s, Edge(1 - s.direction, 1, (s.t_us + 1) % U32_MOD)]
+    with faultmcu.plugged(tmp_path, seed=8) as (emu, port), daemon(tmp_path, port) as (c, _):
+        # 1. An arrival 1 us after the 3rd start, no departure: it was recorded as a clean 1 us
+        #    stroke (and learned: the next stroke of that direction 10 ms off).
+        def lone_arrival(s: Start) -> list[Message]:
+            return [s, Edge(1 - s.direction, 1, (s.t_us + 1) % U32_MOD)]
 
-            emu.tamper = faultmcu.start_of_stroke(3, lone_arrival)
-            st = run(c, 60 * MS, 8)
-            assert st["state"] == "idle", st["fault"]
-            first = rows(tmp_path)
-            truth = [s.t_arrive_ns - s.t_start_ns for s in emu.log]
+        emu.tamper = faultmcu.start_of_stroke(3, lone_arrival)
+        st = run(c, 60 * MS, 8)
+        assert st["state"] == "idle", st["fault"]
+        first = rows(tmp_path)
+        truth = [s.t_arrive_ns - s.t_start_ns for s in emu.log]
 
-            # 2. The 2nd stroke of the next run: its own edges and report lost, and instead the
-            #    destination active at +5 ms and the source released at +6 ms.
-            lock, seen, mine = threading.Lock(), [0], set()
+        # 2. The 2nd stroke of the next run: its own edges and report lost, and instead the
+        #    destination active at +5 ms and the source released at +6 ms.
+        lock, seen, mine = threading.Lock(), [0], set()
 
-            def reversed_edges(msg: Message) -> list[Message]:
-                with lock:
-                    if isinstance(msg, Start):
-                        seen[0] += 1
-                        if seen[0] == 2:
-                            mine.add(msg.stroke)
-                            src, dst = msg.direction, 1 - msg.direction
-                            t = msg.t_us
-                            return [
-                                msg,
-                                Edge(dst, 1, (t + 5000) % U32_MOD),
-                                Edge(src, 0, (t + 6000) % U32_MOD),
-                            ]
-                        mine.clear()
-                    if mine and isinstance(msg, Edge | Stroke):
-                        return []  # the stroke's true edges and its report: lost
-                return [msg]
+        def reversed_edges(msg: Message) -> list[Message]:
+            with lock:
+                if isinstance(msg, Start):
+                    seen[0] += 1
+                    if seen[0] == 2:
+                        mine.add(msg.stroke)
+                        src, dst = msg.direction, 1 - msg.direction
+                        t = msg.t_us
+                        return [
+                            msg,
+                            Edge(dst, 1, (t + 5000) % U32_MOD),
+                            Edge(src, 0, (t + 6000) % U32_MOD),
+                        ]
+                    mine.clear()
+                if mine and isinstance(msg, Edge | Stroke):
+                    return []  # the stroke's true edges and its report: lost
+            return [msg]
 
-            emu.tamper = reversed_edges
-            st = run(c, 60 * MS, 4)
-            emu.tamper = None
-            status = c.status()
-    finally:
-        link.close()
-        emu.stop()
+        emu.tamper = reversed_edges
+        st = run(c, 60 * MS, 4)
+        emu.tamper = None
+        status = c.status()
     assert len(first) == 8 and not [r for r in first if r[1] & FAULT], first
     assert abs(first[2][4] - truth[2]) < 50_000, (first[2], truth[2])  # the true stroke, not 1 us
     assert st["state"] == "fault" and st["fault"].startswith("implausible stroke: sensor "), st["fault"]

@@ -46,9 +46,7 @@ def test_a_device_clock_rate_far_off_is_refused_naming_it(tmp_path: Path) -> Non
     """Item 3: a device whose clock runs 10 % fast (a wrong prescaler) passed; every stamp was 10 %
     off. Now the heartbeat finds it within a few round trips, the session is dropped with a FAULT
     that names the rate, and the handshakes after it are refused while the device runs on."""
-    emu, link, port = faultmcu.plug(tmp_path, seed=1, drift_ppm=100_000)
-    daq = _open(port)
-    try:
+    with faultmcu.plugged(tmp_path, seed=1, drift_ppm=100_000) as (emu, port), _open(port) as daq:
         assert wait_for(lambda: not daq.connected, 3.0)
         ev = daq.recv(500 * MS)
         while ev is not None and ev.kind is not EventKind.FAULT:
@@ -63,32 +61,20 @@ def test_a_device_clock_rate_far_off_is_refused_naming_it(tmp_path: Path) -> Non
         assert not daq.connected
         with pytest.raises(DaqError):
             daq.arm(Direction.ON, MS)
-    finally:
-        daq.close()
-        link.close()
-        emu.stop()
 
 
 def test_a_crystal_within_tolerance_is_taken(tmp_path: Path) -> None:
-    emu, link, port = faultmcu.plug(tmp_path, seed=2, drift_ppm=1000)
-    daq = _open(port)
-    try:
+    with faultmcu.plugged(tmp_path, seed=2, drift_ppm=1000) as (emu, port), _open(port) as daq:
         time.sleep(0.3)
         assert daq.connected and daq.link_stats()["disconnects"] == 0
         assert run_stroke(daq, Direction.ON).events[-1].detail == "arrived"
-    finally:
-        daq.close()
-        link.close()
-        emu.stop()
 
 
 def test_the_event_queue_is_bounded_and_an_overflow_in_a_stroke_is_a_fault(tmp_path: Path) -> None:
     """Item 4: the link thread's queue grew without bound while nothing read it (2.8 million events
     in 20 s). Now it keeps the newest max_queued_events: the oldest are dropped and counted, and a
     stroke in progress gets a SEQUENCE fault saying events were lost."""
-    emu, link, port = faultmcu.plug(tmp_path, seed=3)
-    daq = _open(port, max_queued_events=500)
-    try:
+    with faultmcu.plugged(tmp_path, seed=3) as (emu, port), _open(port, max_queued_events=500) as daq:
         daq.arm(Direction.ON, 30 * MS)
         daq.command(daq.now_ns() + 5 * MS)
         emu.flood(0.1, channel=1)  # sensor B (not the mover's) says "released", again and again
@@ -105,10 +91,6 @@ def test_the_event_queue_is_bounded_and_an_overflow_in_a_stroke_is_a_fault(tmp_p
         assert run_stroke(daq, Direction.OFF if emu.rig.sensors()[1] else Direction.ON).events[-1].detail == (
             "arrived"
         )
-    finally:
-        daq.close()
-        link.close()
-        emu.stop()
 
 
 # -- the fuzz ---------------------------------------------------------------------------------------
@@ -247,10 +229,9 @@ def test_an_edge_older_than_the_sensor_snapshot_does_not_overwrite_it(tmp_path: 
     """Issue 34 item 9: an EDGE stamped in the past overwrote the newer PONG snapshot of the sensors
     (a `switch` was then refused as "already rests at sensor ..."). Now an edge moves the levels
     only when it is newer than what they are as of; a newer one still does."""
-    emu, link, port = faultmcu.plug(tmp_path, seed=41)
     # A slow heartbeat: the newer edge's levels stand until the next PONG, long enough to be seen.
-    daq = _open(port, heartbeat_ns=400 * MS, link_timeout_ns=2000 * MS, watchdog_ms=1500)
-    try:
+    slow = {"heartbeat_ns": 400 * MS, "link_timeout_ns": 2000 * MS, "watchdog_ms": 1500}
+    with faultmcu.plugged(tmp_path, seed=41) as (emu, port), _open(port, **slow) as daq:
         assert wait_for(lambda: daq.levels() is not None)
         time.sleep(0.05)
         assert daq.levels() == (1, 0)
@@ -259,7 +240,3 @@ def test_an_edge_older_than_the_sensor_snapshot_does_not_overwrite_it(tmp_path: 
         assert daq.levels() == (1, 0)
         emu.say(Edge(1, 1, emu.device_us()))  # "B active", now: taken until the next PONG
         assert wait_for(lambda: daq.levels() == (1, 1), 0.5)
-    finally:
-        daq.close()
-        link.close()
-        emu.stop()
