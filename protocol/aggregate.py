@@ -35,8 +35,10 @@ class ExactRunning:
 
     __slots__ = ("count", "max_abs", "s", "ss")
 
-    def __init__(self, count: int = 0, s: int = 0, ss: int = 0, max_abs: int = 0) -> None:
-        self.count, self.s, self.ss, self.max_abs = count, s, ss, max_abs
+    def __init__(
+        self, count: int | str = 0, s: int | str = 0, ss: int | str = 0, max_abs: int | str = 0
+    ) -> None:
+        self.count, self.s, self.ss, self.max_abs = int(count), int(s), int(ss), int(max_abs)
 
     def add(self, x: int) -> None:
         self.count += 1
@@ -63,8 +65,12 @@ class ExactRunning:
             f"{prefix}_max_abs_ns": self.max_abs,
         }
 
-    def state(self) -> list[int]:
-        return [self.count, self.s, self.ss, self.max_abs]
+    def state(self) -> list[int | str]:
+        """The sums to keep; one past msgpack's 64 bits as its decimal text (the sum of squared
+        operating times passes 2^64 at ~250,000 strokes: the writer thread died on it)."""
+        return [
+            v if -(1 << 63) <= v < (1 << 64) else str(v) for v in (self.count, self.s, self.ss, self.max_abs)
+        ]
 
 
 class Sketch:
