@@ -93,6 +93,35 @@ def truth_of(row: Row, log: list, window_ns: int = 25 * MS) -> int | None:
     return best.t_arrive_ns - best.t_start_ns
 
 
+def _first_offset(got: list[Row], starts: list, tolerance_ns: int, window_ns: int = 500 * MS) -> int:
+    """The driver timeline's first offset from the host clock: it is fixed at the first handshake
+    within half that round trip, which a busy host makes tens of ms. Of the emulator's starts within
+    `window_ns` of the first stamped record, the one that pairs the most of the first ten records
+    with a stroke of the same operating time (so not a neighbour's) gives it; 0 when none does."""
+    stamped = [r for r in got if r.t_start_ns is not None][:10]
+    if not stamped:
+        return 0
+    keys = [t for t, _ in starts]
+
+    def pairs(offset: int) -> int:
+        n = 0
+        for r in stamped:
+            i = bisect.bisect_left(keys, r.t_start_ns + offset)
+            for j in (i - 1, i):
+                if 0 <= j < len(starts) and abs(keys[j] - r.t_start_ns - offset) <= 2 * MS:
+                    s = starts[j][1]
+                    true = None if s.t_arrive_ns is None else s.t_arrive_ns - s.t_start_ns
+                    n += r.operating_ns is None or (
+                        true is not None and abs(r.operating_ns - true) <= tolerance_ns
+                    )
+        return n
+
+    first = stamped[0].t_start_ns
+    lo, hi = bisect.bisect_left(keys, first - window_ns), bisect.bisect_right(keys, first + window_ns)
+    offsets = [0] + [keys[j] - first for j in range(lo, hi)]
+    return max(offsets, key=lambda o: (pairs(o), -abs(o)))
+
+
 def untrue_clean(
     got: list[Row], log: list, tolerance_ns: int = 50_000, step_ns: int = 15 * MS
 ) -> list[tuple[Row, int | None, str]]:
@@ -104,7 +133,7 @@ def untrue_clean(
     at most `step_ns` at a time (keep that under half the strokes' spacing)."""
     starts = sorted(((s.t_start_ns, s) for s in log), key=lambda p: p[0])
     keys = [t for t, _ in starts]
-    offset = 0
+    offset = _first_offset(got, starts, tolerance_ns)
     bad = []
     for r in got:
         if r.t_start_ns is None:
