@@ -30,7 +30,7 @@ from usmswitch.protocol.wire import (
 
 from .aio import AsyncClient, AsyncRun
 from .api import Duration, find_socket
-from .connection import Client, ConnectionClosed, Subscription, UntrustedSocketError
+from .connection import Client, ConnectionClosed, ReplyTimeout, Subscription, UntrustedSocketError
 from .notifier import Listener, Notifier
 from .pgrecords import PostgresRecords
 from .records import RecordsFile, RecordsFileError, RecordsSource
@@ -71,6 +71,7 @@ __all__ = [
     "RecordsFile",
     "RecordsFileError",
     "RecordsSource",
+    "ReplyTimeout",
     "RpcError",
     "Run",
     "RunInfo",

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import socket
+import time
 from collections import deque
 from collections.abc import Iterable, Iterator
 from typing import Any
@@ -43,6 +44,7 @@ from .types import Notification
 __all__ = [
     "Client",
     "ConnectionClosed",
+    "ReplyTimeout",
     "Subscription",
     "UntrustedSocketError",
     "estop_by_every_path",
@@ -99,6 +101,27 @@ def parse_address(address: str | os.PathLike[str]) -> tuple[str, Any, str | None
     return "unix", text, None
 
 
+class ReplyTimeout(TimeoutError):
+    """A call got no reply within the client's timeout. Says which call, how long it has been
+    waiting, and whether the daemon still answers (a ping on a new connection): a slow request is
+    not a daemon gone."""
+
+    def __init__(self, method: str, waited_s: float, client: Client, ping_ms: float | None) -> None:
+        self.method = method
+        self.waited_s = waited_s
+        self.ping_ms = ping_ms
+        limit = f"{client.timeout:g} s" if client.timeout is not None else "no limit"
+        if ping_ms is not None:
+            why = (
+                f"the daemon is up (a ping on a new connection answered in {ping_ms:.1f} ms) and has been"
+                f" on this {method} for {waited_s:.1f} s: a slow request, not a daemon gone; a longer"
+                " timeout waits for it"
+            )
+        else:
+            why = f"waited {waited_s:.1f} s, and a ping on a new connection got no answer either"
+        super().__init__(f"{method}: no reply from {client.address} within {limit}; {why}")
+
+
 def check_timeout(name: str, value: float | None) -> float | None:
     """A timeout in seconds (None: wait forever); ValueError for anything else."""
     if value is not None and (isinstance(value, bool) or not isinstance(value, int | float) or value <= 0):
@@ -127,6 +150,7 @@ class Client(Api):
         self.timeout = check_timeout("timeout", timeout)
         if address is None:
             address = find_socket(rig)
+        self._given_address = address
         self.family, self.address, url_token = parse_address(address)
         self.token = (
             token or url_token or (os.environ.get("USMSWITCH_TOKEN") if self.family == "tcp" else None)
@@ -144,6 +168,7 @@ class Client(Api):
         self.topics: set[str] = set()
         self._pending_out: list[bytes] = []
         self._abandoned: set[int] = set()  # timed-out calls whose late replies are discarded
+        self._sent: dict[int, tuple[str, int]] = {}  # msgid -> (method, monotonic ns sent): for timeouts
         self._packer = msgpack.Packer(use_bin_type=True, autoreset=True)
         self.connect()
 
@@ -232,6 +257,7 @@ class Client(Api):
             raise ConnectionClosed("not connected: call reconnect()")
         self._msgid = (self._msgid + 1) & MAX_MSGID
         frame = self._packer.pack([REQUEST, self._msgid, method, params])
+        self._sent[self._msgid] = (method, time.monotonic_ns())
         if flush:
             self._sendall(frame)
         else:
@@ -257,8 +283,22 @@ class Client(Api):
                 self._read()
         except TimeoutError:
             self._abandoned.add(msgid)
-            raise
+            method, sent_ns = self._sent.pop(msgid, ("the call", time.monotonic_ns()))
+            raise ReplyTimeout(method, (time.monotonic_ns() - sent_ns) / 1e9, self, self._ping_ms()) from None
+        self._sent.pop(msgid, None)
         return self._replies.pop(msgid)
+
+    def _ping_ms(self) -> float | None:
+        """A ping's round trip on a new connection, in ms (None: no answer within a second or the
+        call's timeout): whether a call that timed out met a slow request or a daemon gone."""
+        probe_s = min(self.timeout or 1.0, 1.0)
+        t0 = time.monotonic_ns()
+        try:
+            with Client(self._given_address, timeout=probe_s, token=self.token, retry=False) as c:
+                c.ping()
+        except (OSError, RpcError, ValueError):
+            return None
+        return (time.monotonic_ns() - t0) / 1e6
 
     def _read(self, timeout: float | None = None, override: bool = False) -> None:
         """Read once from the socket and sort what arrives into replies and notifications.

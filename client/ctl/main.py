@@ -24,7 +24,7 @@ from typing import Any
 from usmswitch.protocol.wire import ErrorCode, RpcError
 
 from ..api import find_socket
-from ..connection import DEFAULT_TIMEOUT, Client, ConnectionClosed, estop_by_every_path
+from ..connection import DEFAULT_TIMEOUT, Client, ConnectionClosed, ReplyTimeout, estop_by_every_path
 from .args import (
     EXIT_CONNECT,
     EXIT_FAULT,
@@ -114,6 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     except RpcError as exc:
         exit_code = EXIT_FAULT if exc.code == ErrorCode.FAULT else EXIT_REFUSED
         return _fail(args, exit_code, f"refused: [{exc.code} {_code_name(exc.code)}] {exc.message}", exc.code)
+    except ReplyTimeout as exc:  # which call, how long, and whether the daemon still answers
+        return _fail(args, EXIT_CONNECT, f"timed out: {exc}")
     except TimeoutError as exc:
         return _fail(args, EXIT_CONNECT, f"no answer from the daemon: {exc}")
     except ConnectionClosed as exc:
