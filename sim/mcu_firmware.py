@@ -438,13 +438,19 @@ class McuEmulator:
     def _at(self, t_ns: int, fn: Callable[[], None]) -> None:
         heapq.heappush(self._timers, (t_ns, next(self._tick), fn))
 
+    def _run_due(self, now: int) -> None:
+        """Run the timers due by `now` (the lock held). Whatever sends a frame stamped `now` calls
+        this first: on the chip a due compare's handler runs before later work, so its frames are
+        never behind later-stamped ones, however late this thread wakes."""
+        while self._timers and self._timers[0][0] <= now:
+            _, _, fn = heapq.heappop(self._timers)
+            fn()
+
     def _run(self) -> None:
         while self._running:
             with self._lock:
                 now = time.monotonic_ns()
-                while self._timers and self._timers[0][0] <= now:
-                    _, _, fn = heapq.heappop(self._timers)
-                    fn()
+                self._run_due(now)
                 self._check_watchdog(now)
                 wait = self._timers[0][0] - now if self._timers else _IDLE_WAIT_S * 1e9
                 if self._synced:  # wake when the watchdog falls due, not at the next idle look

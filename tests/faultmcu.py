@@ -162,6 +162,7 @@ class FaultyMcu(McuEmulator):
         end = time.monotonic() + duration_s
         while time.monotonic() < end:
             with self._lock:
+                self._run_due(time.monotonic_ns())  # a START due now leaves before these edges
                 level = self.rig.sensors()[channel]
                 for _ in range(200):
                     super()._send(Edge(channel, int(level), self.device_us()))

@@ -48,10 +48,12 @@ def test_a_device_clock_rate_far_off_is_refused_naming_it(tmp_path: Path) -> Non
     that names the rate, and the handshakes after it are refused while the device runs on."""
     with faultmcu.plugged(tmp_path, seed=1, drift_ppm=100_000) as (emu, port), _open(port) as daq:
         assert wait_for(lambda: not daq.connected, 3.0)
+        # A busy host may be silent past the device's watchdog first (its HOST_SILENT FAULT): the
+        # session's end is the DISCONNECT.
         ev = daq.recv(500 * MS)
-        while ev is not None and ev.kind is not EventKind.FAULT:
+        while ev is not None and not (ev.kind is EventKind.FAULT and ev.fault is FaultCode.DISCONNECT):
             ev = daq.recv(500 * MS)
-        assert ev is not None and ev.fault is FaultCode.DISCONNECT
+        assert ev is not None
         # The rate is measured over a few heartbeat round trips, each with the host's scheduling
         # jitter in it (CI read +9.856 % for the true +10 %): the message must name a rate near it.
         said = re.search(r"the device clock runs at (\d\.\d+) us per us \(\+(\d+\.\d+) %\)", ev.detail)
@@ -77,15 +79,17 @@ def test_the_event_queue_is_bounded_and_an_overflow_in_a_stroke_is_a_fault(tmp_p
     with faultmcu.plugged(tmp_path, seed=3) as (emu, port), _open(port, max_queued_events=500) as daq:
         daq.arm(Direction.ON, 30 * MS)
         daq.command(daq.now_ns() + 5 * MS)
-        emu.flood(0.1, channel=1)  # sensor B (not the mover's) says "released", again and again
+        # Sensor B (not the mover's) says "released", again and again, until the queue overflows
+        # (a busy host sends fewer a second).
+        end = time.monotonic() + 5.0
+        while daq.link_stats()["events_dropped"] == 0 and time.monotonic() < end:
+            emu.flood(0.1, channel=1)
         assert wait_for(lambda: daq.link_stats()["events_dropped"] > 0, 2.0)
         assert len(daq._events) <= 500
         seen = []
         while (ev := daq.recv(200 * MS)) is not None:
             seen.append(ev)
         faults = [e for e in seen if e.kind is EventKind.FAULT]
-        # The queue's own SEQUENCE fault; on a loaded machine the emulator's late-firing START can
-        # be stamped before a flood edge already sent, an order fault of its own beside it.
         lost = [f for f in faults if f.fault is FaultCode.SEQUENCE and "events lost" in f.detail]
         assert lost, faults
         assert run_stroke(daq, Direction.OFF if emu.rig.sensors()[1] else Direction.ON).events[-1].detail == (
