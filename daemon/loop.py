@@ -10,10 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
-import math
-import queue
 import threading
-import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from enum import StrEnum
@@ -21,13 +18,17 @@ from typing import Any
 
 import structlog
 
-from usmswitch.drivers import Conditions, Daq, DaqError, DaqHalted, Direction, EventKind, FaultCode, check_ns
+from usmswitch.drivers import Conditions, Daq, DaqError, DaqHalted, Direction, check_ns
 from usmswitch.protocol.record import CycleRecord, Flag, RunRecord
 from usmswitch.protocol.stats import DirectionStats
 from usmswitch.protocol.units import format_ns
 
+from . import reach
+from .idle_events import IdleEvents
+from .loop_requests import RequestQueue
 from .plan import Mode, Plan, direction_from_levels, drive_of, flags_for_failure, predictor_conditions
-from .stroke_events import StrokeEvents, await_report, disagreement, read_stroke
+from .runs import RunBook
+from .stroke_events import StrokeEvents, await_report, disagreement, implausible_reason, read_stroke
 
 log = structlog.get_logger("usmswitch.loop")
 
@@ -57,17 +58,10 @@ AUTOSTART_OWNER = "autostart"
 MIN_STROKE_FRACTION = 0.3
 #: Idle: how long the loop waits for a request before it reads the driver's events again.
 IDLE_POLL_NS = 50_000_000
-#: At most this many events read per idle pass (a flood waits for the next pass, requests first).
-IDLE_READ_MAX = 10_000
-IDLE_EDGES_LOG_EVERY_NS = 10_000_000_000
 
 
 class LoopError(Exception):
     """A request the loop refuses in its present state; the message says why."""
-
-
-class TargetUnreachableError(ValueError):
-    """A closed-loop target below the shortest stroke the rig makes; the message names the shortest."""
 
 
 class ControlLoop:
@@ -114,15 +108,8 @@ class ControlLoop:
         self.fault_reason = ""
         self.stats = [DirectionStats(), DirectionStats()]  # since the loop started
         self.stats_all = DirectionStats()  # both directions together
-        # Runs: each start_cycling opens one; its strokes carry its id and have statistics of
-        # their own, which `snapshot` reports (the current run, else the last one).
-        self.latest_run: RunRecord | None = None  # the open run, else the last one
-        self.run_sink = run_sink
-        self.run_stats = [DirectionStats(), DirectionStats()]
-        self.run_stats_all = DirectionStats()
-        self._next_run_id = first_run_id
+        self.runs = RunBook(first_run_id, run_sink)
         self._first_cycle = first_cycle
-        self._run_ending: str | None = None  # why the open run ends, once its last stroke is recorded
         self._in_stroke = False
         self.spurious_edges = 0
         #: Per direction, the shortest operating time believed (the plausible band's floor).
@@ -135,10 +122,7 @@ class ControlLoop:
         #: driver's debouncer counts the chatter it absorbed: `Daq.noise`).
         self.noise = [0, 0]
         self.overruns = 0
-        self.stale_events = 0  # driver events read and dropped outside a stroke (idle, a fault reset)
-        #: Sensor edges reported while no stroke was going (the mover moved by hand, a sensor chatters).
-        self.idle_edges = 0
-        self._idle_edges_said_ns = -IDLE_EDGES_LOG_EVERY_NS
+        self.idle = IdleEvents()  # what the driver reports between strokes
         self.listeners: list[Callable[[CycleRecord], None]] = []
         self.slack_hooks: list[Callable[[], None]] = []
         self._conditions_every = max(1, conditions_every)
@@ -149,7 +133,7 @@ class ControlLoop:
         self._last_command: list[int | None] = [None, None]  # per direction: the predictors' idle_ns
         self._next_dir = Direction(next_direction)
         self._plan: Plan | None = None
-        self._requests: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]]] = queue.SimpleQueue()
+        self._requests = RequestQueue()
         self._estop = threading.Event()
         # Cleared from the end of a slack window until the stroke has started: the daemon's other
         # threads wait on it (`wait_turn`) so that none holds the GIL when the start is due.
@@ -160,12 +144,34 @@ class ControlLoop:
         self._period_ns = 0
         self._next_tick_ns = 0
 
+    @property
+    def latest_run(self) -> RunRecord | None:
+        """The open run, else the last one (None before the first)."""
+        return self.runs.latest
+
+    @property
+    def run_sink(self) -> Callable[[RunRecord], None] | None:
+        """Where each opened and ended run is sent (the record store)."""
+        return self.runs.sink
+
+    @run_sink.setter
+    def run_sink(self, sink: Callable[[RunRecord], None] | None) -> None:
+        self.runs.sink = sink
+
+    @property
+    def idle_edges(self) -> int:
+        """Sensor edges reported while no stroke was going (the mover moved by hand, a sensor chatters)."""
+        return self.idle.edges
+
+    @property
+    def stale_events(self) -> int:
+        """Driver events read and dropped outside a stroke (idle, a fault reset)."""
+        return self.idle.stale
+
     # -- requests from other threads ------------------------------------------------------------
     def call(self, fn: Callable[[], Any]) -> Future[Any]:
         """Run `fn` on the loop thread in its slack; the future carries its result or exception."""
-        fut: Future[Any] = Future()
-        self._requests.put((fn, fut))
-        return fut
+        return self._requests.put(fn)
 
     def estop(self, reason: str = "emergency stop") -> None:
         """Drive off now, from any thread, and final: when it returns no start can follow.
@@ -185,7 +191,7 @@ class ControlLoop:
         """Ask `run()` to return, drive off and no start after this call (signal handlers call this)."""
         self._shutdown.set()
         self._halt("shutdown")
-        self._requests.put((lambda: None, Future()))  # wake a blocked queue wait
+        self._requests.wake()
 
     def wait_turn(self, max_s: float = HELPER_WAIT_MAX_S) -> None:
         """For helper threads: return when the loop is not about to start a stroke (or after `max_s`)."""
@@ -240,43 +246,16 @@ class ControlLoop:
 
     def shortest_target_ns(self, direction: Direction) -> int:
         """The shortest target `direction` reaches now: its predicted stroke plus the late margin."""
-        return math.ceil(self.predictors[direction].predict()) + self.late_margin_ns
+        return reach.shortest_target_ns(self.predictors[direction], self.late_margin_ns)
 
     def check_reach(self, targets: Sequence[int], mode: Mode | None = None) -> None:
-        """Refuse (ValueError) a closed-loop target below what the rig reaches: every stroke would
-        start at once and arrive late. The message names the shortest reachable target."""
-        if (mode or self.mode) is not Mode.CLOSED:
-            return
-        for d in (Direction.ON, Direction.OFF):
-            shortest = self.shortest_target_ns(d)
-            if targets[d] < shortest:
-                # Rounded up to 10 us: a target people can type that is surely reachable.
-                typed = -(-shortest // 10_000) * 10_000
-                hint = (
-                    " (a bare number is nanoseconds: write the unit, e.g. '12ms')"
-                    if targets[d] < 1_000_000
-                    else ""
-                )
-                name = "on" if d is Direction.ON else "off"
-                raise TargetUnreachableError(
-                    f"target {format_ns(targets[d])}{hint} is below the shortest the rig reaches "
-                    f"in direction {name}: {format_ns(typed)} (predicted stroke "
-                    f"{format_ns(shortest - self.late_margin_ns)} + late margin "
-                    f"{format_ns(self.late_margin_ns)}); every stroke would be late. Set a target "
-                    f">= {format_ns(typed)}, or allow late strokes (allow_late)"
-                )
+        """Refuse (TargetUnreachableError) a closed-loop target below what the rig reaches."""
+        if (mode or self.mode) is Mode.CLOSED:
+            reach.check_reach(self.predictors, targets, self.late_margin_ns)
 
     def reach_warnings(self) -> list[str]:
         """Per direction, a warning when T is shorter than the predicted stroke (it will be late)."""
-        out = []
-        for d in (Direction.ON, Direction.OFF):
-            t_hat = round(self.predictors[d].predict())
-            if self.targets[d] < t_hat:
-                out.append(
-                    f"target_{d.name.lower()}_ns {self.targets[d]} is shorter than the predicted stroke "
-                    f"({t_hat} ns): those strokes start at once and arrive late"
-                )
-        return out
+        return reach.reach_warnings(self.predictors, self.targets)
 
     def reset_fault(self) -> None:
         """Clear a latched FAULT; the drive stays off until the next command."""
@@ -287,7 +266,7 @@ class ControlLoop:
         self._estop.clear()
         self.daq.release()
         if self.state is State.FAULT:
-            self._drain_stale_events()
+            self.idle.drain(self.daq)
             self.state = State.IDLE
             self.fault_reason = ""
             # After a fault the mover may be anywhere: ask the sensors where it rests.
@@ -351,37 +330,11 @@ class ControlLoop:
         }
 
     def _open_run(self, kind: str, settings: dict[str, Any]) -> RunRecord:
-        self._end_run("superseded")  # never two open runs (defensive: start_cycling refuses)
-        run = RunRecord(
-            run_id=self._next_run_id,
-            kind=kind,
-            first_cycle=self.cycle,
-            started_wall_ns=time.time_ns(),
-            settings={**self.run_settings(), **settings},
-        )
-        self._next_run_id += 1
-        self.latest_run = run
-        self._run_ending = None
-        self.run_stats = [DirectionStats(), DirectionStats()]
-        self.run_stats_all = DirectionStats()
-        if self.run_sink is not None:
-            self.run_sink(run)
-        return run
+        return self.runs.open(kind, self.cycle, {**self.run_settings(), **settings}, self.cycle - 1)
 
     def _end_run(self, reason: str) -> None:
         """End the open run (if any) with `reason`; during a stroke, once that stroke is recorded."""
-        run = self.latest_run
-        if run is None or not run.running:
-            return
-        if self._in_stroke:
-            self._run_ending = self._run_ending or reason
-            return
-        run.last_cycle = self.cycle - 1
-        run.ended_wall_ns = time.time_ns()
-        run.end_reason = reason
-        self._run_ending = None
-        if self.run_sink is not None:
-            self.run_sink(run)
+        self.runs.end(reason, self.cycle - 1, self._in_stroke)
 
     def switch(self, direction: Direction) -> CycleRecord:
         """One stroke in `direction`, commanded now; returns its record."""
@@ -482,7 +435,7 @@ class ControlLoop:
         if run is None:  # no run yet: every stroke since the start
             per, both, first = self.stats, self.stats_all, self._first_cycle
         else:
-            per, both, first = self.run_stats, self.run_stats_all, run.first_cycle
+            per, both, first = self.runs.stats, self.runs.stats_all, run.first_cycle
         last = run.last_cycle if run is not None and not run.running else self.cycle - 1
         out["run"] = None if run is None else run.to_dict()
         out["first_cycle"] = first
@@ -533,37 +486,11 @@ class ControlLoop:
             log.warning("halt: the device did not take the stop", reason=reason)
 
     def _check_period(self, period_ns: int, targets: Sequence[int], mode: Mode, open_delay_ns: int) -> None:
-        """Refuse a period that a stroke from its command (T, or t_hat when late) would not fit in."""
-        t_hat = max(round(p.predict()) for p in self.predictors)
-        longest = max(*targets, t_hat) if mode is Mode.CLOSED else open_delay_ns + t_hat
-        if period_ns <= longest:
-            what = "max of T and t_hat" if mode is Mode.CLOSED else "open delay + t_hat"
-            raise ValueError(
-                f"period {period_ns} ns is not longer than a stroke from its command"
-                f" ({longest} ns, {what}): commands would overlap"
-            )
+        reach.check_period(self.predictors, period_ns, targets, mode, open_delay_ns)
 
     def _check_device(self, targets: Sequence[int], mode: Mode, open_delay_ns: int) -> None:
-        """Refuse (ValueError) a start delay longer than the device can time (HELLO_ACK
-        max_delay_us), naming its limit: the strokes would otherwise each fault at their ARM."""
         longest = self.daq.limits().get("max_delay_ns")
-        if longest is None:
-            return
-        if mode is Mode.OPEN:
-            if open_delay_ns > longest:
-                raise ValueError(
-                    f"open-loop delay {format_ns(open_delay_ns)} is longer than the device's longest"
-                    f" start delay, {format_ns(longest)}"
-                )
-            return
-        for d in (Direction.ON, Direction.OFF):
-            t_hat = max(0, math.floor(self.predictors[d].predict()))
-            if targets[d] - t_hat > longest:
-                raise TargetUnreachableError(
-                    f"target {format_ns(targets[d])} needs a start delay of {format_ns(targets[d] - t_hat)}"
-                    f" (T - t_hat), longer than the device's longest, {format_ns(longest)}: the"
-                    f" longest target it reaches is {format_ns(longest + t_hat)}"
-                )
+        reach.check_device(self.predictors, longest, targets, mode, open_delay_ns)
 
     def _latch_fault(self, reason: str) -> None:
         self.state = State.FAULT
@@ -655,8 +582,7 @@ class ControlLoop:
             return self._stroke_inner(t_cmd_ns)
         finally:
             self._in_stroke = False
-            if self._run_ending is not None:
-                self._end_run(self._run_ending)
+            self.runs.after_stroke(self.cycle - 1)
 
     def _stroke_inner(self, t_cmd_ns: int | None) -> CycleRecord:
         direction = self._next_dir
@@ -720,7 +646,9 @@ class ControlLoop:
             t_arrive = early_arrive  # the only arrival there was: kept, and said what it was
         doubt = ""
         if t_arrive is not None and t_start is not None:
-            implausible = self._implausible(direction, t_start, t_depart, t_arrive, partial)
+            implausible = implausible_reason(
+                direction, t_start, t_depart, t_arrive, partial, self.min_stroke_ns[direction]
+            )
             if implausible and not fault:
                 # A device with its own account of the stroke settles it: when that account
                 # disagrees, the wire lied (a line ringing) and the stroke is a MISMATCH, not a fault.
@@ -783,31 +711,6 @@ class ControlLoop:
             flags |= Flag.LATE  # started past its instant: the stroke cannot meet T
         return self._finish(plan, cmd.t_cmd_ns, t_start, t_depart, t_arrive, operating, lateness, flags)
 
-    def _implausible(
-        self, direction: Direction, t_start: int, t_depart: int | None, t_arrive: int, partial: bool
-    ) -> str:
-        """Why a reported stroke is not physically one ("" when it is): the mover must leave the
-        source after the start and reach the destination after leaving, in no less than the band's
-        floor. A mover that started midway (PARTIAL) has no source to leave and a part of the way to go:
-        neither check applies (the stroke is kept from the predictor as PARTIAL anyway)."""
-        operating = t_arrive - t_start
-        src, dst = direction.source.name, direction.dest.name
-        if not partial:
-            if t_depart is None:
-                return (
-                    f"sensor {dst} reported the arrival {format_ns(operating)} after the start, with no"
-                    f" departure from sensor {src}"
-                )
-            if not t_start < t_depart < t_arrive:
-                return (
-                    f"sensor {dst} reported the arrival at +{format_ns(operating)}, before the departure"
-                    f" from sensor {src} at +{format_ns(t_depart - t_start)}"
-                )
-        floor = self.min_stroke_ns[direction]
-        if operating < floor and not partial:
-            return f"operating time {format_ns(operating)} is below the plausible floor {format_ns(floor)}"
-        return ""
-
     def _finish(
         self,
         plan: Plan,
@@ -825,34 +728,17 @@ class ControlLoop:
                 self._set_conditions(self._conditions_source())
             except DaqError:
                 self._set_conditions(None)  # unknown while the device is away
-        cond = self._conditions
-        total = None if t_arrive is None else t_arrive - t_cmd
-        error = None if total is None else total - plan.target_ns
-        rec = CycleRecord(
-            cycle=self.cycle,
-            direction=int(plan.direction),
-            mode=str(plan.mode),
-            target_ns=plan.target_ns,
-            order=plan.order,
-            coefficients=plan.coefficients,
-            t_hat_ns=plan.t_hat_ns,
-            delay_ns=plan.delay_ns,
-            t_cmd_ns=t_cmd,
-            t_start_ns=t_start,
-            t_depart_ns=t_depart,
-            t_arrive_ns=t_arrive,
-            operating_ns=operating,
-            total_ns=total,
-            error_ns=error,
-            dead_ns=None if t_depart is None or t_start is None else t_depart - t_start,
-            lateness_ns=lateness,
-            temperature_c=None if cond is None else cond.temperature_c,
-            frequency_hz=None if cond is None else cond.frequency_hz,
-            flags=int(flags),
-            wall_ns=time.time_ns(),
-            run_id=self.latest_run.run_id
-            if self.latest_run is not None and self.latest_run.running
-            else None,
+        rec = plan.record(
+            self.cycle,
+            t_cmd,
+            t_start,
+            t_depart,
+            t_arrive,
+            operating,
+            lateness,
+            flags,
+            cond=self._conditions,
+            run_id=self.runs.running_id,
         )
         self.cycle += 1
         d = plan.direction
@@ -863,8 +749,7 @@ class ControlLoop:
         self.stats[plan.direction].add_record(rec)
         self.stats_all.add_record(rec)
         if rec.run_id is not None:
-            self.run_stats[plan.direction].add_record(rec)
-            self.run_stats_all.add_record(rec)
+            self.runs.add(rec)
         if self.sink is not None:
             self.sink(rec)
         for listener in self.listeners:
@@ -872,73 +757,12 @@ class ControlLoop:
         return rec
 
     def _read_idle_events(self) -> None:
-        """While no stroke is going, read what the driver reports, so nothing piles up between a
-        device and the loop; edges are counted (and said, at most every 10 s), a DRIVE fault (the
-        device reset by its watchdog, say) latched as it would be during a stroke."""
-        edges: list[Any] = []
-        try:
-            for _ in range(IDLE_READ_MAX):
-                ev = self.daq.recv(0)
-                if ev is None:
-                    break
-                if ev.kind is EventKind.EDGE:
-                    edges.append(ev)
-                elif ev.kind is EventKind.FAULT and ev.fault is FaultCode.DRIVE and self.state is State.IDLE:
-                    # The device restarted (its watchdog, a brown-out) or the drive failed between
-                    # strokes: a person looks before the next stroke, as after one mid-stroke.
-                    self._latch_fault(f"drive: {ev.detail}" if ev.detail else "drive")
-                else:  # a link's own faults reach status through the driver (driver_ok, counters)
-                    self.stale_events += 1
-        except DaqError:
-            return
-        if not edges:
-            return
-        self.idle_edges += len(edges)
-        now = time.monotonic_ns()
-        if now - self._idle_edges_said_ns >= IDLE_EDGES_LOG_EVERY_NS:
-            self._idle_edges_said_ns = now
-            last = edges[-1]
-            log.warning(
-                "sensor edges while idle: the mover was moved by hand, or a sensor chatters",
-                edges=len(edges),
-                total=self.idle_edges,
-                last=f"sensor {last.channel.name} {'active' if last.level else 'released'}",
-            )
-
-    def _drain_stale_events(self) -> None:
-        """Drop what the driver queued while faulted (the disconnect itself, late edges)."""
-        with contextlib.suppress(DaqError):
-            while self.daq.recv(0) is not None:
-                self.stale_events += 1
+        drive_fault = self.idle.read(self.daq, latch_drive=self.state is State.IDLE)
+        if drive_fault:
+            self._latch_fault(drive_fault)
 
     def _serve_requests(self, block_ns: int = 0, until_ns: int | None = None) -> None:
-        """Run queued requests, first waiting up to `block_ns` of wall time for one (idle).
-
-        `until_ns` (on the driver's clock) is the slack window's end: no request is begun after
-        it, so however many are queued, the next command is not held up; the rest wait for the
-        next window.
-        """
-        try:
-            if block_ns > 0:  # idle waits on wall time, whatever the clock: nothing to simulate
-                item = self._requests.get(timeout=block_ns / 1e9)
-            else:
-                item = self._requests.get_nowait()
-        except queue.Empty:
-            return
-        clock = self.clock
-        while True:
-            fn, fut = item
-            if fut.set_running_or_notify_cancel():
-                try:
-                    fut.set_result(fn())
-                except BaseException as exc:  # the caller gets every failure, the loop carries on
-                    fut.set_exception(exc)
-            if until_ns is not None and clock.now_ns() >= until_ns:
-                return
-            try:
-                item = self._requests.get_nowait()
-            except queue.Empty:
-                return
+        self._requests.serve(self.clock, block_ns, until_ns)
 
     def _slack_until(self, t_ns: int) -> None:
         """Serve requests and housekeeping until shortly before `t_ns` (not in virtual time)."""

@@ -29,7 +29,8 @@ from usmswitch.server.rpc import RpcServer
 
 from .config import Config
 from .config_values import parse_host_port, parse_listen
-from .loop import AUTOSTART_OWNER, ControlLoop, LoopError, Mode, State, TargetUnreachableError
+from .loop import AUTOSTART_OWNER, ControlLoop, LoopError, Mode, State
+from .reach import TargetUnreachableError
 from .records import RecordStore
 from .web_token import TokenFile
 

@@ -3,12 +3,13 @@ predictor's view of the drive conditions. Apart from `loop.py`, which re-exports
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 
 from usmswitch.drivers import Conditions, Direction
-from usmswitch.protocol.record import Flag
+from usmswitch.protocol.record import CycleRecord, Flag
 
 
 class Mode(StrEnum):
@@ -29,6 +30,47 @@ class Plan:
     order: int
     coefficients: tuple[float, ...]
     flags: Flag  # LATE|CLAMPED when T < t_hat, WARMUP while the predictor gives its nominal
+
+    def record(
+        self,
+        cycle: int,
+        t_cmd: int,
+        t_start: int | None,
+        t_depart: int | None,
+        t_arrive: int | None,
+        operating: int | None,
+        lateness: int | None,
+        flags: Flag,
+        *,
+        cond: Conditions | None,
+        run_id: int | None,
+    ) -> CycleRecord:
+        """The record of the stroke this plan armed, from its stamps (driver clock, ns)."""
+        total = None if t_arrive is None else t_arrive - t_cmd
+        return CycleRecord(
+            cycle=cycle,
+            direction=int(self.direction),
+            mode=str(self.mode),
+            target_ns=self.target_ns,
+            order=self.order,
+            coefficients=self.coefficients,
+            t_hat_ns=self.t_hat_ns,
+            delay_ns=self.delay_ns,
+            t_cmd_ns=t_cmd,
+            t_start_ns=t_start,
+            t_depart_ns=t_depart,
+            t_arrive_ns=t_arrive,
+            operating_ns=operating,
+            total_ns=total,
+            error_ns=None if total is None else total - self.target_ns,
+            dead_ns=None if t_depart is None or t_start is None else t_depart - t_start,
+            lateness_ns=lateness,
+            temperature_c=None if cond is None else cond.temperature_c,
+            frequency_hz=None if cond is None else cond.frequency_hz,
+            flags=int(flags),
+            wall_ns=time.time_ns(),
+            run_id=run_id,
+        )
 
 
 def direction_from_levels(levels: tuple[int, int] | None, otherwise: Direction) -> Direction:

@@ -41,10 +41,10 @@ from .loop import (
     MIN_STROKE_FRACTION,
     ControlLoop,
     State,
-    TargetUnreachableError,
     direction_from_levels,
 )
 from .methods import start_rpc
+from .reach import TargetUnreachableError
 from .records import RecordStore, RecordStoreError
 from .retention import Retention, RetentionPolicy
 from .rig_memory import RigMemory
@@ -66,6 +66,9 @@ CLOSE_TIMEOUT_FAILING_NS = 3_000_000_000
 SWITCH_INTERVAL_S = 0.0002
 #: The socket's server process's nice above the daemon's when the loop runs at SCHED_OTHER.
 SERVER_NICE_UNDER_OTHER = 5
+#: The socket's server process's event loop runs SCHED_FIFO this far below the loop when the loop
+#: has it (one below the daemon's helper threads).
+SERVER_FIFO_BELOW = 2
 #: From the stop signal to the end of stop(): what is left of it after the drive is off, the
 #: server process gone and the records committed is what PostgreSQL shipping may still take;
 #: the rest ships at the next start. Keeps SIGTERM-to-exit within 100 ms with a database (the
@@ -372,6 +375,10 @@ class Daemon:
         if "sched_fifo_priority" in got.applied and priority > 1:
             lifted = lift_helpers(priority - 1)
             self.log.info("helper threads below the loop", priority=priority - 1, threads=lifted)
+            if priority > SERVER_FIFO_BELOW and self.rpc is not None:
+                # The socket's server process reads, forwards and answers an estop the moment it
+                # arrives, above the machine's ordinary work and below the daemon's own threads.
+                self.rpc.raise_priority(priority - SERVER_FIFO_BELOW)
         elif not_permitted:
             self.log.warning(
                 "loop at SCHED_OTHER",

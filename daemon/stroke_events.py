@@ -199,3 +199,28 @@ def disagreement(events: StrokeEvents) -> str:
         if abs(ours - theirs) > REPORT_TOLERANCE_NS:
             doubts.append(f"the {what} on the wire is {format_ns(ours - theirs)} off the device's report")
     return "; ".join(doubts)
+
+
+def implausible_reason(
+    direction: Direction, t_start: int, t_depart: int | None, t_arrive: int, partial: bool, floor_ns: int
+) -> str:
+    """Why a reported stroke is not physically one ("" when it is): the mover must leave the
+    source after the start and reach the destination after leaving, in no less than the plausible
+    band's floor (`floor_ns`). A mover that started midway (PARTIAL) has no source to leave and a
+    part of the way to go: neither check applies (it is kept from the predictor as PARTIAL anyway)."""
+    operating = t_arrive - t_start
+    src, dst = direction.source.name, direction.dest.name
+    if not partial:
+        if t_depart is None:
+            return (
+                f"sensor {dst} reported the arrival {format_ns(operating)} after the start, with no"
+                f" departure from sensor {src}"
+            )
+        if not t_start < t_depart < t_arrive:
+            return (
+                f"sensor {dst} reported the arrival at +{format_ns(operating)}, before the departure"
+                f" from sensor {src} at +{format_ns(t_depart - t_start)}"
+            )
+    if operating < floor_ns and not partial:
+        return f"operating time {format_ns(operating)} is below the plausible floor {format_ns(floor_ns)}"
+    return ""

@@ -258,7 +258,7 @@ def test_a_period_shorter_than_a_stroke_is_refused() -> None:
 def test_edges_while_idle_are_read_counted_and_never_pile_up() -> None:
     """Issue 29 item 4: nothing read the driver while idle, so a chattering line or a mover moved by
     hand queued events without bound. The idle loop reads them (at most IDLE_READ_MAX a pass)."""
-    from usmswitch.daemon.loop import IDLE_READ_MAX
+    from usmswitch.daemon.idle_events import IDLE_READ_MAX
     from usmswitch.drivers import Channel, Event
 
     loop, daq, recs = make_loop()
