@@ -192,6 +192,9 @@ class RpcServer:
         self.limits = limits or Limits()
         self.isolation = isolation
         self.nice = nice
+        #: The server process's event loop at SCHED_FIFO this priority (0: SCHED_OTHER); see
+        #: raise_priority.
+        self.fifo_priority = 0
         self.busy_poll_ns = busy_poll_ns
         self.log_settings = (log_format, log_level)
         self.max_restarts = max_restarts
@@ -311,6 +314,19 @@ class RpcServer:
         cost = "the socket's clients compete with the loop for CPU at the loop's nice"
         return pid is None or renice_child(pid, nice, "server", cost)
 
+    def raise_priority(self, priority: int) -> bool:
+        """Run the server process's event loop at SCHED_FIFO `priority` from now on, and after a
+        restart (0: SCHED_OTHER). Its worker threads run at SCHED_FIFO 1 under it
+        (rpc_process.WORKER_PRIORITY). False (and a warning) when refused: it serves at SCHED_OTHER."""
+        if isinstance(priority, bool) or not isinstance(priority, int) or not 0 <= priority <= 99:
+            raise ValueError(f"priority must be an integer in [0, 99], got {priority!r}")
+        self.fifo_priority = priority
+        pid = self.server_pid
+        if pid is None:
+            return True
+        # pid is the process's main thread: the event loop's (threads it starts later inherit it).
+        return _fifo_thread(pid, priority)
+
     def stop(self) -> None:
         """Stop serving: close every connection, end the server process, remove the socket file."""
         if not self._started or self._stopping:
@@ -425,7 +441,7 @@ class RpcServer:
                 cmd += ["--urgent-channel", str(u_theirs.fileno())]
                 for sock, kind in self._listeners:
                     cmd += ["--listen", f"{sock.fileno()}:{kind}"]
-                cmd += ["--nice", str(self.nice)]
+                cmd += ["--nice", str(self.nice), "--priority", str(self.fifo_priority)]
                 cmd += ["--log-format", self.log_settings[0], "--log-level", self.log_settings[1]]
                 fds = [theirs.fileno(), u_theirs.fileno()] + [sock.fileno() for sock, _ in self._listeners]
                 proc = subprocess.Popen(cmd, pass_fds=fds, stdin=subprocess.DEVNULL)
@@ -619,6 +635,24 @@ class RpcServer:
         else:
             result = fut.result()
         self._out.put(("resp", gen, fid, error, result))
+
+
+def _fifo_thread(tid: int, priority: int) -> bool:
+    """SCHED_FIFO `priority` (0: SCHED_OTHER) for thread `tid`; False and a warning when refused."""
+    policy = os.SCHED_FIFO if priority else os.SCHED_OTHER
+    try:
+        os.sched_setscheduler(tid, policy, os.sched_param(priority))
+    except ProcessLookupError:  # it just ended: its restart is started at `priority`
+        return True
+    except OSError as exc:
+        log.warning(
+            "rpc: the server process stays at SCHED_OTHER (SCHED_FIFO %d refused: %s); an estop"
+            " through it waits for the CPU with the machine's other work",
+            priority,
+            exc,
+        )
+        return False
+    return True
 
 
 def _run_handler(

@@ -179,6 +179,27 @@ def _export_csv(records_path: str, run_id: int, put: Callable[[bytes], None]) ->
     return n
 
 
+#: The worker threads' SCHED_FIFO priority when the event loop has one: the lowest there is. At
+#: SCHED_OTHER a reader holding the GIL was preempted by the machine's ordinary processes and the
+#: event loop waited for it: an estop by the main socket took up to 105 ms, by the panel 575 ms, under
+#: the abuse bench's read loads (5.7-7.6 ms and 39-54 ms with the readers here). Below the event
+#: loop, a reader gives the GIL back within the switch interval whenever the event loop wants it.
+WORKER_PRIORITY = 1
+
+
+def _worker_priority() -> None:
+    """A worker thread (started by the event loop's, whose policy it inherits) at SCHED_FIFO
+    WORKER_PRIORITY when the event loop is real-time, else as it is."""
+    with contextlib.suppress(OSError):
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(WORKER_PRIORITY))
+
+
+def _workers(n: int, name: str) -> concurrent.futures.ThreadPoolExecutor:
+    """A pool of `n` worker threads below the event loop (`_worker_priority`)."""
+    return concurrent.futures.ThreadPoolExecutor(n, thread_name_prefix=name, initializer=_worker_priority)
+
+
 #: Methods answered from the records file by a worker thread, and how.
 _FILE_READS: dict[str, Callable[..., bytes]] = {
     "history": _history_reply,
@@ -236,18 +257,10 @@ class _Hub:
         if self.records_path:
             global _open_records
             _open_records = _import(cfg["records_reader"])
-        self.reads = (
-            concurrent.futures.ThreadPoolExecutor(self.limits.max_reads, thread_name_prefix="rpc-read")
-            if self.records_path
-            else None
-        )
+        self.reads = _workers(self.limits.max_reads, "rpc-read") if self.records_path else None
         # A lane of its own for small reads (a few hundred records, the runs list): never queued
         # behind CSV exports or history [10000] floods (a history [5] took 8-30 s behind 4 exports).
-        self.small_reads = (
-            concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="rpc-read-small")
-            if self.records_path
-            else None
-        )
+        self.small_reads = _workers(1, "rpc-read-small") if self.records_path else None
 
     def snapshot(self, method: str) -> bytes | None:
         """The packed result of a snapshot method, finished from its raw form when it has to be."""
@@ -915,6 +928,7 @@ async def _serve(
     cfg: dict[str, Any],
 ) -> None:
     loop = asyncio.get_running_loop()
+    loop.set_default_executor(_workers(4, "rpc-default"))  # aiohttp's file reads: below the loop too
     hub = _Hub(cfg, loop)
     # uvloop calls connection_made a step after connect_accepted_socket returns: take the
     # transports from its return, so the "ready" below has its channel either way.
@@ -1037,6 +1051,25 @@ def serve(chan_fd: int, urgent_fd: int, listeners: list[tuple[int, str]], nice: 
         runner.run(_serve(chan, urgent, socks, cfg))
 
 
+def raise_event_loop(priority: int) -> bool:
+    """SCHED_FIFO `priority` for the calling thread (the event loop's, before it starts anything):
+    an estop through the main socket, TCP or the panel is read, forwarded and answered the moment
+    it arrives, not when the machine's ordinary processes leave the CPU (at SCHED_OTHER on 2 busy
+    cores: p99 15-600 ms, `make bench BENCH=abuse`). Its worker threads run below it
+    (`WORKER_PRIORITY`). A refusal is a warning: it serves at SCHED_OTHER."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as exc:
+        log.warning(
+            "rpc: the server process stays at SCHED_OTHER (SCHED_FIFO %d refused: %s); an estop"
+            " through it waits for the CPU with the machine's other work",
+            priority,
+            exc,
+        )
+        return False
+    return True
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry of the server process the daemon spawns (not a command for people)."""
     parser = argparse.ArgumentParser(prog="usmswitch.server.rpc_process", description=__doc__.splitlines()[0])
@@ -1049,13 +1082,16 @@ def main(argv: list[str] | None = None) -> int:
         help="FD:unix, FD:tcp, FD:metrics or FD:web, a listening socket",
     )
     parser.add_argument("--nice", type=int, default=0)
+    parser.add_argument("--priority", type=int, default=0, help="SCHED_FIFO of the event loop (0: off)")
     parser.add_argument("--log-format", default="auto", help="as [daemon] log_format")
     parser.add_argument("--log-level", default="info", help="as [daemon] log_level")
     args = parser.parse_args(argv)
-    # Started again by the daemon's reader thread, which runs SCHED_FIFO when the loop does: the
-    # server (and every thread it starts) belongs at SCHED_OTHER, below everything of the rig's.
+    # Started again by the daemon's bridge thread, which runs SCHED_FIFO one below the loop when the
+    # loop has it: dropped, then raised to what the daemon says (--priority, below its helpers).
     drop_realtime()
     configure_logging(args.log_format, args.log_level, sys.stderr)
+    if args.priority:
+        raise_event_loop(args.priority)
     # The daemon owns shutdown: a Ctrl-C to the terminal's process group or systemd's SIGTERM to the
     # cgroup must not kill the server under it mid-stop. It ends when the daemon's channel closes.
     signal.signal(signal.SIGINT, signal.SIG_IGN)

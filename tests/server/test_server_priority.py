@@ -1,0 +1,102 @@
+"""The socket's server process beside a real-time loop (issue 35: an estop through the main socket,
+TCP or the panel waited 15-600 ms for the CPU behind the machine's ordinary processes): its event
+loop runs SCHED_FIFO two below the loop, its worker threads SCHED_FIFO 1, a restarted server is put
+back there; with the loop at SCHED_OTHER the server stays at SCHED_OTHER. A real daemon (subprocess)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import time
+from pathlib import Path
+
+import daemonproc
+import pytest
+
+from usmswitch.client import Client
+
+SERVER = "usmswitch.server.rpc_process"
+
+
+def _policies(pid: int) -> dict[int, tuple[int, int]]:
+    """Every thread of `pid`: (policy, SCHED_FIFO priority)."""
+    out = {}
+    for tid in map(int, os.listdir(f"/proc/{pid}/task")):
+        with contextlib.suppress(ProcessLookupError):
+            out[tid] = (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority)
+    return out
+
+
+def _until(what: str, check: object, timeout_s: float = 10.0) -> None:
+    """Wait for `check()` (the service sets the server's priority after the loop's own)."""
+    end = time.monotonic() + timeout_s
+    while not check():  # type: ignore[operator]
+        if time.monotonic() > end:
+            raise AssertionError(f"not within {timeout_s:g} s: {what}")
+        time.sleep(0.05)
+
+
+def _scheduling(sock: Path) -> str:
+    with Client(str(sock), timeout=10) as c:
+        scheduling = c.status()["scheduling"]
+        while scheduling.startswith("not yet set"):
+            time.sleep(0.02)
+            scheduling = c.status()["scheduling"]
+    return str(scheduling)
+
+
+def test_the_server_event_loop_runs_real_time_below_the_loop_and_its_workers_at_fifo_1(
+    tmp_path: Path,
+) -> None:
+    sock = tmp_path / "d.sock"
+    proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, "--period", "20ms", "--priority", "50"))
+    try:
+        daemonproc.wait_serving(sock, proc)
+        if not _scheduling(sock).startswith("SCHED_FIFO 50"):
+            pytest.skip(f"this process may not use SCHED_FIFO: {_scheduling(sock)}")
+        for round_ in ("first", "restarted"):
+            server = daemonproc.child_pid(proc, SERVER)
+            _until(
+                f"the {round_} server's event loop at SCHED_FIFO 48",
+                lambda server=server: _policies(server)[server] == (os.SCHED_FIFO, 48),
+            )
+            with Client(str(sock), timeout=30) as c:  # a read of each lane starts its worker
+                c.history(5)
+                c.history(2000)
+            workers = {tid: p for tid, p in _policies(server).items() if tid != server}
+            assert (os.SCHED_FIFO, 1) in workers.values(), workers
+            # None of them above FIFO 1: a read's bulk never outranks the event loop's estop.
+            assert all(p in ((os.SCHED_FIFO, 1), (os.SCHED_OTHER, 0)) for p in workers.values()), workers
+            if round_ == "first":
+                # Restarted by the daemon's bridge thread (SCHED_FIFO 49): put back at 48.
+                os.kill(server, signal.SIGKILL)
+                _until(
+                    "a restarted server",
+                    lambda old=server: _child_or_none(proc) not in (None, old),
+                )
+                daemonproc.wait_serving(sock, proc)
+    finally:
+        daemonproc.stop(proc)
+
+
+def test_with_the_loop_at_sched_other_the_server_stays_there(tmp_path: Path) -> None:
+    sock = tmp_path / "d.sock"
+    proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, "--period", "20ms", "--priority", "0"))
+    try:
+        daemonproc.wait_serving(sock, proc)
+        assert _scheduling(sock).startswith("SCHED_OTHER")
+        server = daemonproc.child_pid(proc, SERVER)
+        with Client(str(sock), timeout=30) as c:
+            c.history(5)
+            c.history(2000)
+        assert {p for p in _policies(server).values()} == {(os.SCHED_OTHER, 0)}
+    finally:
+        daemonproc.stop(proc)
+
+
+def _child_or_none(proc: object) -> int | None:
+    try:
+        return daemonproc.child_pid(proc, SERVER)  # type: ignore[arg-type]
+    except AssertionError:  # none (the old one being reaped) or two for a moment
+        return None
