@@ -6,8 +6,9 @@ restarts on every byte, so a client dripping a byte every few seconds held a slo
 connection is tracked from the accept: a request head must be complete within `head_s` of its first
 byte, an idle connection (no byte since its last answer) is closed after `idle_s`, and a door at its
 budget sheds its holder that is furthest from being useful (a head begun and not finished, then the
-longest idle) for the newcomer; with none to shed, the newcomer gets a short 503 and is closed before
-anything is read. Each is enforced before any work, and said in one log line per 10 s at most.
+longest idle) for the newcomer; a request head complete and waiting for its handler is never shed.
+With none to shed, the newcomer gets a short 503 and is closed before anything is read. Each is
+enforced before any work, and said in one log line per 10 s at most.
 """
 
 from __future__ import annotations
@@ -28,13 +29,18 @@ _SWEEP_S = 0.25
 
 
 class _Entry:
-    __slots__ = ("active", "head_since", "idle_since", "transport")
+    __slots__ = ("active", "head_since", "idle_since", "ready", "tail", "transport")
 
     def __init__(self, transport: asyncio.BaseTransport, now: float) -> None:
         self.transport = transport
         self.active = 0  # requests being handled (a live feed is one for its whole life)
         self.head_since: float | None = None  # first byte of a request not yet handled
         self.idle_since = now
+        # A request head complete, its handler not started yet (a step of the event loop later):
+        # never shed. Under a connection flood the accepts of one step came before that handler,
+        # and its connection, "a head begun", was the first shed: an estop closed unanswered.
+        self.ready = False
+        self.tail = b""  # the last bytes seen of a head begun: its end may be split across reads
 
 
 class Door:
@@ -78,6 +84,8 @@ class Door:
         if entry is not None:
             entry.active += 1
             entry.head_since = None
+            entry.ready = False
+            entry.tail = b""
         try:
             return await handler(request)
         finally:
@@ -104,7 +112,7 @@ class Door:
         victim = None
         best: tuple[int, float] = (2, 0.0)
         for entry in self.conns.values():
-            if entry.active:
+            if entry.active or entry.ready:
                 continue
             # A head begun and never finished first (slowloris), then the longest idle.
             rank = (0, entry.head_since) if entry.head_since is not None else (1, entry.idle_since)
@@ -121,10 +129,19 @@ class Door:
         self.conns.pop(entry.transport, None)
         entry.transport.close()
 
-    def data(self, transport: asyncio.BaseTransport) -> None:
+    def data(self, transport: asyncio.BaseTransport, data: bytes) -> None:
+        """Bytes arrived on `transport`: a head begun, or complete (its handler comes next)."""
         entry = self.conns.get(transport)
-        if entry is not None and not entry.active and entry.head_since is None:
+        if entry is None or entry.active or entry.ready:
+            return
+        if entry.head_since is None:
             entry.head_since = time.monotonic()
+        seen = entry.tail + data
+        if b"\r\n\r\n" in seen:
+            entry.ready = True
+            entry.tail = b""
+        else:
+            entry.tail = seen[-3:]
 
     def lost(self, transport: asyncio.BaseTransport) -> None:
         self.conns.pop(transport, None)
@@ -190,7 +207,7 @@ class _Tracked(asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         if self.admitted:
             assert self.transport is not None
-            self.door.data(self.transport)
+            self.door.data(self.transport, data)
             self.inner.data_received(data)
 
     def eof_received(self) -> bool | None:
