@@ -11,6 +11,7 @@ record was left unwritten (EXIT_RECORDS_LOST). Exit statuses: docs/service.md.
 from __future__ import annotations
 
 import fcntl
+import logging
 import os
 import signal
 import stat
@@ -571,7 +572,7 @@ class Daemon:
             self.log.warning(
                 "stroke fault", cycle=rec.cycle, flags=str(Flag(rec.flags)), fault=self.loop.fault_reason
             )
-        else:
+        elif self.log.is_enabled_for(logging.DEBUG):  # not a dict of every stroke to drop
             self.log.debug("stroke", **rec.to_dict())
 
     def _watch_records(self) -> None:

@@ -101,6 +101,9 @@ def _rank(q: float, n: int) -> int:
 _ERROR_QS = (50, 95, 99)
 _LATENESS_QS = (50, 99, 99.9, 100)
 _RAW_KEYS = ("abs_error_raw", "abs_lateness_raw")
+_NOT_A_STROKE = int(Flag.IMPLAUSIBLE | Flag.MISMATCH)
+_IMPLAUSIBLE, _FAULT, _COMMISSIONING = int(Flag.IMPLAUSIBLE), int(Flag.FAULT), int(Flag.COMMISSIONING)
+_LATE, _STALL, _BOUNCE = int(Flag.LATE), int(Flag.STALL), int(Flag.BOUNCE)
 
 
 def finish_direction(out: dict[str, object]) -> dict[str, object]:
@@ -177,50 +180,53 @@ class DirectionStats:
     def add_record(self, rec: CycleRecord) -> None:
         """Fold one stroke's record in (what the loop and a read of the records file both do).
 
-        A commissioning stroke feeds the operating time and the counters; its error is kept apart."""
-        flags = rec.flags
-        if flags & (Flag.IMPLAUSIBLE | Flag.MISMATCH):
+        A commissioning stroke feeds the operating time and the counters; its error is kept apart.
+        The flags are tested as a plain int: an IntFlag's `&` builds an enum member each time, and
+        this runs four times a stroke on the loop and twice on the record writer."""
+        flags = int(rec.flags)
+        if flags & _NOT_A_STROKE:
             # Not a stroke, or one whose stamps the device does not bear out: counted apart, none of
             # its times believed.
-            if flags & Flag.IMPLAUSIBLE:
+            if flags & _IMPLAUSIBLE:
                 self.implausible += 1
             else:
                 self.mismatched += 1
-            self.faults += bool(flags & Flag.FAULT)
+            self.faults += bool(flags & _FAULT)
             return
-        if flags & Flag.COMMISSIONING and rec.error_ns is not None:
-            if len(self.commissioning) < COMMISSIONING_KEPT:
-                self.commissioning.append(
-                    {
-                        "cycle": rec.cycle,
-                        "direction": rec.direction,
-                        "error_ns": rec.error_ns,
-                        "t_hat_ns": rec.t_hat_ns,
-                    }
-                )
-            self.add(
-                operating_ns=rec.operating_ns,
-                total_ns=None,
-                error_ns=None,
-                target_ns=rec.target_ns,
-                lateness_ns=rec.lateness_ns,
-                late=bool(flags & Flag.LATE),
-                stall=False,
-                bounce=bool(flags & Flag.BOUNCE),
-                fault=bool(flags & Flag.FAULT),
+        commissioning = bool(flags & _COMMISSIONING) and rec.error_ns is not None
+        if commissioning and len(self.commissioning) < COMMISSIONING_KEPT:
+            self.commissioning.append(
+                {
+                    "cycle": rec.cycle,
+                    "direction": rec.direction,
+                    "error_ns": rec.error_ns,
+                    "t_hat_ns": rec.t_hat_ns,
+                }
             )
-            return
-        self.add(
-            operating_ns=rec.operating_ns,
-            total_ns=rec.total_ns,
-            error_ns=rec.error_ns,
-            target_ns=rec.target_ns,
-            lateness_ns=rec.lateness_ns,
-            late=bool(flags & Flag.LATE),
-            stall=bool(flags & Flag.STALL),
-            bounce=bool(flags & Flag.BOUNCE),
-            fault=bool(flags & Flag.FAULT),
-        )
+        operating = rec.operating_ns
+        if operating is not None:
+            self.operating.add(operating)
+        if not commissioning:
+            total, error = rec.total_ns, rec.error_ns
+            if total is not None:
+                self.total.add(total)
+            if error is not None:
+                self.error.add(error)
+                a = -error if error < 0 else error
+                self.abs_error.add(a)
+                target = rec.target_ns
+                if target > 0:
+                    pct = 100.0 * a / target
+                    if pct > self.max_abs_error_pct:
+                        self.max_abs_error_pct = pct
+            self.stalls += bool(flags & _STALL)
+        lateness = rec.lateness_ns
+        if lateness is not None:
+            self.lateness.add(lateness)
+            self.abs_lateness.add(lateness)
+        self.late += bool(flags & _LATE)
+        self.bounces += bool(flags & _BOUNCE)
+        self.faults += bool(flags & _FAULT)
 
     def snapshot(self, raw: bool = False) -> dict[str, object]:
         """A plain-typed dict of this direction's figures (integers are ns).
