@@ -4,6 +4,7 @@ into a pipe, the CSV or --json output. (Speed is the bench's: make bench BENCH=r
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import os
@@ -22,7 +23,9 @@ from usmswitch.protocol.record_csv import write_csv
 CTL = [sys.executable, "-m", "usmswitch.client.ctl"]
 
 
+@functools.cache
 def _record_path_csv(path: Path, run: int | None = None) -> str:
+    """The CSV the record path writes (records read one by one): made once per file and run."""
     out = io.StringIO()
     with RecordsFile(path) as f:
         write_csv(f.records(run=run), out)
