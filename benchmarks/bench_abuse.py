@@ -75,14 +75,21 @@ def load_stats(path: str, stop: Any) -> None:
 
 
 def load_unread_history(path: str, stop: Any, conns: int = 1) -> None:
-    socks = [_raw(path) for _ in range(conns)]
+    try:
+        socks = [_raw(path) for _ in range(conns)]
+    except OSError:
+        return  # the daemon is gone (the SIGTERM row: a loader started after its exit)
     for s in socks:
         s.sendall(_frames("history", [10_000], 32))
     stop.wait()
 
 
 def load_exports(path: str, stop: Any) -> None:
-    with Client(path, timeout=60) as c:
+    try:
+        c = Client(path, timeout=60)
+    except OSError:
+        return  # the daemon is gone (the SIGTERM row: a loader started after its exit)
+    with c:
         while not stop.is_set():
             try:
                 c.history(10_000)
@@ -564,7 +571,10 @@ def sigterm_exit_ms(runs: int = 5) -> list[float]:
             "--socket", str(tmp / "d.sock"), "--log-format", "json", "--target", "5s", "--period", "6s",
         ]  # fmt: skip
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        time.sleep(2.5)  # started and waiting for the first start
+        # Started (its stop signals caught once its scheduling is set) and waiting for the first
+        # start: a fixed 2.5 s sent SIGTERM to a daemon still starting on a loaded machine (-15).
+        _wait_running(tmp / "d.sock", proc)
+        time.sleep(0.5)
         rc, took = term_and_wait(proc)
         out.append(took)
         if rc is None:
@@ -573,6 +583,17 @@ def sigterm_exit_ms(runs: int = 5) -> list[float]:
         if rc != 0:
             raise RuntimeError(f"usmswitchd exited {rc} after SIGTERM")
     return out
+
+
+def _wait_running(sock: Path, proc: subprocess.Popen[bytes]) -> None:
+    """Until the daemon's status says how its loop is scheduled (run() has begun), at most 60 s."""
+    end = time.monotonic() + 60
+    while time.monotonic() < end and proc.poll() is None:
+        with contextlib.suppress(OSError, RpcError), Client(str(sock), timeout=5) as c:
+            if not c.status()["scheduling"].startswith("not yet"):
+                return
+        time.sleep(0.05)
+    raise RuntimeError("usmswitchd did not start within 60 s")
 
 
 HEAVY_LOAD = "10 export clients and 8 x 32 unread history 10000"
