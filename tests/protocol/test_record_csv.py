@@ -68,6 +68,9 @@ def test_sqlites_csv_is_the_csv_modules_byte_for_byte() -> None:
     # A cell of the wrong type: SQLite keeps a float or text where an integer belongs (no STRICT).
     conn.execute("UPDATE cycles SET delay_ns = 1.5, wall_ns = 'x,y' WHERE cycle = 7")
     conn.execute("UPDATE cycles SET temperature_c = 'warm' WHERE cycle = 8")
+    # Text holding the character that marks a float's place in SQLite's line: that chunk is made
+    # the slow way (every float called back), the same bytes.
+    conn.execute("UPDATE cycles SET rig = 'a' || char(31) || 'b', temperature_c = 2.5 WHERE cycle = 9")
     stored = conn.execute(f"SELECT {COLUMNS} FROM cycles ORDER BY cycle").fetchall()
     want = _by_csv_module(stored)
     assert _by_sqlite(conn, chunk=1000) == want
@@ -98,9 +101,12 @@ def test_floats_read_back_as_the_csv_modules_repr() -> None:
         value = rng.choice((rng.random() * 10 ** rng.randrange(-30, 30), rng.gauss(25, 3)))
         row = list(base)
         row[0], row[t] = cycle, value
+        # A column of few distinct values (formatted once a value), and one with a zero among them.
+        row[t + 1] = rng.choice((40000.0, 39500.5, -0.0 if cycle > 10_000 else 41000.0))
         rows.append(tuple(row))
     conn.executemany(INSERT_CYCLE, rows)
-    assert _by_sqlite(conn) == _by_csv_module(rows)
+    stored = conn.execute(f"SELECT {COLUMNS} FROM cycles ORDER BY cycle").fetchall()  # -0.0 reads 0.0
+    assert _by_sqlite(conn) == _by_csv_module(stored)
 
 
 def test_a_chunk_with_a_bad_cell_is_refused_before_it_is_given() -> None:
