@@ -25,6 +25,9 @@ STROKE_FAULTS = {
     FaultCode.SEQUENCE: "edge order",
     FaultCode.WIRE: "wire",
 }
+#: Past a stroke's deadline, at most this many events already in hand are read before it ends (a
+#: line ringing on keeps adding more).
+MAX_READS_PAST_DEADLINE = 10_000
 #: How far the host's stamps of a stroke may be from the device's report of it: both are the
 #: device's stamps of the same edges, so only the microsecond rounding separates them.
 REPORT_TOLERANCE_NS = 2_000
@@ -70,19 +73,23 @@ def read_stroke(
     grace = daq.report_wait_ns
     # Past the deadline the device's own stall limit (armed with the same timeout) has cut the drive;
     # its account of the stroke is still read before a cause is named, and the loop's stop follows.
+    # Past it, what is already in hand is still read (a loop thread that woke late must not call a
+    # stall the arrival stamped inside the timeout): its stamps decide, not when it was read.
+    late_reads = MAX_READS_PAST_DEADLINE
     while True:
         now = clock.now_ns()
-        if now >= deadline + grace:
-            break
+        past = now >= deadline + grace
+        if past:
+            late_reads -= 1
+            if late_reads < 0:
+                break
         try:
-            ev = daq.recv(min(slice_ns, deadline + grace - now))
+            ev = daq.recv(0 if past else min(slice_ns, deadline + grace - now))
         except DaqError as exc:
             out.fault = f"driver: {exc}"
             break
         if ev is None:
-            if halted():
-                break
-            if grace == 0 and clock.now_ns() >= deadline:
+            if past or halted():
                 break
             continue
         kind = ev.kind

@@ -7,7 +7,9 @@ keeps the machine untouched:
 * /tmp is a private tmpfs: at boot systemd-tmpfiles empties /tmp, which would otherwise be the
   machine's own (every other process there would lose its files);
 * /etc, /usr and /var are overlays whose upper layers live on a tmpfs: the units, the sysusers
-  user and group, the config and the state directory written by the test vanish with the namespace.
+  user and group, the config and the state directory written by the test vanish with the namespace;
+  the host's own usmswitch config, state and logs are hidden in them (a machine where the service
+  was installed), so a test sees only what it made.
 
 systemd boots to basic.target only (journald, sysusers, tmpfiles; no getty, no database servers
 that would bind the machine's ports). `close()` ends it by its pid (SIGKILL from the parent
@@ -45,6 +47,9 @@ def _boot_script() -> str:
         upper, work = f"{SCRATCH}/upper/{name}", f"{SCRATCH}/work/{name}"
         lines.append(f"mkdir -p {upper} {work}")
         lines.append(f"mount -t overlay overlay -o lowerdir={top},upperdir={upper},workdir={work} {top}")
+    # What the host has of usmswitch is hidden (whiteouts in the upper layers; the host's files are
+    # untouched): the tests see only what they install.
+    lines.append("rm -rf /etc/usmswitch /var/lib/usmswitch /var/lib/private/usmswitch /var/log/usmswitch")
     lines.append(f"exec {SYSTEMD} --system --unit=basic.target")
     return " && ".join(lines)
 

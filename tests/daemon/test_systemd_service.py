@@ -13,6 +13,7 @@ import json
 import os
 import re
 import shutil
+import socket
 import subprocess
 import sys
 import time
@@ -24,6 +25,18 @@ import pytest
 import realsystemd
 
 CI = os.environ.get("CI") == "true"
+
+
+def _free_port() -> int:
+    """A loopback port nobody holds now: the namespace shares the host's network, where a reader's
+    own `make run` may hold the panel's 8790."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+#: The panel's port for this session's units.
+PANEL_PORT = _free_port()
 NOBODY = 65534
 DEBIAN_PYTHON = Path("/usr/bin/python3")
 
@@ -98,7 +111,9 @@ class Unit:
         text = text.replace('kind = "serial"', 'kind = "sim"', 1)
         # The panel on loopback, as docs/panel.md's "As a service" says to set it.
         assert "[web]" in text and '\nlisten = ""                # e.g. "8790"' in text
-        cfg.write_text(text.replace('\nlisten = ""                # e.g. "8790"', '\nlisten = "8790"  #'))
+        cfg.write_text(
+            text.replace('\nlisten = ""                # e.g. "8790"', f'\nlisten = "{PANEL_PORT}"  #')
+        )
         # The drop-in `systemctl edit` would write: ExecStart only, at this venv.
         shipped = (repo / "systemd" / self.file).read_text()
         exec_line = re.search(r"^ExecStart=/usr/bin/usmswitchd (.*)$", shipped, re.M)
@@ -120,7 +135,12 @@ class Unit:
 
     # -- the service ---------------------------------------------------------------------------
     def start(self) -> dict[str, str]:
-        self.sd.systemctl("start", self.name)  # Type=notify: returns once READY=1 came
+        started = self.sd.systemctl("start", self.name, check=False)  # Type=notify: once READY=1 came
+        if started.returncode != 0:
+            raise AssertionError(
+                f"systemctl start {self.name}: {started.stderr.strip()}\n-- its journal --\n"
+                + self.sd.journal(self.name)[-4000:]
+            )
         return self.sd.wait_for(self.name, ActiveState="active", SubState="running")
 
     def props(self) -> dict[str, str]:
@@ -210,7 +230,7 @@ def test_the_shipped_unit_runs_stops_restarts_and_is_watched(
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
     panel = json.loads(out.strip().splitlines()[-1])
-    assert panel == {"url": "http://127.0.0.1:8790/", "page": True, "control": True, "message": None}
+    assert panel == {"url": f"http://127.0.0.1:{PANEL_PORT}/", "page": True, "control": True, "message": None}
 
     # Stopped: inactive, result success, every stroke of the run in the file.
     systemd.systemctl("stop", unit.name)
