@@ -237,33 +237,12 @@ def main() -> int:
         return 0
     with tempfile.TemporaryDirectory(prefix="bench-fw-") as tmp:
         lock = _lockstep(Path(tmp) / "truth.csv")
-    fw_cpu, fw_late = _real_time("firmware")
-    py_cpu, py_late = _real_time("python")
     speed = float(lock["speed"])  # type: ignore[arg-type]
     cut = lock["cut"]
     start_err = lock["start_err"]
     stamp_err = lock["stamp_err"]
     assert isinstance(cut, list) and isinstance(start_err, list) and isinstance(stamp_err, list)
-    print_table(
-        ["device", "lockstep x real time", "real-time CPU % of a core", "START late p50 / max us"],
-        [
-            (
-                "firmware in simavr (usmswitch-avrsim)",
-                f"{speed:.0f}",
-                f"{100 * fw_cpu:.1f}",
-                f"{statistics.median(fw_late) / 1e3:.0f} / {max(fw_late) / 1e3:.0f}",
-            ),
-            (
-                "peer: sim/mcu_emulator.py",
-                "1 (real time only)",
-                f"{100 * py_cpu:.1f}",
-                f"{statistics.median(py_late) / 1e3:.0f} / {max(py_late) / 1e3:.0f}",
-            ),
-        ],
-        title=f"emulator cost: {STROKES} strokes lockstep, {RT_STROKES} strokes in real time over a pty "
-        f"(one every {PERIOD_US / 1000:.0f} ms)",
-    )
-    print()
+    # The lockstep figures first: emulator cycles, whatever the machine's load.
     print_table(
         ["firmware timing (emulator cycles)", "p50", "max", "limit"],
         [
@@ -283,7 +262,35 @@ def main() -> int:
         ],
         title=f"firmware timing, {STROKES} compare-timed strokes in lockstep",
     )
+    print()
     ok = max(cut) <= CUT_LIMIT_NS and max(stamp_err) <= STAMP_LIMIT_US and speed > 1
+    try:
+        fw_cpu, fw_late = _real_time("firmware")
+        py_cpu, py_late = _real_time("python")
+    except RuntimeError as exc:
+        # A machine too busy to keep the emulated device in real time: said, and counted a miss.
+        load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+        print(f"emulator cost in real time not measured: {exc} (load average {load}); lockstep x{speed:.0f}")
+        return 1
+    print_table(
+        ["device", "lockstep x real time", "real-time CPU % of a core", "START late p50 / max us"],
+        [
+            (
+                "firmware in simavr (usmswitch-avrsim)",
+                f"{speed:.0f}",
+                f"{100 * fw_cpu:.1f}",
+                f"{statistics.median(fw_late) / 1e3:.0f} / {max(fw_late) / 1e3:.0f}",
+            ),
+            (
+                "peer: sim/mcu_emulator.py",
+                "1 (real time only)",
+                f"{100 * py_cpu:.1f}",
+                f"{statistics.median(py_late) / 1e3:.0f} / {max(py_late) / 1e3:.0f}",
+            ),
+        ],
+        title=f"emulator cost: {STROKES} strokes lockstep, {RT_STROKES} strokes in real time over a pty "
+        f"(one every {PERIOD_US / 1000:.0f} ms)",
+    )
     return 0 if ok else 1
 
 
