@@ -56,8 +56,8 @@ def reach_warnings(predictors: Sequence[Any], targets: Sequence[int]) -> list[st
         t_hat = round(predictors[d].predict())
         if targets[d] < t_hat:
             out.append(
-                f"target_{d.name.lower()}_ns {targets[d]} is shorter than the predicted stroke "
-                f"({t_hat} ns): those strokes start at once and arrive late"
+                f"target {format_ns(targets[d])} ({d.name.lower()}) is shorter than the predicted stroke "
+                f"({format_ns(t_hat)}): those strokes start at once and arrive late"
             )
     return out
 
@@ -72,8 +72,8 @@ def check_period(
     if period_ns <= longest:
         what = "max of T and t_hat" if mode is Mode.CLOSED else "open delay + t_hat"
         raise ValueError(
-            f"period {period_ns} ns is not longer than a stroke from its command"
-            f" ({longest} ns, {what}): commands would overlap"
+            f"period {format_ns(period_ns)} is not longer than a stroke from its command"
+            f" ({format_ns(longest)}, {what}): commands would overlap"
         )
 
 

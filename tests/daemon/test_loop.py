@@ -247,7 +247,9 @@ def test_reliability_100k_strokes_all_recorded_memory_flat(tmp_path: Path) -> No
 
 def test_a_period_shorter_than_a_stroke_is_refused() -> None:
     loop, _, recs = make_loop(target_ns=12 * MS)
-    with pytest.raises(ValueError, match="period 5000000 ns is not longer than a stroke"):
+    with pytest.raises(
+        ValueError, match=r"period 5\.000 ms is not longer than a stroke from its command \(12\.000 ms"
+    ):
         loop.start_cycling(5 * MS, 10)
     loop.set_mode("open", open_delay_ns=20 * MS)
     with pytest.raises(ValueError, match="commands would overlap"):
