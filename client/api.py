@@ -101,6 +101,13 @@ class Api(ABC):
         """The last `n` stroke records (of one run, or any), oldest first."""
         return self.call("history", n, run)
 
+    def export_chunk(
+        self, run: int | None = None, first: int = 1, last: int | None = None, max_strokes: int = 10_000
+    ) -> dict[str, Any]:
+        """One chunk of an export: {"strokes", "last_cycle", "csv"}, the CSV lines (no header) of up
+        to `max_strokes` strokes from cycle `first` on; ask again from last_cycle + 1 until none."""
+        return self.call("export", run, first, last, max_strokes)
+
     def runs(self, n: int = 20) -> list[RunInfo]:
         """The last `n` runs, oldest first."""
         return self.call("runs", n)

@@ -63,6 +63,7 @@ IDEMPOTENT = frozenset(
         "stats",
         "history",
         "runs",
+        "export",
         "set_mode",
         "stop_cycling",
         "estop",
@@ -263,6 +264,21 @@ class Client(Api):
     def _call_once(self, method: str, params: list[Any]) -> Any:
         msgid = self._send(method, params)
         return result_of(self._wait(msgid))
+
+    def export_csv(
+        self, run: int | None = None, first: int = 1, last: int | None = None
+    ) -> Iterator[tuple[int, int, str]]:
+        """Every stroke (of a run, from cycle `first` to `last`) as CSV lines without the header
+        (`usmswitch.protocol.record_csv.csv_header_line`), a chunk a call: (strokes, last cycle,
+        text). Memory is one chunk on both ends; stop iterating and the server reads no more."""
+        while True:
+            chunk = self.export_chunk(run, first, last)
+            if not chunk["strokes"]:
+                return
+            yield chunk["strokes"], chunk["last_cycle"], chunk["csv"]
+            first = chunk["last_cycle"] + 1
+            if last is not None and first > last:
+                return
 
     def pipeline(self, calls: Iterable[tuple[str, list[Any]]]) -> list[Any]:
         """Send every request before reading any reply; results (or RpcError instances) in order."""

@@ -18,6 +18,8 @@ _MAX_COUNT = 1_000_000_000
 _MAX_ID = 2**62
 #: runs' upper bound on n.
 MAX_RUNS = 1_000
+#: Strokes an `export` call returns at most: a chunk of CSV text (~2.5 MB); the client asks again after it.
+MAX_EXPORT_STROKES = 10_000
 
 
 def show(value: object) -> str:
@@ -149,6 +151,12 @@ PARAMS: dict[str, _Spec] = {
         ("run", _optional(_integer("run", 1, _MAX_ID)), None),
     ),
     "runs": (("n", _integer("n", 1, MAX_RUNS), 20),),
+    "export": (
+        ("run", _optional(_integer("run", 1, _MAX_ID)), None),
+        ("first_cycle", _integer("first_cycle", 1, _MAX_ID), 1),
+        ("last_cycle", _optional(_integer("last_cycle", 1, _MAX_ID)), None),
+        ("max_strokes", _integer("max_strokes", 1, MAX_EXPORT_STROKES), MAX_EXPORT_STROKES),
+    ),
     "switch": (("direction", _choice("direction", ("on", "off", "next")), "next"),),
     "start_cycling": (
         ("period_ns", _integer("period_ns", 1, _MAX_PERIOD_NS), _REQUIRED),

@@ -179,6 +179,22 @@ def _export_csv(records_path: str, run_id: int, put: Callable[[bytes], None]) ->
     return n
 
 
+def _export_reply(
+    records_path: str, run_id: int | None, first_cycle: int, last_cycle: int | None, max_strokes: int
+) -> bytes:
+    """One chunk of an export over the socket: the CSV lines (no header) of up to `max_strokes`
+    strokes from `first_cycle` on (to `last_cycle`, of one run), built by SQLite as the file and the
+    panel's exports are; the client asks for the next chunk from `last_cycle` + 1. A chunk a call,
+    so the export's memory is one chunk, a client that has gone asks for no more, and the other
+    reads of the lane take their turns between chunks."""
+    store = _reader(records_path, "export")
+    if run_id is not None:
+        _known_run(store, "export", run_id)
+    for strokes, last, text in store.csv_chunks(first_cycle, last_cycle, run_id=run_id, chunk=max_strokes):
+        return packb({"strokes": strokes, "last_cycle": last, "csv": text})
+    return packb({"strokes": 0, "last_cycle": None, "csv": ""})
+
+
 #: The worker threads' SCHED_FIFO priority when the event loop has one: the lowest there is. At
 #: SCHED_OTHER a reader holding the GIL was preempted by the machine's ordinary processes and the
 #: event loop waited for it: an estop by the main socket took up to 105 ms, by the panel 575 ms, under
@@ -205,6 +221,7 @@ _FILE_READS: dict[str, Callable[..., bytes]] = {
     "history": _history_reply,
     "runs": _runs_reply,
     "stats": _stats_reply,
+    "export": _export_reply,
 }
 
 
@@ -224,7 +241,7 @@ class _Hub:
         self.topics = tuple(cfg["topics"])
         self.known = frozenset(BUILTIN_METHODS) | self.handlers | self.urgent | self.snapshot_methods
         if cfg["records_path"]:
-            self.known |= {"history", "runs"}
+            self.known |= {"history", "runs", "export"}
         self.snaps: dict[str, bytes] = dict(cfg["snaps"])
         # Snapshots the daemon sends unfinished (the loop's stats without their percentiles):
         # finished here, on the first request after each update, so the loop never pays for it.

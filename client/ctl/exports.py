@@ -92,6 +92,32 @@ class _CsvChunks:
         return n
 
 
+class _SocketChunks(_CsvChunks):
+    """Every stroke (of a run, a range) over the socket, a chunk of CSV text a call (`export`)."""
+
+    def __init__(self, connect: Callable[[], Client], first: int, last: int | None, run: int | None) -> None:
+        self.connect, self.first, self.last, self.run = connect, first, last, run
+
+    def write(self, out: IO[str], progress: bool) -> int:
+        n = 0
+        with self.connect() as client:
+            span = None
+            if progress and self.run is not None:
+                runs = {r["run_id"]: r for r in client.runs(1000)}
+                run = runs.get(self.run)
+                if run is not None:
+                    span = (max(self.first, run["first_cycle"]), run["last_cycle"] or self.last or 0)
+            elif progress and self.last is not None:
+                span = (self.first, self.last)
+            out.write(csv_header_line())
+            with ExportProgress(span, sys.stderr if progress else None) as bar:
+                for strokes, last_cycle, text in client.export_csv(self.run, self.first, self.last):
+                    out.write(text)
+                    n += strokes
+                    bar.update(last_cycle, n)
+        return n
+
+
 def _csv_chunks_from(
     source: str | Path, first: int, last: int | None, run: int | None, rig: str | None
 ) -> _CsvChunks:
@@ -112,11 +138,13 @@ def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
         records: Iterable[CycleRecord] | _CsvChunks = _csv_chunks_from(
             _source(args), args.first, args.last, args.run, args.rig if args.source else None
         )
-    else:
+    elif args.n is not None:
         if args.first != 1 or args.last is not None:
-            raise UsageError("export: --first/--last read the records themselves; give --state-dir or --from")
+            raise UsageError("export: -n (the last n strokes) or --first/--last, not both")
         with connect() as client:
             records = client.history(args.n, args.run)
+    else:
+        records = _SocketChunks(connect, args.first, args.last, args.run)
     if args.csv == "-":
         n = _write(records, sys.stdout, "standard output", not args.json)
         sys.stdout.flush()

@@ -154,10 +154,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _from_flag(c)
     c.add_argument(
-        "-n", type=int, default=MAX_HISTORY, help=f"over the socket: the last n (max {MAX_HISTORY})"
+        "-n",
+        type=int,
+        help=f"over the socket: the last n only (max {MAX_HISTORY}; default: every stroke, streamed)",
     )
-    c.add_argument("--first", type=int, default=1, help="with --state-dir/--from: first cycle (default 1)")
-    c.add_argument("--last", type=int, help="with --state-dir/--from: last cycle (default: the newest)")
+    c.add_argument("--first", type=int, default=1, help="first cycle (default 1)")
+    c.add_argument("--last", type=int, help="last cycle (default: the newest)")
     c.add_argument("--run", type=int, help="this run's strokes only")
     c = command("plot", "draw a run to an image (PNG, SVG or PDF by the file's suffix)")
     c.add_argument("--out", required=True, metavar="FILE", help="e.g. run.png")
@@ -201,7 +203,7 @@ def check_args(args: argparse.Namespace) -> None:
             raise UsageError(f"target: {exc}") from None
     if args.command == "history" and not 1 <= args.n <= MAX_HISTORY:
         raise UsageError(f"history: -n must be in 1..{MAX_HISTORY}, got {args.n}")
-    if args.command == "export" and not 1 <= args.n <= MAX_HISTORY:
+    if args.command == "export" and args.n is not None and not 1 <= args.n <= MAX_HISTORY:
         raise UsageError(f"export: -n must be in 1..{MAX_HISTORY}, got {args.n}")
     if args.command == "export" and args.first < 1:
         raise UsageError(f"export: --first must be >= 1, got {args.first}")
