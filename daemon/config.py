@@ -55,6 +55,7 @@ from .config_values import (
     positive_duration_at_most,
     positive_float,
     priority_value,
+    raise_collected,
     rig_name,
     show,
     table_int,
@@ -462,7 +463,8 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     try:
         FaultPlan.from_config(faults)  # the sim owns the table's shape: its own check, our key
     except ValueError as exc:
-        raise ConfigError("sim.faults", str(exc)) from None
+        t.fail("faults", str(exc))
+        faults = {}
     sim = SimConfig(
         clock=t.get("clock", choice(SIM_CLOCKS), "real"),
         seed=table_int(t, "seed", None, 0, 2**63 - 1),
@@ -480,8 +482,8 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     )
     longest = max(control.target_on_ns, control.target_off_ns)
     if cycle.period_ns <= longest:
-        raise ConfigError(
-            t.key("period"),
+        t.fail(
+            "period",
             f"{format_ns(cycle.period_ns)} is not longer than the target {format_ns(longest)}:"
             " the next command would come before the stroke is due",
         )
@@ -521,11 +523,12 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     top.done()
     if driver.kind in ("serial", "usb") and control.stroke_timeout_ns > MAX_STROKE_TIMEOUT_NS:
         # The microcontroller times the stall itself (ARM timeout_us): it takes 1 ms to 10 s.
-        raise ConfigError(
+        top.fail(
             "control.stroke_timeout",
             f"{format_ns(control.stroke_timeout_ns)} is longer than the microcontroller's longest stall"
             f" limit, {format_ns(MAX_STROKE_TIMEOUT_NS)} (docs/mcu-protocol.md, ARM)",
         )
+    raise_collected(top.errors)
     return Config(daemon, driver, sim, control, cycle, realtime, socket, modbus, records, metrics, web)
 
 
@@ -569,16 +572,16 @@ def _control(t: Table) -> ControlConfig:
     if order == "auto":
         need = min_samples(max_order, model)
         if window < need:
-            raise ConfigError(
-                t.key("window"),
+            t.fail(
+                "window",
                 f"{window} is less than {need}, what order = 'auto' needs with max_order = {max_order}"
                 f" and model = {model!r}",
             )
     else:
         if window < order + 2:
-            raise ConfigError(t.key("window"), f"{window} is less than order + 2 = {order + 2}")
+            t.fail("window", f"{window} is less than order + 2 = {order + 2}")
         if t.has("max_order") and max_order < order:
-            raise ConfigError(t.key("max_order"), f"{max_order} is less than order = {order}")
+            t.fail("max_order", f"{max_order} is less than order = {order}")
     nominal = t.get("nominal", positive_duration, d.nominal_ns)
     nominals = {"nominal": nominal}
     for key in ("nominal_on", "nominal_off"):
@@ -587,7 +590,7 @@ def _control(t: Table) -> ControlConfig:
         try:
             check_stroke_ns(value)
         except ValueError as exc:
-            raise ConfigError(t.key(key), str(exc)) from None
+            t.fail(key, str(exc))
     sensitivity = {
         "sensitivity_frequency": t.get("sensitivity_frequency", per_unit({"/kHz": 1.0, "/Hz": 1e3}), None),
         "sensitivity_voltage": t.get("sensitivity_voltage", per_unit({"/100V": 1.0, "/V": 1e2}), None),
@@ -596,16 +599,14 @@ def _control(t: Table) -> ControlConfig:
     takes = "sensitivities" in PREDICTOR_OPTIONS[model]
     for key, value in sensitivity.items():
         if value is not None and not takes:
-            raise ConfigError(
-                t.key(key), f"model = {model!r} takes no sensitivities (the 'kalman' model does)"
-            )
+            t.fail(key, f"model = {model!r} takes no sensitivities (the 'kalman' model does)")
     # More than the window would be read and thrown away: take what the predictor can hold.
     warm = min(table_int(t, "warm_start", d.warm_start, 0, None), window)
     timeout = t.get("stroke_timeout", positive_duration, d.stroke_timeout_ns)
     longest = max(nominals.values())
     if timeout <= longest:
-        raise ConfigError(
-            t.key("stroke_timeout"),
+        t.fail(
+            "stroke_timeout",
             f"{format_ns(timeout)} is not longer than the nominal stroke {format_ns(longest)}:"
             " every stroke would stall",
         )
@@ -642,18 +643,18 @@ def _socket(t: Table, env: Mapping[str, str]) -> SocketConfig:
         try:
             grp.getgrnam(group)
         except KeyError:
-            raise ConfigError(t.key("group"), f"no group named {group!r} on this system") from None
+            t.fail("group", f"no group named {group!r} on this system")
     tcp = t.get("tcp", text_value, "")
     token = t.get("tcp_token", text_value, "")
     if tcp:
         try:
             parse_host_port(tcp)
         except ValueError as exc:
-            raise ConfigError(t.key("tcp"), str(exc)) from None
+            t.fail("tcp", str(exc))
         # No token: the daemon makes one at each start (docs/protocol.md, TCP); a weak one is refused.
         why = weak_token(token, MIN_TOKEN_CHARS) if token else None
         if why is not None:
-            raise ConfigError(t.key("tcp_token"), f"too weak: {why}; leave it out and the daemon makes one")
+            t.fail("tcp_token", f"too weak: {why}; leave it out and the daemon makes one")
     cfg = SocketConfig(
         path=t.get("path", path_value, default_socket_path(env)),
         mode=mode,
@@ -673,7 +674,7 @@ def _modbus(t: Table) -> ModbusConfig:
     try:
         parse_modbus_url(url)
     except ValueError as exc:
-        raise ConfigError(t.key("url"), str(exc)) from None
+        t.fail("url", str(exc))
     cfg = ModbusConfig(
         enabled=t.get("enabled", bool_value, False),
         url=url,

@@ -30,12 +30,36 @@ class ConfigError(ValueError):
         self.key = key
 
 
-class Table:
-    """One TOML table being read: typed getters that name the key, and a check for unknown keys."""
+class ConfigErrors(ConfigError):
+    """Every bad value of one configuration at once, a line each (`errors`), so a file is mended in
+    one pass, not one error per try."""
 
-    def __init__(self, raw: Any, name: str) -> None:
+    def __init__(self, errors: list[ConfigError]) -> None:
+        lines = "\n".join(f"  {e}" for e in errors)
+        super().__init__("", f"{len(errors)} problems:\n{lines}")
+        self.key = errors[0].key
+        self.errors = list(errors)
+
+
+def raise_collected(errors: list[ConfigError]) -> None:
+    """Raise what a read collected: the one error as it is, several as ConfigErrors."""
+    if len(errors) == 1:
+        raise errors[0]
+    if errors:
+        raise ConfigErrors(errors)
+
+
+class Table:
+    """One TOML table being read: typed getters that name the key, and a check for unknown keys.
+
+    A bad value is collected (in `errors`, shared by the tables of one file) and its default read
+    on, so that every problem of a file is said at once (`raise_collected`)."""
+
+    def __init__(self, raw: Any, name: str, errors: list[ConfigError] | None = None) -> None:
+        self.errors: list[ConfigError] = [] if errors is None else errors
         if not isinstance(raw, dict):
-            raise ConfigError(name, f"expected a table, got {show(raw)}")
+            self.errors.append(ConfigError(name, f"expected a table, got {show(raw)}"))
+            raw = {}
         self.raw = raw
         self.name = name
         self.seen: set[str] = set()
@@ -51,18 +75,26 @@ class Table:
         self.seen.add(k)
         if k not in self.raw:
             return default
-        return parse(self.key(k), self.raw[k])
+        try:
+            return parse(self.key(k), self.raw[k])
+        except ConfigError as exc:
+            self.errors.append(exc)
+            return default
+
+    def fail(self, k: str, message: str) -> None:
+        """Collect a problem of key `k` found across values (a window too short for the order)."""
+        self.errors.append(ConfigError(self.key(k) if k else self.name, message))
 
     def table(self, k: str) -> Table:
         self.seen.add(k)
-        return Table(self.raw.get(k, {}), self.key(k))
+        return Table(self.raw.get(k, {}), self.key(k), self.errors)
 
     def done(self) -> None:
         unknown = sorted(set(self.raw) - self.seen)
-        if unknown:
-            known = ", ".join(sorted(self.seen))
-            where = f"in [{self.name}]" if self.name else "sections"
-            raise ConfigError(self.key(unknown[0]), f"unknown key (known {where}: {known})")
+        known = ", ".join(sorted(self.seen))
+        where = f"in [{self.name}]" if self.name else "sections"
+        for k in unknown:
+            self.errors.append(ConfigError(self.key(k), f"unknown key (known {where}: {known})"))
 
 
 # -- endpoint strings ------------------------------------------------------------------------------

@@ -17,7 +17,7 @@ from usmswitch.daemon.config import (
     default_state_dir,
     load_config,
 )
-from usmswitch.daemon.config_values import parse_listen, parse_modbus_url
+from usmswitch.daemon.config_values import ConfigErrors, parse_listen, parse_modbus_url
 from usmswitch.daemon.service import direction_predictors
 from usmswitch.predictor import DEFAULT_MODEL
 from usmswitch.protocol.sockets import client_socket_paths, default_socket_path
@@ -453,3 +453,25 @@ def test_sensitivities_with_their_units_reach_the_kalman_predictors_and_write_ba
     # What the predictors learned before (sensitivities.json) is taken over the configured values.
     on, off = direction_predictors(cfg, (0.16, -0.2, 0.01))
     assert on.known_sensitivities == off.known_sensitivities == (0.16, -0.2, 0.01)
+
+
+def test_every_problem_of_a_file_is_said_at_once(tmp_path: Path) -> None:
+    """Issue 37 item 7: errors came one at a time (mend, run, the next one), and an unknown section's
+    message listed 8 sections where there are 11. Now every bad value, cross-check and unknown key
+    is said in one error, a line each, and the sections listed are all of them."""
+    text = (
+        '[bogus]\nx = 1\n[control]\nwindow = "big"\nstroke_timeout = "1ms"\n'
+        '[cycle]\nperiod = "nope"\n[web]\nlisten = "x:y"\n'
+    )
+    with pytest.raises(ConfigErrors) as got:
+        load_config(write(tmp_path, text), env=ENV)
+    keys = [e.key for e in got.value.errors]
+    assert keys == ["control.window", "control.stroke_timeout", "cycle.period", "web.listen", "bogus"]
+    msg = str(got.value)
+    assert msg.startswith("5 problems:\n  control.window: ") and msg.count("\n") == 5
+    sections = "control, cycle, daemon, driver, metrics, modbus, realtime, records, sim, socket, web"
+    assert f"bogus: unknown key (known sections: {sections})" in msg
+    # One problem reads as it always did.
+    with pytest.raises(ConfigError, match=r"^cycle\.period: duration 'nope'") as one:
+        load_config(write(tmp_path, '[cycle]\nperiod = "nope"\n'), env=ENV)
+    assert not isinstance(one.value, ConfigErrors)
