@@ -18,7 +18,7 @@ from usmswitch.protocol.version import version_text
 from usmswitch.protocol.wire import PROTOCOL_VERSION
 from usmswitch.runtime.process_exit import exit_now
 
-from .config import ConfigError, load_config
+from .config import Config, ConfigError, load_config
 
 EXIT_CONFIG = 2  # a bad config or flag: nothing was started
 # A part could not start: driver missing, socket in use, state dir unwritable or in use by another
@@ -104,6 +104,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"usmswitchd: config error: {exc}", file=sys.stderr)
         return EXIT_CONFIG
     if args.check_config:
+        try:
+            check_reach_at_start(config)
+        except ConfigError as exc:
+            print(f"usmswitchd: config error: {exc}", file=sys.stderr)
+            return EXIT_CONFIG
         print(json.dumps(config.to_dict(redact=True), indent=2, default=str))
         return 0
     from .service import Daemon
@@ -121,6 +126,38 @@ def main(argv: list[str] | None = None) -> int:
         daemon.stop()
         return EXIT_START
     return daemon.run()
+
+
+def check_reach_at_start(config: Config) -> None:
+    """The start-up's refusal of a closed-loop target below what the rig reaches, as far as the
+    config knows the rig: each direction's first prediction from its `nominal` or, on the simulated
+    rig, the rig's model (records in the state directory, which the daemon warm-starts from, may
+    know it better: it checks again at start). Nothing is known on hardware without a nominal: the
+    first strokes commission it."""
+    from . import reach
+    from .daqfactory import make_daq
+    from .service import direction_predictors, first_guesses
+
+    if config.control.mode != "closed":
+        return
+    rig = make_daq(config) if config.driver.kind == "sim" else None
+    nominals, sources = first_guesses(config, rig if rig is not None else _UnknownRig())
+    if all(source == "guess" for source in sources):
+        return
+    c = config.control
+    try:
+        reach.check_reach(
+            direction_predictors(config, None, nominals), (c.target_on_ns, c.target_off_ns), c.late_margin_ns
+        )
+    except reach.TargetUnreachableError as exc:
+        raise ConfigError("control.target", reach.without_allow_late(str(exc))) from None
+
+
+class _UnknownRig:
+    """A rig the config says nothing of: no model of its stroke."""
+
+    def expected_stroke_ns(self, direction: object) -> None:
+        return None
 
 
 def entry() -> None:

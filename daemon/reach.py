@@ -49,6 +49,11 @@ def check_reach(predictors: Sequence[Any], targets: Sequence[int], late_margin_n
             )
 
 
+def without_allow_late(message: str) -> str:
+    """A reach refusal's message without its `allow_late` way out (a start-up has none)."""
+    return message.replace(", or allow late strokes (allow_late)", "")
+
+
 def reach_warnings(predictors: Sequence[Any], targets: Sequence[int]) -> list[str]:
     """Per direction, a warning when T is shorter than the predicted stroke (it will be late)."""
     out = []

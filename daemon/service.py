@@ -45,7 +45,7 @@ from .loop import (
     direction_from_levels,
 )
 from .methods import start_rpc
-from .reach import TargetUnreachableError
+from .reach import TargetUnreachableError, without_allow_late
 from .records import RecordStore, RecordStoreError
 from .retention import Retention, RetentionPolicy
 from .rig_memory import RigMemory
@@ -294,9 +294,7 @@ class Daemon:
             try:
                 self.loop.check_reach(self.loop.targets)
             except TargetUnreachableError as exc:
-                raise ConfigError(
-                    "control.target", str(exc).replace(", or allow late strokes (allow_late)", "")
-                ) from None
+                raise ConfigError("control.target", without_allow_late(str(exc))) from None
         self.store.gate = self.loop.wait_turn
         self.loop.slack_hooks.append(self._watch_records)
         self.loop.slack_hooks.append(self._housekeeping)

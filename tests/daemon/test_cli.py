@@ -61,3 +61,20 @@ def test_model_flag_takes_every_model_and_names_a_bad_one(tmp_path: Path) -> Non
         assert json.loads(r.stdout)["control"]["model"] == model
     r = run("--check-config", "--model", "arima")
     assert r.returncode == 2 and "invalid choice: 'arima'" in r.stderr
+
+
+def test_check_config_refuses_the_target_the_daemon_refuses_at_start(tmp_path: Path) -> None:
+    """Issue 37 item 6: `--check-config` passed `target = "5ms"`, which the daemon then refused at
+    start (exit 2). One set of checks: the same refusal, the same message, from both."""
+    conf = tmp_path / "c.toml"
+    conf.write_text('[control]\ntarget = "5ms"\n')
+    state = ["--state-dir", str(tmp_path / "s"), "--socket", str(tmp_path / "d.sock"), "--seed", "7"]
+    checked = run("--sim", "--check-config", "--config", str(conf), *state)
+    started = run("--sim", "--config", str(conf), *state)
+    assert checked.returncode == started.returncode == 2, (checked.stderr, started.stderr)
+    said = [line for line in checked.stderr.splitlines() if "config error" in line]
+    assert said and "control.target: target 5.000 ms is below the shortest the rig reaches" in said[0]
+    assert said[0] in started.stderr.splitlines()
+    # Hardware with no nominal: nothing known of the rig until its first strokes commission it.
+    fine = run("--driver", "serial", "--check-config", "--config", str(conf), *state)
+    assert fine.returncode == 0, fine.stderr
