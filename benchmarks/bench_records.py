@@ -4,8 +4,8 @@ read beside big ones cost as the records file grows, beside `sqlite3 -csv` of th
 Files are made by the real daemon (usmswitchd --sim --sim-clock virtual, started by `start_cycling`
 over its socket): nine runs of N/100 strokes, then one run of the rest, the daemon's and its server
 process's RSS sampled every second and the writer's `dropped` read at the end. They are made once and
-kept under ~/.cache/usmswitch-bench (USMSWITCH_BENCH_CACHE), outside the repo. Making runs at ~700-1,000
-strokes/s on this 2-core machine: 10^5 in 2.5 min, 10^6 in ~20-30 min, 3x10^6 in ~1-1.5 h, 10^7 in ~3-4 h.
+kept under ~/.cache/usmswitch-bench (USMSWITCH_BENCH_CACHE), outside the repo. Making runs at ~1,100-1,700
+strokes/s on this 2-core machine (shared, loaded): 10^6 in ~15-20 min, 10^7 in ~2-2.5 h.
 Sizes from USMSWITCH_BENCH_RECORDS_SIZES (default "10000,100000"; add 1000000 and 3000000 or
 10000000 by hand, or make them ahead: `python -m benchmarks.bench_records make 1000000`).
 
@@ -13,7 +13,8 @@ Printed per size, against a daemon serving the file (real clock, idle): `stats -
 newest (biggest) run and the panel's runs list (every run's stats) over the socket; an export of the
 newest run in process (the code usmswitchctl runs) and by `usmswitchctl export --from` (a process:
 its ~0.3-0.5 s Python start-up included) beside `sqlite3 -csv` of the same rows (the target is
-judged in process); `runs [1]` while four big reads (cycle-range stats scans) are in flight; the daemon's
+judged in process), and over the socket (`Client.export_csv`, the server process's chunks); `runs [1]`
+while four exports of the whole file over the socket are in flight; the daemon's
 and server's RSS; the file's size; how the file was made (seconds, RSS through the run, dropped).
 Targets (issue 36's "Done when"): stats and the runs list under 100 ms, the export within 2x
 sqlite3 -csv, the small read beside four big ones under 100 ms, nothing dropped.
@@ -223,6 +224,13 @@ def _measure(n: int) -> tuple[list[str], list[str]]:
                 subprocess.run(peer, stdout=fh, check=True)
 
         peer_ms = _best_ms(run_peer, 2)
+
+        def by_socket() -> None:
+            with Client(str(sock), timeout=600) as c, open(tmp / "socket.csv", "w") as fh:
+                for _n, _last, text in c.export_csv(run=last["run_id"]):
+                    fh.write(text)
+
+        socket_ms = _best_ms(by_socket, 2)
         ratio = inproc_ms / peer_ms
         # A small read while four big ones are in flight in the server process.
         stop = threading.Event()
@@ -230,7 +238,9 @@ def _measure(n: int) -> tuple[list[str], list[str]]:
         def big() -> None:
             with Client(str(sock), timeout=3600) as b:
                 while not stop.is_set():
-                    b.stats(cycles=(1, n))
+                    for _ in b.export_csv():  # every stroke of the file, a chunk a call
+                        if stop.is_set():
+                            break
 
         bigs = [threading.Thread(target=big, daemon=True) for _ in range(4)]
         for t in bigs:
@@ -263,9 +273,9 @@ def _measure(n: int) -> tuple[list[str], list[str]]:
         f"{info['seconds'] / 60:.1f} min, {rss_made}, {info['dropped']} dropped",
         f"{kept_ms:.1f}",
         f"{list_ms:.1f} ({len(runs)})",
-        f"{inproc_ms:.0f} / {export_ms:.0f}",
+        f"{inproc_ms:.0f} / {socket_ms:.0f} / {export_ms:.0f}",
         f"{peer_ms:.0f}",
-        f"{ratio:.2f}x / {export_ms / peer_ms:.2f}x",
+        f"{ratio:.2f}x / {socket_ms / peer_ms:.2f}x / {export_ms / peer_ms:.2f}x",
         f"{statistics.median(small):.1f} / {max(small):.1f}",
         f"{daemon / 1e6:.0f} / {server / 1e6:.0f} MB",
         f"{size / 1e6:.0f} MB ({size / n:.0f} B/stroke)",
@@ -294,10 +304,10 @@ def main() -> int:
             "made (virtual time: wall, daemon RSS 2nd half-max, dropped)",
             "stats --run ms",
             "runs list ms (runs)",
-            "export run ms (in process / usmswitchctl)",
+            "export run ms (in process / socket / usmswitchctl --from)",
             "sqlite3 -csv ms",
-            "x peer (in process / usmswitchctl)",
-            "runs [1] beside 4 big ms p50/max",
+            "x peer (in process / socket / usmswitchctl)",
+            "runs [1] beside 4 socket exports ms p50/max",
             "daemon / server RSS",
             "file",
         ],
