@@ -170,8 +170,13 @@ class ShipperProcess:
         return status["lag"] == 0 and status["error"] is None
 
     def status(self) -> dict[str, Any]:
-        """The child's last status (the PostgresShipper.status() figures)."""
-        return dict(self._status)
+        """The child's last status (the PostgresShipper.status() figures), its lag never below what
+        is committed here and not yet shipped: before the child's first word (a busy machine starts
+        it late) a lag of 0 said "all shipped" of records it had not seen."""
+        out = dict(self._status)
+        behind = self._committed_cycle - (out.get("shipped_cycle") or 0)
+        out["lag"] = max(out.get("lag") or 0, behind)
+        return out
 
 
 def main() -> int:
