@@ -9,6 +9,8 @@ daemon; a lab machine needs only this package.
             print(rec["cycle"], rec["error_ns"])
 """
 
+from typing import Any
+
 from usmswitch.protocol.sockets import client_socket_paths
 from usmswitch.protocol.wire import (
     Busy,
@@ -28,11 +30,9 @@ from usmswitch.protocol.wire import (
     WrongState,
 )
 
-from .aio import AsyncClient, AsyncRun
 from .api import Duration, find_socket
 from .connection import Client, ConnectionClosed, ReplyTimeout, Subscription, UntrustedSocketError
 from .notifier import Listener, Notifier
-from .pgrecords import PostgresRecords
 from .records import RecordsFile, RecordsFileError, RecordsSource
 from .run import Run, RunLost
 from .sources import open_records
@@ -91,3 +91,14 @@ __all__ = [
     "find_socket",
     "open_records",
 ]
+
+# Imported on first use: asyncio and psycopg cost `usmswitchctl` ~0.3 s of start-up it rarely needs.
+_LAZY = {"AsyncClient": ".aio", "AsyncRun": ".aio", "PostgresRecords": ".pgrecords"}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name], __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -6,7 +6,6 @@ import os
 
 from usmswitch.fleet.pg_schema import is_postgres_url
 
-from .pgrecords import PostgresRecords
 from .records import RecordsFile, RecordsSource
 
 
@@ -16,5 +15,7 @@ def open_records(source: str | os.PathLike[str], rig: str | None = None) -> Reco
     one rig's records: `rig` is not needed)."""
     text = os.fspath(source)
     if is_postgres_url(text):
+        from .pgrecords import PostgresRecords  # psycopg, only when a database is asked for
+
         return PostgresRecords(text, rig)
     return RecordsFile(text)
