@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
 import re
 import sys
@@ -39,11 +40,25 @@ class _Parser(argparse.ArgumentParser):
         return super().parse_known_args(args, namespace)
 
     def error(self, message: str) -> NoReturn:
+        message += _did_you_mean(message)
         if _Parser.json_errors:
             err = {"exit": EXIT_USAGE, "message": message, "usage": self.format_usage().strip()}
             self.exit(EXIT_USAGE, json.dumps({"error": err}, sort_keys=True) + "\n")
         self.print_usage(sys.stderr)
         self.exit(EXIT_USAGE, f"{PROG}: error: {message}\n")
+
+
+_INVALID_CHOICE = re.compile(r"invalid choice: '([^']*)' \(choose from (.*)\)$")
+
+
+def _did_you_mean(message: str) -> str:
+    """For a mistyped command or choice (`satus`), the nearest valid ones ("" when none is near)."""
+    m = _INVALID_CHOICE.search(message)
+    if m is None:
+        return ""
+    choices = re.findall(r"'([^']*)'", m.group(2))
+    near = difflib.get_close_matches(m.group(1), choices, n=2, cutoff=0.6)
+    return f"; did you mean {' or '.join(repr(c) for c in near)}?" if near else ""
 
 
 def _connection_flags(p: argparse.ArgumentParser, suppress: bool) -> None:

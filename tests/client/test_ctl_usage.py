@@ -123,3 +123,13 @@ def test_a_failed_export_leaves_no_partial_file(tmp_path: Path) -> None:
     r = ctl("export", "--csv", str(out), "--state-dir", str(state), "--last", "1499")
     assert r.returncode == 0 and "1499 records written" in r.stdout
     assert not Path(f"{out}.partial").exists()
+
+
+def test_a_mistyped_command_gets_a_did_you_mean() -> None:
+    """Issue 37's bites: `usmswitchctl satus` listed 17 commands and left the reader to find it."""
+    r = ctl("satus")
+    assert r.returncode == 2 and r.stderr.rstrip().endswith("did you mean 'status' or 'stats'?"), r.stderr
+    j = ctl("--json", "cylce")
+    assert j.returncode == 2 and json.loads(j.stderr)["error"]["message"].endswith("did you mean 'cycle'?")
+    far = ctl("zzzz")
+    assert far.returncode == 2 and "did you mean" not in far.stderr
