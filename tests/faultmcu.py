@@ -155,12 +155,13 @@ class FaultyMcu(McuEmulator):
             self.said += 1
             super()._send(msg)
 
-    def flood(self, duration_s: float, channel: int = 0) -> int:
+    def flood(self, duration_s: float, channel: int = 0, frames: int | None = None) -> int:
         """EDGE frames of `channel`, each repeating its present level (a chattering report), stamped
-        now, as fast as the line takes them for `duration_s`; returns how many were sent."""
+        now, as fast as the line takes them for `duration_s` (or until `frames` are sent); returns
+        how many were sent."""
         n = 0
         end = time.monotonic() + duration_s
-        while time.monotonic() < end:
+        while time.monotonic() < end and (frames is None or n < frames):
             with self._lock:
                 self._run_due(time.monotonic_ns())  # a START due now leaves before these edges
                 level = self.rig.sensors()[channel]

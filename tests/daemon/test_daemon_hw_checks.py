@@ -6,6 +6,7 @@ honour, floods of edges."""
 from __future__ import annotations
 
 import dataclasses
+import os
 import threading
 import time
 from pathlib import Path
@@ -16,6 +17,7 @@ import mcudaemon
 import pytest
 from mcudaemon import daemon, run
 
+from usmswitch.drivers.mcu import MAX_QUEUED_EVENTS
 from usmswitch.drivers.mcu_protocol import U32_MOD, Edge, Message, Start, Stroke
 
 MS = 1_000_000
@@ -158,7 +160,7 @@ def test_a_flood_of_valid_edges_is_bounded_between_device_and_loop(tmp_path: Pat
     with faultmcu.plugged(tmp_path, seed=11) as (emu, port), daemon(tmp_path, port) as (c, proc):
         run(c, 60 * MS, 2)
         rss0 = _rss_kb(proc.pid)  # type: ignore[attr-defined]
-        sent = [0]
+        sent, most = [0], [0]
         peak = [rss0]
 
         def flood_after_each_stroke() -> None:
@@ -168,17 +170,27 @@ def test_a_flood_of_valid_edges_is_bounded_between_device_and_loop(tmp_path: Pat
                     time.sleep(0.001)
                 seen = emu.strokes_arrived
                 time.sleep(0.03)
-                sent[0] += emu.flood(0.7, channel=1 - int(emu.rig.sensors()[0] == 0))
+                channel = 1 - int(emu.rig.sensors()[0] == 0)
+                gap = emu.flood(1.2, channel=channel, frames=2 * MAX_QUEUED_EVENTS)
+                sent[0] += gap
+                most[0] = max(most[0], gap)
                 peak[0] = max(peak[0], _rss_kb(proc.pid))  # type: ignore[attr-defined]
 
         t = threading.Thread(target=flood_after_each_stroke, daemon=True)
         t.start()
-        st = run(c, 1_000 * MS, 4)
+        st = run(c, 1_500 * MS, 4)
         t.join(10)
     got = rows(tmp_path)
     dropped = st["driver_counters"].get("events_dropped")
     print(f"\nflood: {sent[0]} frames, RSS {rss0} kB -> peak {peak[0]} kB, {dropped} dropped")
     assert st["state"] == "idle", st["fault"]
     assert len(got) == 6 and not [r for r in got if r[1] & (FAULT | STALL)], got
-    assert st["driver_counters"]["events_dropped"] > 0
     assert peak[0] - rss0 < 20_000, (rss0, peak[0])
+    if not dropped and most[0] <= MAX_QUEUED_EVENTS:
+        # Between two strokes the flood must outrun the queue for the bound to be seen at all.
+        load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+        pytest.xfail(
+            f"at most {most[0]} frames between two strokes (load {load}): too few to fill the"
+            f" driver's queue of {MAX_QUEUED_EVENTS}"
+        )
+    assert dropped > 0
