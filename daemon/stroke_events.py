@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from usmswitch.drivers import Daq, DaqError, Direction, EventKind, FaultCode
+from usmswitch.drivers import Channel, Daq, DaqError, Direction, Event, EventKind, FaultCode
 from usmswitch.drivers.events import StrokeReport
 from usmswitch.protocol.units import format_ns
 
@@ -51,6 +51,74 @@ class StrokeEvents:
     spurious: list[int] = field(default_factory=lambda: [0, 0])
     #: The device fault (its watchdog or a brown-out reset) stamped before this stroke's command.
     earlier_drive_fault: str = ""
+
+    def take_edge(self, ev: Event, src: Channel, dst: Channel, timeout_ns: int, partial: bool) -> bool:
+        """A sensor edge: the departure, the arrival (True: the stroke is over), or one the stroke
+        does not explain."""
+        ts = self.t_start
+        if ts is None or ev.t_ns <= ts or ev.t_ns > ts + timeout_ns:
+            self.spurious[int(ev.channel)] += 1
+        elif ev.channel is dst and ev.level == 1:
+            if self.t_depart is None and not partial:
+                # Not yet left: a glitch, or a sensor that lies. The stroke goes on; if nothing
+                # better comes, it ends IMPLAUSIBLE with this stamp.
+                self.spurious[int(ev.channel)] += 1
+                self.early_arrive = self.early_arrive or ev.t_ns
+                return False
+            self.t_arrive = ev.t_ns
+            return True
+        elif ev.channel is src and ev.level == 0 and self.t_depart is None:
+            self.t_depart = ev.t_ns
+        else:
+            self.spurious[int(ev.channel)] += 1
+        return False
+
+    def take_report(self, report: StrokeReport, timeout_ns: int) -> bool:
+        """The device's account of the stroke; True when it ends the reading (a stall it reports, an
+        arrival it has no stamp of, or the only arrival there was confirmed)."""
+        self.report = report
+        if report.arrived and self.early_arrive is not None and self.t_arrive is None:
+            return True  # the device's account is in: the only arrival there was is all there is
+        if not report.arrived:
+            self.fault = f"stall: the device reports no arrival within {format_ns(timeout_ns)} of the start"
+            self.stalled = True
+            return True
+        if self.t_start is not None and report.has_stamps and report.t_arrive_ns is None:
+            why = report.detail
+            self.fault = f"wire: the device reports an arrival, but no believable stamp of it ({why})"
+            return True
+        return False
+
+    def take_fault(self, ev: Event, t_cmd_ns: int) -> bool:
+        """A driver fault that ends a stroke (True), or one from before this command (kept if the
+        device restarted, else dropped)."""
+        name = STROKE_FAULTS[ev.fault]  # type: ignore[index]
+        if ev.t_ns < t_cmd_ns:
+            # Left over from before this command. A device's reset between strokes is still news.
+            if ev.fault is FaultCode.DRIVE:
+                self.earlier_drive_fault = f"{name}: {ev.detail}" if ev.detail else name
+            return False
+        self.fault = f"{name}: {ev.detail}" if ev.detail else name
+        self.stalled = ev.fault is FaultCode.STALL
+        return True
+
+    def name_silence(self, waited_ns: int, grace_ns: int, timeout_ns: int) -> None:
+        """No arrival and no fault past the report wait: the link's (WIRE), named by what came."""
+        if self.report is not None and self.report.arrived:
+            self.fault = (
+                "wire: the device reports an arrival whose stamps did not reach the host"
+                f" ({self.report.detail or 'no detail'})"
+            )
+        elif self.t_start is None:
+            self.fault = (
+                f"wire: no START from the device within {format_ns(waited_ns)} of the command"
+                " (the link, or a device that did not take the command)"
+            )
+        else:
+            self.fault = (
+                f"wire: no word from the device within {format_ns(grace_ns)} after the stroke timeout"
+                f" ({format_ns(timeout_ns)}): neither an arrival nor its stall"
+            )
 
 
 def read_stroke(
@@ -94,22 +162,8 @@ def read_stroke(
             continue
         kind = ev.kind
         if kind is EventKind.EDGE:
-            ts = out.t_start
-            if ts is None or ev.t_ns <= ts or ev.t_ns > ts + timeout_ns:
-                out.spurious[int(ev.channel)] += 1
-            elif ev.channel is dst and ev.level == 1:
-                if out.t_depart is None and not partial:
-                    # Not yet left: a glitch, or a sensor that lies. The stroke goes on; if nothing
-                    # better comes, it ends IMPLAUSIBLE with this stamp.
-                    out.spurious[int(ev.channel)] += 1
-                    out.early_arrive = out.early_arrive or ev.t_ns
-                    continue
-                out.t_arrive = ev.t_ns
+            if out.take_edge(ev, src, dst, timeout_ns, partial):
                 break
-            elif ev.channel is src and ev.level == 0 and out.t_depart is None:
-                out.t_depart = ev.t_ns
-            else:
-                out.spurious[int(ev.channel)] += 1
         elif kind is EventKind.START:
             if out.t_start is None:
                 out.t_start = ev.t_ns
@@ -117,48 +171,15 @@ def read_stroke(
                 deadline = ev.t_ns + timeout_ns
         elif kind is EventKind.REPORT:
             assert ev.report is not None
-            out.report = ev.report
-            if ev.report.arrived and out.early_arrive is not None and out.t_arrive is None:
-                break  # the device's account is in: the only arrival there was is all there is
-            if not ev.report.arrived:
-                out.fault = (
-                    f"stall: the device reports no arrival within {format_ns(timeout_ns)} of the start"
-                )
-                out.stalled = True
-                break
-            if out.t_start is not None and ev.report.has_stamps and ev.report.t_arrive_ns is None:
-                why = ev.report.detail
-                out.fault = f"wire: the device reports an arrival, but no believable stamp of it ({why})"
+            if out.take_report(ev.report, timeout_ns):
                 break
         elif kind is EventKind.FAULT and ev.fault in STROKE_FAULTS:
-            name = STROKE_FAULTS[ev.fault]
-            if ev.t_ns < t_cmd_ns:
-                # Left over from before this command. A device's reset between strokes is still news.
-                if ev.fault is FaultCode.DRIVE:
-                    out.earlier_drive_fault = f"{name}: {ev.detail}" if ev.detail else name
-                continue
-            out.fault = f"{name}: {ev.detail}" if ev.detail else name
-            out.stalled = ev.fault is FaultCode.STALL
-            break
+            if out.take_fault(ev, t_cmd_ns):
+                break
         elif kind is EventKind.STOP and halted():
             break  # the halt's own stop: nothing will arrive
     if not out.fault and out.t_arrive is None and out.early_arrive is None and not halted() and grace:
-        now = clock.now_ns()
-        if out.report is not None and out.report.arrived:
-            out.fault = (
-                "wire: the device reports an arrival whose stamps did not reach the host"
-                f" ({out.report.detail or 'no detail'})"
-            )
-        elif out.t_start is None:
-            out.fault = (
-                f"wire: no START from the device within {format_ns(now - t_cmd_ns)} of the command"
-                " (the link, or a device that did not take the command)"
-            )
-        else:
-            out.fault = (
-                f"wire: no word from the device within {format_ns(grace)} after the stroke timeout"
-                f" ({format_ns(timeout_ns)}): neither an arrival nor its stall"
-            )
+        out.name_silence(clock.now_ns() - t_cmd_ns, grace, timeout_ns)
     return out
 
 
