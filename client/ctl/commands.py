@@ -227,6 +227,13 @@ def cmd_watch(client: Client, args: argparse.Namespace) -> int:
     try:
         if not args.json:
             print(f"watching {client.address} (Ctrl-C to stop)", flush=True)
+            state = client.status().get("state")
+            if state != "cycling":
+                # A view of nothing would show zeros and leave the reader to wonder.
+                print(
+                    f"the rig is {state}: strokes show here once a run starts (usmswitchctl cycle)",
+                    flush=True,
+                )
         with view:
             for note in sub:
                 if args.json:

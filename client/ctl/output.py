@@ -330,10 +330,13 @@ class RunningStats:
 
     def summary(self) -> str:
         """One line for people: what the watched strokes did."""
+        if not self.strokes:
+            return "watched no strokes"
+        timed = "all arrived" if self.n == self.strokes else f"{self.n} arrived"
         return (
-            f"watched {self.strokes} strokes, {self.n} with an error: "
-            f"mean {show_ns(self.mean)}, std {show_ns(self.std)}, "
-            f"max |error| {show_ns(self.max_abs)}, late {self.late}, stall/fault/estop {self.faulted}"
+            f"watched {self.strokes} strokes ({timed}): error mean {show_ns(self.mean)}, "
+            f"std {show_ns(self.std)}, max |error| {show_ns(self.max_abs)}; late {self.late}, "
+            f"stall/fault/estop {self.faulted}"
         )
 
 

@@ -265,7 +265,7 @@ def test_watch_count_human_and_json(idle: Rig) -> None:
     assert [int(s.split()[0]) for s in strokes] == list(
         range(int(strokes[0].split()[0]), int(strokes[0].split()[0]) + 5)
     )
-    assert lines[-1].startswith("watched 5 strokes, 5 with an error")
+    assert lines[-1].startswith("watched 5 strokes (all arrived): error mean ")
     r = run(idle, "--json", "watch", "--count", "3")
     notes = [json.loads(line) for line in r.stdout.splitlines()]
     recs = [n["payload"] for n in notes if n["topic"] == "stroke"]
@@ -292,8 +292,28 @@ def test_watch_ends_cleanly_on_ctrl_c(idle: Rig) -> None:
             proc.kill()
             proc.communicate()
     assert proc.returncode == 0, err
-    assert "Traceback" not in err and "with an error" in out
+    assert "Traceback" not in err and "arrived): error mean" in out
     run(idle, "stop")
+
+
+def test_watch_on_an_idle_rig_says_so(idle: Rig) -> None:
+    """Issue 37's bites: `watch` with nothing running showed zeros with no hint, and its summary's
+    "128 with an error" read as 128 failures."""
+    proc = subprocess.Popen(
+        [*CTL, "--socket", str(idle.sock), "watch"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None
+        first, second = proc.stdout.readline(), proc.stdout.readline()
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert first.startswith("watching ") and proc.returncode == 0, err
+    assert second.strip() == "the rig is idle: strokes show here once a run starts (usmswitchctl cycle)"
+    assert out.strip().splitlines()[-1] == "watched no strokes"
 
 
 def test_estop_fault_exit_4_and_reset(idle: Rig) -> None:
