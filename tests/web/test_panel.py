@@ -166,6 +166,31 @@ def test_the_live_feed_opens_with_history_and_keeps_up(rig: dict[str, Any]) -> N
     assert got >= 60  # 1.5 s at 15 ms a stroke: ~100, in ~15 messages
 
 
+def test_feeds_opened_together_miss_no_stroke_after_their_hello(rig: dict[str, Any]) -> None:
+    """A hello is encoded once for the feeds opened within 100 ms (a burst encoded ~1,000 strokes
+    once a feed): each feed's cursor is its hello's, so the ticks after it carry every later
+    stroke, none twice, however old the shared hello is."""
+
+    async def feed(http: aiohttp.ClientSession) -> list[int]:
+        async with http.ws_connect(f"{rig['url']}api/live") as ws:
+            cycles = [json.loads((await ws.receive(timeout=10)).data)["strokes"][-1][0]]
+            while len(cycles) < 40:
+                msg = json.loads((await ws.receive(timeout=10)).data)
+                assert not msg["gap"]
+                cycles += [row[0] for row in msg["strokes"]]
+            return cycles
+
+    async def feeds() -> list[list[int]]:
+        async with aiohttp.ClientSession() as http:
+            return list(await asyncio.gather(*(feed(http) for _ in range(4))))
+
+    with Client(str(rig["sock"])) as c:
+        while c.status()["cycle"] < 40:
+            time.sleep(0.05)
+    for cycles in asyncio.run(feeds()):
+        assert cycles == list(range(cycles[0], cycles[0] + len(cycles))), "a stroke missed or sent twice"
+
+
 def test_a_run_exports_as_csv_with_every_stroke(rig: dict[str, Any]) -> None:
     status, data = control(rig, "start", {"period_ns": 15 * MS, "count": 30, "take_over": True})
     assert status == 200, data
