@@ -12,6 +12,7 @@ import argparse
 import asyncio
 import concurrent.futures
 import contextlib
+import gc
 import hmac
 import importlib
 import logging
@@ -878,7 +879,7 @@ class _PanelConn(_Conn):
         """A run as CSV, read by a worker thread and written as the browser takes it."""
         if self.hub.reads is None or self.hub.records_path is None:
             raise RpcError(ErrorCode.UNAVAILABLE, "export: this server has no records file")
-        loop = self.hub.loop
+        loop = asyncio.get_running_loop()  # the HTTP doors' (server/http_doors.py)
         chunks: asyncio.Queue[bytes | None] = asyncio.Queue(maxsize=4)
         gone = threading.Event()
 
@@ -952,27 +953,21 @@ async def _serve(
     for urgent, sock in ((False, chan), (True, urgent_chan)):
         transport, proto = await loop.connect_accepted_socket(lambda u=urgent: _Channel(hub, u), sock=sock)
         proto.connection_made(transport)
-    servers = []
-    for sock, kind in listeners:
-        if kind == _METRICS:
-            from usmswitch.web.metrics_page import serve_metrics  # aiohttp, prometheus_client: only here
+    servers = [  # create_server, not create_unix_server: that unlinks the path on close (3.13+)
+        await loop.create_server(lambda k=k: _Conn(hub, k), sock=s) for s, k in listeners if k in _KINDS
+    ]
+    http, doors = [(sock, kind) for sock, kind in listeners if kind not in _KINDS], None
+    if http:  # the panel and /metrics: never ahead of an estop on this loop (server/http_doors.py)
+        from usmswitch.server.http_doors import serve_http
 
-            servers.append(await serve_metrics(sock, lambda: (hub.snaps, hub.counts)))
-            continue
-        if kind == _WEB:
-            from usmswitch.web.panel import serve_panel  # aiohttp: only here
-
-            panel_conn = _PanelConn(hub)
-            hosts = frozenset(cfg.get("web_allowed_hosts", ()))
-            servers.append(
-                await serve_panel(sock, panel_conn, cfg["web_token"], cfg["web_token_file"], hosts)
-            )
-            await panel_conn.call("subscribe", [["stroke", "state", "run"]])
-            continue
-        # create_server, not create_unix_server: the latter unlinks the path on close (3.13+),
-        # and the socket file belongs to the daemon, which outlives this process.
-        servers.append(await loop.create_server(lambda kind=kind: _Conn(hub, kind), sock=sock))
+        panel = _PanelConn(hub) if any(kind == _WEB for _, kind in http) else None
+        snapshot = lambda: (dict(hub.snaps), dict(hub.counts))  # noqa: E731  (copies: another thread)
+        doors = await serve_http(http, panel, snapshot, cfg, _loop_factory(), lambda: _workers(2, "rpc-http"))
+        if panel is not None:
+            await panel.call("subscribe", [["stroke", "state", "run"]])
     assert hub.channel is not None
+    # What start-up made is never garbage: a full collection scanned it all (43.7 ms on the loop).
+    gc.freeze()
     hub.channel.send(["ready", os.getpid()])
 
     async def sweeper() -> None:
@@ -987,6 +982,8 @@ async def _serve(
         task.cancel()
         for server in servers:
             server.close()
+        if doors is not None:
+            doors.close()
         for conn in list(hub.conns):
             if conn.transport is not None:
                 conn.transport.abort()
@@ -1057,6 +1054,9 @@ def serve(chan_fd: int, urgent_fd: int, listeners: list[tuple[int, str]], nice: 
         return
     cfg = msgpack.unpackb(body, raw=False)
     fit_descriptors(Limits(**cfg["limits"]))
+    if cfg["finishers"]:  # stats' percentiles import numpy at first use: 0.3-0.6 s on the loop, loaded
+        with contextlib.suppress(ImportError):
+            importlib.import_module("numpy")
     renice(nice, "server", "the socket's clients compete with the loop for CPU at the loop's nice")
     socks = [(socket.socket(fileno=fd), kind) for fd, kind in listeners]
     for sock, _ in socks:

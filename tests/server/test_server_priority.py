@@ -1,7 +1,8 @@
 """The socket's server process beside a real-time loop (issue 35: an estop through the main socket,
 TCP or the panel waited 15-600 ms for the CPU behind the machine's ordinary processes): its event
-loop runs SCHED_FIFO two below the loop, its worker threads SCHED_FIFO 1, a restarted server is put
-back there; with the loop at SCHED_OTHER the server stays at SCHED_OTHER. A real daemon (subprocess)."""
+loop runs SCHED_FIFO two below the loop, the HTTP doors' thread (server/http_doors.py) one below
+that, its worker threads SCHED_FIFO 1, a restarted server is put back there; with the loop at
+SCHED_OTHER the server stays at SCHED_OTHER. A real daemon (subprocess)."""
 
 from __future__ import annotations
 
@@ -28,6 +29,15 @@ def _policies(pid: int) -> dict[int, tuple[int, int]]:
     return out
 
 
+def _http_thread(pid: int) -> int | None:
+    """The thread serving the panel and /metrics (named rpc-http), if there is one."""
+    for tid in map(int, os.listdir(f"/proc/{pid}/task")):
+        with contextlib.suppress(FileNotFoundError):
+            if Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip() == "rpc-http":
+                return tid
+    return None
+
+
 def _until(what: str, check: object, timeout_s: float = 10.0) -> None:
     """Wait for `check()` (the service sets the server's priority after the loop's own)."""
     end = time.monotonic() + timeout_s
@@ -50,7 +60,8 @@ def test_the_server_event_loop_runs_real_time_below_the_loop_and_its_workers_at_
     tmp_path: Path,
 ) -> None:
     sock = tmp_path / "d.sock"
-    proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, "--period", "20ms", "--priority", "50"))
+    args = ("--period", "20ms", "--priority", "50", "--web", "127.0.0.1:0", "--metrics", "127.0.0.1:0")
+    proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args))
     try:
         daemonproc.wait_serving(sock, proc)
         if not _scheduling(sock).startswith("SCHED_FIFO 50"):
@@ -61,10 +72,18 @@ def test_the_server_event_loop_runs_real_time_below_the_loop_and_its_workers_at_
                 f"the {round_} server's event loop at SCHED_FIFO 48",
                 lambda server=server: _policies(server)[server] == (os.SCHED_FIFO, 48),
             )
+            # The panel and /metrics on a thread of their own, one below: never ahead of an estop
+            # on the Unix and TCP doors' loop (a burst of feed handshakes put 45 ms there).
+            http = _http_thread(server)
+            assert http is not None, "no rpc-http thread: the HTTP doors share the event loop"
+            _until(
+                f"the {round_} server's HTTP doors at SCHED_FIFO 47",
+                lambda server=server, http=http: _policies(server).get(http) == (os.SCHED_FIFO, 47),
+            )
             with Client(str(sock), timeout=30) as c:  # a read of each lane starts its worker
                 c.history(5)
                 c.history(2000)
-            workers = {tid: p for tid, p in _policies(server).items() if tid != server}
+            workers = {tid: p for tid, p in _policies(server).items() if tid not in (server, http)}
             assert (os.SCHED_FIFO, 1) in workers.values(), workers
             # None of them above FIFO 1: a read's bulk never outranks the event loop's estop.
             assert all(p in ((os.SCHED_FIFO, 1), (os.SCHED_OTHER, 0)) for p in workers.values()), workers
@@ -82,11 +101,13 @@ def test_the_server_event_loop_runs_real_time_below_the_loop_and_its_workers_at_
 
 def test_with_the_loop_at_sched_other_the_server_stays_there(tmp_path: Path) -> None:
     sock = tmp_path / "d.sock"
-    proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, "--period", "20ms", "--priority", "0"))
+    args = ("--period", "20ms", "--priority", "0", "--web", "127.0.0.1:0")
+    proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args))
     try:
         daemonproc.wait_serving(sock, proc)
         assert _scheduling(sock).startswith("SCHED_OTHER")
         server = daemonproc.child_pid(proc, SERVER)
+        assert _http_thread(server) is not None
         with Client(str(sock), timeout=30) as c:
             c.history(5)
             c.history(2000)

@@ -1,0 +1,220 @@
+"""The HTTP doors of the server process (the browser panel, /metrics) on an event loop of their own.
+
+The Unix and TCP doors' event loop (server/rpc_process.py) must never have HTTP work queued ahead of
+an estop: a burst of 200 live-feed handshakes to the panel put some 200 requests' parsing, routing
+and WebSocket set-up in that loop's one queue, and a main-socket estop waited behind them (45 ms at
+p99, `make bench BENCH=abuse`). Here the HTTP doors run on a thread of their own, one SCHED_FIFO step
+below that loop's thread when it is real-time (the daemon raises that thread from outside, so this
+one follows it, looked at every FOLLOW_S), SCHED_OTHER when it is not. The two threads share the GIL:
+the event loop's takes it from this one within the switch interval (0.5 ms in the server process).
+
+The panel reaches the server's state through `CrossBackend`: each call is handed to the event
+loop's thread and its reply handed back, each notification likewise, so every socket method the
+panel uses still goes through the one dispatcher (`_PanelConn`) with its checks and bounds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import contextlib
+import ctypes
+import ctypes.util
+import logging
+import os
+import socket
+import threading
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+log = logging.getLogger("usmswitch.rpc")
+
+#: How often this thread looks at the event loop's thread's scheduling, to follow it.
+FOLLOW_S = 0.5
+#: Its name in `ps -L` and /proc (prctl PR_SET_NAME, 15 bytes at most).
+THREAD_NAME = "rpc-http"
+_PR_SET_NAME = 15
+
+
+class CrossBackend:
+    """The panel's Backend (web/panel.py) on the HTTP doors' loop over one on the event loop's
+    (`_PanelConn`): calls, notifications and exports each cross between the two threads."""
+
+    def __init__(self, inner: Any, home: asyncio.AbstractEventLoop, here: asyncio.AbstractEventLoop) -> None:
+        self.inner = inner
+        self.home = home  # the Unix and TCP doors' loop, where `inner` lives
+        self.here = here
+
+    def call(self, method: str, params: list[Any]) -> asyncio.Future[Any]:
+        """A socket method, dispatched on the event loop's thread; the reply resolves here."""
+        fut: asyncio.Future[Any] = self.here.create_future()
+
+        def settle(done: asyncio.Future[Any]) -> None:
+            if fut.done():
+                return
+            if done.cancelled():
+                fut.cancel()
+            elif (exc := done.exception()) is not None:
+                fut.set_exception(exc)
+            else:
+                fut.set_result(done.result())
+
+        def start() -> None:
+            try:
+                inner = self.inner.call(method, params)
+            except Exception as exc:  # a bug in dispatch: the panel's caller sees it, not the loop
+                failed = self.home.create_future()
+                failed.set_exception(exc)
+                inner = failed
+            inner.add_done_callback(lambda done: self._hand_back(settle, done))
+
+        self.home.call_soon_threadsafe(start)
+        return fut
+
+    def _hand_back(self, settle: Callable[[asyncio.Future[Any]], None], done: asyncio.Future[Any]) -> None:
+        with contextlib.suppress(RuntimeError):  # this loop closed first, at the end
+            self.here.call_soon_threadsafe(settle, done)
+
+    def listen(self, listener: Callable[[str, Any], None]) -> None:
+        """`listener(topic, payload)` on this loop for each notification the event loop's gets."""
+
+        def handed(topic: str, payload: Any) -> None:
+            with contextlib.suppress(RuntimeError):  # this loop closed first, at the end
+                self.here.call_soon_threadsafe(listener, topic, payload)
+
+        self.home.call_soon_threadsafe(self.inner.listen, handed)
+
+    def export_csv(self, run_id: int, write: Callable[[bytes], Awaitable[None]]) -> Awaitable[int]:
+        """A run as CSV: read by a worker thread, written from this loop (`inner` uses the running loop)."""
+        return self.inner.export_csv(run_id, write)  # type: ignore[no-any-return]
+
+
+class HttpDoors:
+    """The panel and /metrics served by a thread of their own (`start`, then `close`)."""
+
+    def __init__(self, loop_factory: Callable[[], asyncio.AbstractEventLoop] | None) -> None:
+        self.loop_factory = loop_factory or asyncio.new_event_loop
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.thread: threading.Thread | None = None
+        self.servers: list[Any] = []
+        self.leader_tid = threading.get_native_id()  # the event loop's thread, followed
+        self.refused = False  # a priority refused (said once)
+
+    async def start(self, setup: Callable[[asyncio.AbstractEventLoop], Awaitable[list[Any]]]) -> None:
+        """Start the thread and, on its loop, `setup(loop)` (it returns the servers to close at the
+        end); returns once they listen, or raises what setting them up raised."""
+        ready: concurrent.futures.Future[None] = concurrent.futures.Future()
+        self.thread = threading.Thread(target=self._run, args=(setup, ready), name=THREAD_NAME, daemon=True)
+        self.thread.start()
+        await asyncio.wrap_future(ready)
+
+    def _run(
+        self,
+        setup: Callable[[asyncio.AbstractEventLoop], Awaitable[list[Any]]],
+        ready: concurrent.futures.Future[None],
+    ) -> None:
+        _name_thread(THREAD_NAME)
+        self.follow()
+        loop = self.loop = self.loop_factory()
+        asyncio.set_event_loop(loop)
+        try:
+            self.servers = loop.run_until_complete(setup(loop))
+        except BaseException as exc:
+            ready.set_exception(exc)
+            loop.close()
+            return
+        ready.set_result(None)
+        follower = loop.create_task(self._follow_forever())
+        try:
+            loop.run_forever()
+        finally:
+            follower.cancel()
+            with contextlib.suppress(Exception):
+                loop.run_until_complete(self._close_servers())
+            loop.close()
+
+    async def _close_servers(self) -> None:
+        for server in self.servers:
+            with contextlib.suppress(Exception):
+                server.close()
+        tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+    def follow(self) -> None:
+        """One SCHED_FIFO step below the event loop's thread when it is real-time (yet above the
+        worker threads' FIFO 1), SCHED_OTHER when it is not."""
+        try:
+            policy = os.sched_getscheduler(self.leader_tid)
+            leader = os.sched_getparam(self.leader_tid).sched_priority if policy == os.SCHED_FIFO else 0
+            now = os.sched_getparam(0).sched_priority if os.sched_getscheduler(0) == os.SCHED_FIFO else 0
+        except OSError:  # the leader gone: the process is ending
+            return
+        want = max(leader - 1, min(leader, 2))
+        if want == now:
+            return
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO if want else os.SCHED_OTHER, os.sched_param(want))
+        except OSError as exc:
+            if not self.refused:
+                log.warning(
+                    "rpc: the HTTP doors' thread stays as it is (SCHED_FIFO %d refused: %s)", want, exc
+                )
+            self.refused = True
+
+    async def _follow_forever(self) -> None:
+        while True:
+            await asyncio.sleep(FOLLOW_S)
+            self.follow()
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop serving and end the thread (from the event loop's thread)."""
+        loop, thread = self.loop, self.thread
+        if loop is not None and thread is not None and thread.is_alive():
+            with contextlib.suppress(RuntimeError):
+                loop.call_soon_threadsafe(loop.stop)
+            thread.join(timeout_s)
+
+
+def _name_thread(name: str) -> None:
+    """The calling thread's name as the kernel shows it (ps -L, /proc/PID/task/TID/comm)."""
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+        libc.prctl(_PR_SET_NAME, name.encode()[:15], 0, 0, 0)
+
+
+async def serve_http(
+    listeners: list[tuple[socket.socket, str]],
+    panel_conn: Any,
+    snapshot: Callable[[], tuple[dict[str, bytes], dict[str, int]]],
+    cfg: dict[str, Any],
+    loop_factory: Callable[[], asyncio.AbstractEventLoop] | None,
+    executor: Callable[[], concurrent.futures.Executor],
+) -> HttpDoors:
+    """Serve the HTTP listeners (kind "metrics" or "web") on their own thread; `panel_conn` is the
+    panel's dispatcher on the calling (event) loop, `snapshot()` what the metrics page is made of,
+    `executor()` the HTTP loop's default executor (its threads below it)."""
+    home = asyncio.get_running_loop()
+    doors = HttpDoors(loop_factory)
+
+    async def setup(here: asyncio.AbstractEventLoop) -> list[Any]:
+        here.set_default_executor(executor())
+        servers: list[Any] = []
+        for sock, kind in listeners:
+            if kind == "metrics":
+                from usmswitch.web.metrics_page import serve_metrics  # aiohttp, prometheus_client: only here
+
+                servers.append(await serve_metrics(sock, snapshot))
+            else:
+                from usmswitch.web.panel import serve_panel  # aiohttp: only here
+
+                hosts = frozenset(cfg.get("web_allowed_hosts", ()))
+                backend = CrossBackend(panel_conn, home, here)
+                servers.append(
+                    await serve_panel(sock, backend, cfg["web_token"], cfg["web_token_file"], hosts)
+                )
+        return servers
+
+    await doors.start(setup)
+    return doors
