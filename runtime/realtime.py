@@ -141,6 +141,25 @@ AUTO_PRIORITY = 50
 CAP_SYS_NICE = 23
 
 
+def server_fifo(tid: int, priority: int) -> bool:
+    """SCHED_FIFO `priority` (0: SCHED_OTHER) for thread `tid` of the socket's server process (0:
+    the calling thread); False and a warning when refused: it serves at SCHED_OTHER."""
+    policy = os.SCHED_FIFO if priority else os.SCHED_OTHER
+    try:
+        os.sched_setscheduler(tid, policy, os.sched_param(priority))
+    except ProcessLookupError:  # it just ended: its restart is started at `priority`
+        return True
+    except OSError as exc:
+        log.warning(
+            "the server process stays at SCHED_OTHER: an estop through it waits for the CPU with the"
+            " machine's other work",
+            refused=f"SCHED_FIFO {priority}",
+            error=str(exc),
+        )
+        return False
+    return True
+
+
 def fifo_refusal(priority: int) -> str | None:
     """Why this process may not use SCHED_FIFO `priority` (None: it may): CAP_SYS_NICE (root has it,
     unless a container or a unit took it away) or an RLIMIT_RTPRIO at least that high allow it."""

@@ -44,7 +44,7 @@ from usmswitch.protocol.wire import (
     packb,
 )
 from usmswitch.runtime.children import end_child
-from usmswitch.runtime.realtime import renice_child
+from usmswitch.runtime.realtime import renice_child, server_fifo
 from usmswitch.server.busy_poll import DEFAULT_WINDOW_NS
 
 from .rpc_process import serve
@@ -325,7 +325,7 @@ class RpcServer:
         if pid is None:
             return True
         # pid is the process's main thread: the event loop's (threads it starts later inherit it).
-        return _fifo_thread(pid, priority)
+        return server_fifo(pid, priority)
 
     def stop(self) -> None:
         """Stop serving: close every connection, end the server process, remove the socket file."""
@@ -635,24 +635,6 @@ class RpcServer:
         else:
             result = fut.result()
         self._out.put(("resp", gen, fid, error, result))
-
-
-def _fifo_thread(tid: int, priority: int) -> bool:
-    """SCHED_FIFO `priority` (0: SCHED_OTHER) for thread `tid`; False and a warning when refused."""
-    policy = os.SCHED_FIFO if priority else os.SCHED_OTHER
-    try:
-        os.sched_setscheduler(tid, policy, os.sched_param(priority))
-    except ProcessLookupError:  # it just ended: its restart is started at `priority`
-        return True
-    except OSError as exc:
-        log.warning(
-            "rpc: the server process stays at SCHED_OTHER (SCHED_FIFO %d refused: %s); an estop"
-            " through it waits for the CPU with the machine's other work",
-            priority,
-            exc,
-        )
-        return False
-    return True
 
 
 def _run_handler(

@@ -43,7 +43,7 @@ from usmswitch.protocol.wire import (
 )
 from usmswitch.runtime.logsetup import configure_logging
 from usmswitch.runtime.process_exit import exit_now
-from usmswitch.runtime.realtime import drop_realtime, renice
+from usmswitch.runtime.realtime import drop_realtime, renice, server_fifo
 from usmswitch.server.busy_poll import BusyPoll, usable_cpus
 
 log = logging.getLogger("usmswitch.rpc")
@@ -1074,17 +1074,7 @@ def raise_event_loop(priority: int) -> bool:
     it arrives, not when the machine's ordinary processes leave the CPU (at SCHED_OTHER on 2 busy
     cores: p99 15-600 ms, `make bench BENCH=abuse`). Its worker threads run below it
     (`WORKER_PRIORITY`). A refusal is a warning: it serves at SCHED_OTHER."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except OSError as exc:
-        log.warning(
-            "rpc: the server process stays at SCHED_OTHER (SCHED_FIFO %d refused: %s); an estop"
-            " through it waits for the CPU with the machine's other work",
-            priority,
-            exc,
-        )
-        return False
-    return True
+    return server_fifo(0, priority)
 
 
 def main(argv: list[str] | None = None) -> int:
