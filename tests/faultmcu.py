@@ -163,10 +163,13 @@ class FaultyMcu(McuEmulator):
         end = time.monotonic() + duration_s
         while time.monotonic() < end and (frames is None or n < frames):
             with self._lock:
-                self._run_due(time.monotonic_ns())  # a START due now leaves before these edges
-                level = self.rig.sensors()[channel]
+                level = None
                 for _ in range(200):
-                    super()._send(Edge(channel, int(level), self.device_us()))
+                    now = time.monotonic_ns()
+                    if level is None or (self._timers and self._timers[0][0] <= now):
+                        self._run_due(now)  # a START or STOP due by now leaves before this edge
+                        level = self.rig.sensors(now)[channel]
+                    super()._send(Edge(channel, int(level), self.device_us(now)))
                 n += 200
         self.said += n
         return n
