@@ -122,7 +122,12 @@ def test_a_rig_nothing_is_known_of_commissions_each_direction_once(tmp_path: Pat
     others = [abs(r["error_ns"]) for r in recs if not r["flags"] & Flag.COMMISSIONING]
     assert stats["all"]["error_max_abs_ns"] == max(others)
     assert stats["all"]["strokes"] == 40
-    assert max(abs(r["error_ns"]) for r in flagged) > stats["all"]["error_max_abs_ns"]
+    # The guessed strokes are the outliers the figures keep apart: against the others' prediction
+    # error (a start the busy host made late is its lateness, not the prediction's).
+    predicted = [
+        abs(r["error_ns"] - (r["lateness_ns"] or 0)) for r in recs if not r["flags"] & Flag.COMMISSIONING
+    ]
+    assert max(abs(r["error_ns"]) for r in flagged) > max(predicted)
     with _records(tmp_path) as db:
         kept = db.execute(
             "SELECT count(*) FROM cycles WHERE flags & ? != 0", (int(Flag.COMMISSIONING),)
