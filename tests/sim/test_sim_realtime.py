@@ -38,9 +38,22 @@ def test_events_arrive_at_their_wall_clock_instants():
     assert cpu_ns < 0.5 * wall_ns, (cpu_ns, wall_ns)
     late_ns.sort()
     assert late_ns[0] >= -1_000  # never early (clock read granularity aside)
-    # Within 1 ms on an idle machine; a shared box may preempt the odd wake-up.
-    assert late_ns[int(0.9 * len(late_ns))] < 1_000_000, late_ns
-    assert late_ns[-1] < 20_000_000, late_ns
+    # Within 1 ms on an idle machine, plus what this machine makes any thread's wake-up late now
+    # (measured beside: a busy machine preempts the odd wake-up, the sim's and everyone's).
+    machine = _wake_up_lateness_ns()
+    p90 = machine[int(0.9 * len(machine))]
+    assert late_ns[int(0.9 * len(late_ns))] < 1_000_000 + p90, (late_ns, machine)
+    assert late_ns[-1] < 20_000_000 + machine[-1], (late_ns, machine)
+
+
+def _wake_up_lateness_ns(n: int = 40) -> list[int]:
+    """How late a plain 2 ms sleep of this process wakes, sorted: the machine's share of the sim's."""
+    out = []
+    for _ in range(n):
+        t0 = time.monotonic_ns()
+        time.sleep(0.002)
+        out.append(time.monotonic_ns() - t0 - 2_000_000)
+    return sorted(out)
 
 
 def test_recv_times_out_in_real_time():
