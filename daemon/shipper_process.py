@@ -76,6 +76,7 @@ class ShipperProcess:
         #: Called before each status line is handled (the loop's wait_turn).
         self.gate = gate
         self._committed_cycle = 0  # the last stroke committed here, as the record writer said
+        self._heard = False  # a status line came from the child
         self._status: dict[str, Any] = {
             "url": self.where,
             "connected": False,
@@ -119,6 +120,7 @@ class ShipperProcess:
                 self.gate()
                 with contextlib.suppress(ValueError):
                     self._status = json.loads(line)
+                    self._heard = True
             code = proc.wait()
             if self._stopping:
                 return
@@ -170,12 +172,12 @@ class ShipperProcess:
         return status["lag"] == 0 and status["error"] is None
 
     def status(self) -> dict[str, Any]:
-        """The child's last status (the PostgresShipper.status() figures), its lag never below what
-        is committed here and not yet shipped: before the child's first word (a busy machine starts
-        it late) a lag of 0 said "all shipped" of records it had not seen."""
+        """The child's last status (the PostgresShipper.status() figures). Before its first word (a
+        busy machine starts it late) the lag is what is committed here: a lag of 0 then said "all
+        shipped" of records it had not seen."""
         out = dict(self._status)
-        behind = self._committed_cycle - (out.get("shipped_cycle") or 0)
-        out["lag"] = max(out.get("lag") or 0, behind)
+        if not self._heard:
+            out["lag"] = self._committed_cycle
         return out
 
 

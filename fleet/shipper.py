@@ -12,6 +12,7 @@ another file's strokes under this rig's name is refused, never merged). Failures
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sqlite3
 import threading
@@ -233,7 +234,14 @@ class PostgresShipper:
         conn = None
         backoff = self._retry_ns[0]
         idle_since = time.monotonic_ns()
-        while not self._stopping():
+        while True:
+            if reader is not None and self._stop.is_set():
+                # Told to stop: caught up means up to the file's last commit, not to the last wake
+                # (the final commits' wakes may not have come: their strokes were left silently).
+                with contextlib.suppress(sqlite3.Error):
+                    self.committed_cycle = max(self.committed_cycle, reader.last_cycle())
+            if self._stopping():
+                break
             try:
                 if reader is None:
                     reader = LocalRecords(self.records_path)
