@@ -17,7 +17,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -273,25 +273,34 @@ def test_watch_count_human_and_json(idle: Rig) -> None:
     run(idle, "stop")
 
 
-def test_watch_ends_cleanly_on_ctrl_c(idle: Rig) -> None:
-    assert run(idle, "cycle", "--period", "20ms").returncode == 0
+def watch_then_ctrl_c(idle: Rig, enough: Callable[[list[str]], bool]) -> tuple[list[str], str, str, int]:
+    """`usmswitchctl watch` read line by line until `enough(lines)`, then Ctrl-C: (the lines read,
+    the rest of stdout, stderr, the exit status)."""
     proc = subprocess.Popen(
         [*CTL, "--socket", str(idle.sock), "watch"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
+    lines: list[str] = []
     try:
         assert proc.stdout is not None
-        strokes = 0
-        while strokes < 2:  # the view is live: strokes arrive as they finish
+        while not enough(lines):  # the view is live: lines arrive as strokes finish
             line = proc.stdout.readline()
             assert line, proc.stderr.read() if proc.stderr else ""
-            strokes += line.split()[1:2] in (["on"], ["off"])
+            lines.append(line)
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=10)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
-    assert proc.returncode == 0, err
+    return lines, out, err, proc.returncode
+
+
+def test_watch_ends_cleanly_on_ctrl_c(idle: Rig) -> None:
+    assert run(idle, "cycle", "--period", "20ms").returncode == 0
+    _, out, err, rc = watch_then_ctrl_c(
+        idle, lambda lines: sum(line.split()[1:2] in (["on"], ["off"]) for line in lines) >= 2
+    )
+    assert rc == 0, err
     assert "Traceback" not in err and "arrived): error mean" in out
     run(idle, "stop")
 
@@ -299,19 +308,8 @@ def test_watch_ends_cleanly_on_ctrl_c(idle: Rig) -> None:
 def test_watch_on_an_idle_rig_says_so(idle: Rig) -> None:
     """Issue 37's bites: `watch` with nothing running showed zeros with no hint, and its summary's
     "128 with an error" read as 128 failures."""
-    proc = subprocess.Popen(
-        [*CTL, "--socket", str(idle.sock), "watch"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
-    try:
-        assert proc.stdout is not None
-        first, second = proc.stdout.readline(), proc.stdout.readline()
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=10)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    assert first.startswith("watching ") and proc.returncode == 0, err
+    (first, second), out, err, rc = watch_then_ctrl_c(idle, lambda lines: len(lines) >= 2)
+    assert first.startswith("watching ") and rc == 0, err
     assert second.strip() == "the rig is idle: strokes show here once a run starts (usmswitchctl cycle)"
     assert out.strip().splitlines()[-1] == "watched no strokes"
 
