@@ -24,12 +24,14 @@ import contextlib
 import importlib.util
 import json
 import os
+import sqlite3
 import subprocess
 import sys
 import threading
 import time
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import structlog
 
@@ -95,6 +97,7 @@ class ShipperProcess:
 
     def start(self) -> None:
         """Spawn the process and the thread that reads its status (and restarts it if it dies)."""
+        self._committed_cycle = max(self._committed_cycle, _last_cycle(self.settings["records"]))
         self._spawn()
         self._thread = threading.Thread(target=self._watch, name="usmswitch-shipper", daemon=True)
         self._thread.start()
@@ -179,6 +182,19 @@ class ShipperProcess:
         if not self._heard:
             out["lag"] = self._committed_cycle
         return out
+
+
+def _last_cycle(path: str) -> int:
+    """The records file's last stroke (0 when none or unreadable): until the shipper's first word,
+    all of the file may be unshipped, never none of it."""
+    try:
+        con = sqlite3.connect(f"file:{quote(str(Path(path).resolve()))}?mode=ro", uri=True)
+        try:
+            return con.execute("SELECT coalesce(max(cycle), 0) FROM cycles").fetchone()[0]
+        finally:
+            con.close()
+    except sqlite3.Error:
+        return 0
 
 
 def main() -> int:
