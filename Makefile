@@ -14,8 +14,9 @@ $(STAMP): pyproject.toml
 
 # The browser panel on loopback (docs/panel.md): the daemon prints its URL, with the token, at start.
 WEB ?= 8790
+# A second one beside it: make run STATE_DIR=/tmp/rig2 SOCKET=/tmp/rig2.sock WEB=8791
 run: $(STAMP)
-	$(VENV)/bin/usmswitchd --sim --web $(WEB)
+	$(VENV)/bin/usmswitchd --sim --web $(WEB) $(if $(STATE_DIR),--state-dir $(STATE_DIR)) $(if $(SOCKET),--socket $(SOCKET))
 
 test: $(STAMP)
 	$(PY) -m pytest

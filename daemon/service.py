@@ -147,7 +147,8 @@ def lock_state_dir(state_dir: Path) -> int:
         os.close(fd)
         raise StateDirBusyError(
             f"state directory {state_dir} is in use by another usmswitchd (pid {holder}, lock"
-            f" {path}); stop it first, or give this one its own --state-dir"
+            f" {path}); stop it first, or give this one a state directory and a socket of its own:"
+            " --state-dir DIR --socket PATH (make run STATE_DIR=DIR SOCKET=PATH WEB=PORT)"
         ) from None
     except BaseException:
         os.close(fd)

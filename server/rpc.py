@@ -59,6 +59,11 @@ STOP_GRACE_S = 0.01
 # -- the daemon side -------------------------------------------------------------------------------
 
 
+class SocketBusyError(RuntimeError):
+    """The socket's path is served by another server (a second daemon): the message says how to
+    give this one its own."""
+
+
 @dataclass(slots=True)
 class _Link:
     """One running server process (or thread) and the daemon's end of its channel."""
@@ -364,7 +369,10 @@ class RpcServer:
             except (ConnectionRefusedError, FileNotFoundError):
                 path.unlink(missing_ok=True)  # stale: left by a daemon that died
             else:
-                raise RuntimeError(f"another server is listening on {path}")
+                raise SocketBusyError(
+                    f"another server is listening on {path}: a second daemon needs a socket of its"
+                    " own, --socket PATH (make run SOCKET=PATH)"
+                )
             finally:
                 probe.close()
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)

@@ -204,6 +204,28 @@ def small_fs(tmp_path: Path) -> Iterator[Path]:
         subprocess.run(["umount", "-l", str(mnt)], check=False)
 
 
+def test_a_second_daemon_is_told_how_to_run_beside_the_first(tmp_path: Path) -> None:
+    """Issue 37's bites: a second `make run` was told to take its own --state-dir, then died on the
+    socket with a bare "RuntimeError: another server is listening". Each refusal names the flags and
+    the make variables that give a second daemon its own state directory and socket."""
+    a = start(tmp_path)
+    try:
+        daemonproc.wait_serving(tmp_path / "d.sock", a)
+        same_state = start(tmp_path)
+        _, err = same_state.communicate(timeout=30)
+        assert same_state.returncode == EXIT_START
+        said = event(err, "start-up failed")["error"]
+        assert "--state-dir DIR --socket PATH" in said and "make run STATE_DIR=DIR SOCKET=PATH" in said, said
+        own_state = start(tmp_path, state=tmp_path / "state2")
+        _, err = own_state.communicate(timeout=30)
+        assert own_state.returncode == EXIT_START
+        said = event(err, "start-up failed")["error"]
+        assert said.startswith("SocketBusyError: another server is listening on ") and "--socket PATH" in said
+        assert "make run SOCKET=PATH" in said, said
+    finally:
+        daemonproc.stop(a)
+
+
 def fill(directory: Path) -> Path:
     filler = directory / "filler"
     with filler.open("wb", buffering=0) as f:
