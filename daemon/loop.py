@@ -330,7 +330,7 @@ class ControlLoop:
         }
 
     def _open_run(self, kind: str, settings: dict[str, Any]) -> RunRecord:
-        return self.runs.open(kind, self.cycle, {**self.run_settings(), **settings}, self.cycle - 1)
+        return self.runs.open(kind, self.cycle, {**self.run_settings(), **settings})
 
     def _end_run(self, reason: str) -> None:
         """End the open run (if any) with `reason`; during a stroke, once that stroke is recorded."""

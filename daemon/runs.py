@@ -28,9 +28,10 @@ class RunBook:
         run = self.latest
         return run.run_id if run is not None and run.running else None
 
-    def open(self, kind: str, first_cycle: int, settings: dict[str, Any], last_cycle: int) -> RunRecord:
-        """A new run from `first_cycle`; an open one is ended first ("superseded", at `last_cycle`)."""
-        self.end("superseded", last_cycle, in_stroke=False)  # never two open runs
+    def open(self, kind: str, first_cycle: int, settings: dict[str, Any]) -> RunRecord:
+        """A new run from `first_cycle`; an open one is ended first ("superseded", at the cycle
+        before)."""
+        self.end("superseded", first_cycle - 1, in_stroke=False)  # never two open runs
         run = RunRecord(
             run_id=self._next_id,
             kind=kind,
