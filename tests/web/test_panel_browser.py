@@ -140,6 +140,38 @@ def test_a_run_started_from_the_page_ends(rig: dict[str, Any], browser: Any, sho
     browser.save_screenshot(str(shots / "panel-live.png"))
 
 
+def test_a_clients_run_is_taken_over_only_when_confirmed(rig: dict[str, Any], browser: Any) -> None:
+    """Issue 37, item 5: the page's Start sent take_over and ended another client's run unasked.
+    Now the daemon's refusal names the run, the page asks, and only a yes ends that run."""
+    browser.get(f"{rig['url']}?token={rig['token']}")
+    wait_for("the control badge", lambda: body(browser, "control") == "yes")
+    for element_id, value in (("run-count", "0"), ("run-period", "15"), ("run-target", "")):
+        box = browser.find_element("id", element_id)
+        box.clear()
+        box.send_keys(value)
+    question = browser.find_element("id", "confirm")
+    with Client(str(rig["sock"])) as c:
+        # Whatever runs (the page's run from the test before, or the start-up run) gives way to it.
+        theirs = c.start_cycling("15ms", 0, take_over=True, owner="lab script")["run_id"]
+        browser.find_element("id", "start").click()
+        wait_for("the page asking", question.is_displayed)
+        asked = text(browser, "confirm-text")
+        assert f"run {theirs} (lab script, endless strokes" in asked and "Take it over?" in asked, asked
+        browser.find_element("id", "confirm-no").click()
+        wait_for("the question gone", lambda: not question.is_displayed())
+        wait_for("the cancel said", lambda: "cancelled" in text(browser, "notice"))
+        going = c.runs(1)[-1]
+        assert going["run_id"] == theirs and going["end_reason"] is None and c.status()["state"] == "cycling"
+        browser.find_element("id", "start").click()
+        wait_for("the page asking again", question.is_displayed)
+        browser.find_element("id", "confirm-yes").click()
+        mine = wait_for("the page's run", lambda: (r := c.runs(1)[-1])["run_id"] > theirs and r)
+        assert mine["settings"]["owner"] == "panel" and mine["settings"]["took_over_run"] == theirs
+        (ended,) = [r for r in c.runs(3) if r["run_id"] == theirs]
+        assert ended["end_reason"] == "taken over by panel"
+        assert c.status()["state"] == "cycling"  # the page's endless run, for the tests after
+
+
 def test_the_urls_token_becomes_an_httponly_cookie_and_leaves_every_url(
     rig: dict[str, Any], browser: Any
 ) -> None:

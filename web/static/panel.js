@@ -205,7 +205,9 @@ function connect() {
 }
 
 // -- controls ----------------------------------------------------------------------------------------
-async function control(name, body) {
+const STATE_CODE = 4; // protocol/wire.py ErrorCode.STATE: not possible in the current state
+// `refused(data)` may take a refusal ({error, code}) in hand (true) instead of it being shown.
+async function control(name, body, refused) {
   try {
     const resp = await fetch("/api/control/" + name, {
       method: "POST",
@@ -213,7 +215,10 @@ async function control(name, body) {
       body: JSON.stringify(body || {}),
     });
     const data = await resp.json();
-    if (!resp.ok) { notice(`${name}: ${data.error}`, true); return null; }
+    if (!resp.ok) {
+      if (!(refused && refused(data))) notice(`${name}: ${data.error}`, true);
+      return null;
+    }
     const warnings = (data.result && data.result.warnings) || [];
     notice(warnings.length ? warnings.join("; ") : "");
     return data.result;
@@ -225,13 +230,38 @@ async function control(name, body) {
 const msToNs = (v) => (v === "" || v === null ? undefined : Math.round(Number(v) * 1e6));
 
 $("estop").addEventListener("click", () => control("estop"));
-$("run-form").addEventListener("submit", (ev) => {
+// A run going that a client or an experiment started is never ended silently: the start goes without
+// take_over, and when the daemon refuses it naming the run, the page says whose run it is and asks
+// (in the page, never a blocking dialog: the live feed keeps drawing) before sending it again with
+// take_over, as `usmswitchctl cycle` asks for --take-over. The daemon's own start-up run gives way unasked.
+const RUN_GOING = /^already cycling: (run \d+ \(.*\) is going)/;
+let pendingStart = null;
+function ask(question, body) {
+  pendingStart = body;
+  notice("");
+  text("confirm-text", question);
+  $("confirm").hidden = false;
+  $("confirm-yes").focus();
+}
+function answered() { $("confirm").hidden = true; const body = pendingStart; pendingStart = null; return body; }
+$("confirm-yes").addEventListener("click", () => {
+  const body = answered();
+  if (body) control("start", { ...body, take_over: true });
+});
+$("confirm-no").addEventListener("click", () => { if (answered()) notice("start cancelled: the run going goes on"); });
+$("run-form").addEventListener("submit", async (ev) => {
   ev.preventDefault();
-  control("start", {
+  answered();
+  const body = {
     count: Math.round(Number($("run-count").value || 0)),
     period_ns: msToNs($("run-period").value),
     target_ns: msToNs($("run-target").value),
-    take_over: true,
+  };
+  await control("start", body, (err) => {
+    const going = err.code === STATE_CODE && RUN_GOING.exec(err.error);
+    if (!going) return false;
+    ask(`${going[1]}. Take it over? That ends it, and its record says "taken over by panel".`, body);
+    return true;
   });
 });
 $("stop").addEventListener("click", () => control("stop"));
