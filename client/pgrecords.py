@@ -21,7 +21,6 @@ from usmswitch.fleet.pg_schema import (
     CYCLES_TABLE,
     META_TABLE,
     PG_SCHEMA_VERSION,
-    RUN_COLUMNS,
     RUNS_TABLE,
     SELECT_VERSION,
     redact_url,
@@ -107,7 +106,8 @@ class PostgresRecords(RecordsSource):
 
     def runs(self) -> list[dict[str, Any]]:
         """The rig's runs, oldest first."""
-        sql = f"SELECT {RUN_COLUMNS} FROM {RUNS_TABLE} WHERE rig = %s ORDER BY run_id"
+        # Every column there is: a database only older daemons shipped to has no label or notes.
+        sql = f"SELECT * FROM {RUNS_TABLE} WHERE rig = %s ORDER BY run_id"
         rows = self._query(sql, (self.rig,))
         return [RunRecord.from_row(r).to_dict() for r in rows]
 

@@ -48,6 +48,7 @@ from usmswitch.protocol.records_schema import (
     SELECT_BY_VERSION,
     SELECT_CYCLES,
     UPSERT_RUN,
+    add_to_schema,
 )
 from usmswitch.runtime.realtime import drop_realtime
 
@@ -440,6 +441,7 @@ class RecordStore:
             if version < SCHEMA_VERSION:
                 self._migrate(conn, version)
             conn.executescript(SCHEMA)
+            self._add_to_schema(conn)
             conn.execute(
                 "INSERT OR IGNORE INTO meta (key, value)"
                 " VALUES ('schema_version', ?), ('created_wall_ns', ?)",
@@ -492,6 +494,19 @@ class RecordStore:
             schema_to=SCHEMA_VERSION,
             rows=rows,
         )
+
+    def _add_to_schema(self, conn: sqlite3.Connection) -> None:
+        """Schema 3's additions (run labels and notes) in one transaction; the version stays 3, so
+        readers that predate them still read the file (docs/records.md, "Migration")."""
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            added = add_to_schema(conn)
+            conn.execute("COMMIT")
+        except BaseException:
+            conn.execute("ROLLBACK")
+            raise
+        if added:
+            log.info("record file gained columns", path=str(self.path), columns=added)
 
     def _check_schema(self, conn: sqlite3.Connection) -> int:
         """The file's schema version (SCHEMA_VERSION for a new, empty file); refuses one it cannot read."""

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import structlog
 
-from usmswitch.protocol.records_schema import SCHEMA, SCHEMA_VERSION
+from usmswitch.protocol.records_schema import SCHEMA, SCHEMA_VERSION, add_to_schema
 
 from .run_aggregates import TABLE as AGGREGATES_TABLE
 
@@ -147,6 +147,7 @@ def _prepare_archive(path: Path) -> None:
     try:
         conn.execute("PRAGMA journal_mode = WAL")
         conn.executescript(SCHEMA + AGGREGATES_TABLE)
+        add_to_schema(conn)  # an archive made before the additions gains them, as the file did
         conn.execute(
             "INSERT OR IGNORE INTO meta (key, value) VALUES ('schema_version', ?), ('created_wall_ns', ?),"
             " ('archive_of', ?)",

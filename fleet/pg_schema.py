@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Any
 from urllib.parse import SplitResult, urlsplit, urlunsplit
 
-from usmswitch.protocol.record import FIELDS, RUN_FIELDS
+from usmswitch.protocol.record import FIELDS, LATER_RUN_FIELDS, RUN_FIELDS
 
 #: The version of these tables; the shipper creates them at start and refuses a newer database.
 PG_SCHEMA_VERSION = 1
@@ -60,6 +60,8 @@ RUN_COLUMN_TYPES: dict[str, str] = {
     "end_reason": "text",
     "driver": "text",
     "rig": "text NOT NULL",
+    "label": "text",
+    "notes": "text",
 }
 if tuple(CYCLE_COLUMN_TYPES) != FIELDS or tuple(RUN_COLUMN_TYPES) != RUN_FIELDS:
     raise ImportError("pg_schema: the column lists must follow record.FIELDS and RUN_FIELDS")
@@ -85,6 +87,17 @@ SCHEMA = [
 ]
 #: Migrations to PG_SCHEMA_VERSION, each from the version before (none yet).
 MIGRATIONS: dict[int, list[str]] = {}
+#: Additions to the schema of this version, made at a start that finds them missing: new columns an
+#: older daemon neither writes nor minds, so the version stays and daemons not yet upgraded still
+#: ship. Checked first (ALTER TABLE takes the table's exclusive lock even when there is nothing to do).
+MISSING_ADDITIONS = (
+    "SELECT count(*) FROM information_schema.columns WHERE table_schema = current_schema()"
+    f" AND table_name = '{RUNS_TABLE}' AND column_name IN ({', '.join(repr(f) for f in LATER_RUN_FIELDS)})"
+)
+ADDITIONS = [
+    f'ALTER TABLE {RUNS_TABLE} ADD COLUMN IF NOT EXISTS "{name}" {RUN_COLUMN_TYPES[name]}'
+    for name in LATER_RUN_FIELDS
+] + [f"CREATE INDEX IF NOT EXISTS {RUNS_TABLE}_label ON {RUNS_TABLE} (label, rig, run_id)"]
 SELECT_VERSION = f"SELECT value FROM {META_TABLE} WHERE key = 'schema_version'"
 SET_VERSION = (
     f"INSERT INTO {META_TABLE} (key, value) VALUES ('schema_version', %s)"

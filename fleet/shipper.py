@@ -24,15 +24,17 @@ from urllib.parse import quote
 
 import structlog
 
-from usmswitch.protocol.record import RUN_FIELDS
+from usmswitch.protocol.record import LATER_RUN_FIELDS, RUN_FIELDS
 from usmswitch.protocol.records_schema import COLUMNS, SCHEMA_VERSION
 
 from .pg_schema import (
+    ADDITIONS,
     COPY_STAGE,
     CREATE_STAGE,
     INSERT_FROM_STAGE,
     LAST_SHIPPED,
     MIGRATIONS,
+    MISSING_ADDITIONS,
     PG_SCHEMA_VERSION,
     RUNS_FROM,
     SCHEMA,
@@ -336,15 +338,20 @@ class PostgresShipper:
                 f"the database has usmswitch schema {version}; this daemon writes {PG_SCHEMA_VERSION}"
                 " (upgrade usmswitch on this rig)"
             )
-        if version == PG_SCHEMA_VERSION:
-            return
-        for statement in SCHEMA:
-            conn.execute(statement)
-        for v in range((version or PG_SCHEMA_VERSION) + 1, PG_SCHEMA_VERSION + 1):
-            for statement in MIGRATIONS[v]:
+        if version != PG_SCHEMA_VERSION:
+            for statement in SCHEMA:
                 conn.execute(statement)
-        conn.execute(SET_VERSION, (str(PG_SCHEMA_VERSION),))
-        log.info("postgres schema ready", url=self.where, schema_from=version, schema_to=PG_SCHEMA_VERSION)
+            for v in range((version or PG_SCHEMA_VERSION) + 1, PG_SCHEMA_VERSION + 1):
+                for statement in MIGRATIONS[v]:
+                    conn.execute(statement)
+            conn.execute(SET_VERSION, (str(PG_SCHEMA_VERSION),))
+            log.info(
+                "postgres schema ready", url=self.where, schema_from=version, schema_to=PG_SCHEMA_VERSION
+            )
+        if conn.execute(MISSING_ADDITIONS).fetchone()[0] < len(LATER_RUN_FIELDS):
+            for statement in ADDITIONS:
+                conn.execute(statement)
+            log.info("postgres schema gained columns", url=self.where, columns=list(LATER_RUN_FIELDS))
 
     def _check_same_file(self, reader: LocalRecords, last: tuple[int, int, int]) -> None:
         cycle, t_cmd_ns, wall_ns = last

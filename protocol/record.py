@@ -8,6 +8,7 @@ Every time is integer nanoseconds on the driver's clock, except `wall_ns` (time.
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from enum import IntFlag
@@ -314,6 +315,8 @@ class RunRecord:
     end_reason: str | None = None  # "done" (count reached), "stopped", "fault: ...", "shutdown"
     driver: str | None = None
     rig: str | None = None
+    label: str | None = None  # what the run is for, short (check_label): filtered on, indexed
+    notes: str | None = None  # free text, editable after the run (check_notes)
 
     @property
     def running(self) -> bool:
@@ -339,11 +342,46 @@ class RunRecord:
 
     @classmethod
     def from_row(cls, row: Mapping[str, Any] | Any) -> RunRecord:
-        """From `to_dict()` or a sqlite3.Row."""
-        values = {name: row[name] for name in RUN_FIELDS}
+        """From `to_dict()` or a sqlite3.Row; `label` and `notes` may be missing (a file or a
+        database from before them): None."""
+        keys = set(row.keys())
+        missing = [f for f in RUN_FIELDS if f not in keys and f not in LATER_RUN_FIELDS]
+        if missing:
+            raise ValueError(f"run row lacks field(s) {', '.join(missing)}")
+        values = {name: row[name] for name in RUN_FIELDS if name in keys}
         if isinstance(values["settings"], str):
             values["settings"] = json.loads(values["settings"])
         return cls(**values)
 
 
 RUN_FIELDS: tuple[str, ...] = tuple(f.name for f in fields(RunRecord))
+#: Run fields that older files and databases lack (added to schema 3 without a new version).
+LATER_RUN_FIELDS: tuple[str, ...] = ("label", "notes")
+
+#: A label: a short word of letters, digits and `_ . : / + -`, starting with a letter or digit (no
+#: spaces: it is typed on command lines, `usmswitchctl runs --label X`, and compared exactly).
+LABEL_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.:/+-]{0,63}")
+MAX_LABEL = 64
+#: Notes are free text of at most this many bytes of UTF-8 (under the socket's 4,096-byte strings).
+MAX_NOTES_BYTES = 4000
+
+
+def check_label(label: object) -> str:
+    """`label` if it is one (LABEL_PATTERN); ValueError saying what a label may be."""
+    if not isinstance(label, str) or not LABEL_PATTERN.fullmatch(label):
+        shown = repr(label) if len(repr(label)) <= 60 else repr(label)[:57] + "..."
+        raise ValueError(
+            f"label {shown} is not a label: 1 to {MAX_LABEL} letters, digits or _ . : / + -,"
+            " starting with a letter or digit (no spaces)"
+        )
+    return label
+
+
+def check_notes(notes: object) -> str:
+    """`notes` if it is text of at most MAX_NOTES_BYTES bytes of UTF-8; ValueError saying why not."""
+    if not isinstance(notes, str):
+        raise ValueError(f"notes must be text, got {type(notes).__name__}")
+    size = len(notes.encode("utf-8", "surrogatepass"))
+    if size > MAX_NOTES_BYTES:
+        raise ValueError(f"notes are {size:,} bytes of UTF-8; at most {MAX_NOTES_BYTES:,}")
+    return notes

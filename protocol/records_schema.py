@@ -2,9 +2,16 @@
 
 Apart from `records.py` (the store: its writer thread, reads, failures) so that the file's layout,
 which docs/records.md shows and other tools query, reads in one place.
+
+Two kinds of change: a new version (`MIGRATIONS`) for what older readers could not read, which
+they then refuse by its number; and additions to version 3 (`ADDED_COLUMNS`, `ADDITIONS`: new
+columns and tables, nothing renamed or removed), which readers of version 3 read past as they read
+past `run_aggregates`, so the version stays 3 and no reader in the field refuses the file.
 """
 
 from __future__ import annotations
+
+from typing import Any, Protocol
 
 from .record import FIELDS, RUN_FIELDS, SOURCE_FIELDS
 
@@ -55,7 +62,9 @@ CREATE TABLE IF NOT EXISTS runs (
     ended_wall_ns INTEGER,
     end_reason TEXT,
     driver TEXT,
-    rig TEXT
+    rig TEXT,
+    label TEXT,
+    notes TEXT
 );
 CREATE TABLE IF NOT EXISTS events (
     id INTEGER PRIMARY KEY,
@@ -82,13 +91,40 @@ def select_without(missing: tuple[str, ...]) -> str:
 
 # What an older file (opened read-only) lacks, by its schema version.
 SELECT_BY_VERSION = {1: select_without((*SOURCE_FIELDS, "run_id")), 2: select_without(("run_id",))}
+# A run's label and notes are its opener's at the insert; the loop's row at the run's end does not
+# overwrite notes edited meanwhile.
 UPSERT_RUN = "INSERT INTO runs ({}) VALUES ({}) ON CONFLICT (run_id) DO UPDATE SET {}".format(
     ", ".join(RUN_FIELDS),
     ", ".join("?" * len(RUN_FIELDS)),
-    ", ".join(f"{f} = excluded.{f}" for f in RUN_FIELDS if f != "run_id"),
+    ", ".join(f"{f} = excluded.{f}" for f in RUN_FIELDS if f not in ("run_id", "label", "notes")),
 )
 # Migrations, each from the version before. Old rows keep NULL ("unknown" source, no run).
 MIGRATIONS = {
     2: "ALTER TABLE cycles ADD COLUMN driver TEXT; ALTER TABLE cycles ADD COLUMN rig TEXT;",
     3: "ALTER TABLE cycles ADD COLUMN run_id INTEGER;",
 }
+
+#: Additions to schema 3, per table: columns an older file gains at a writer's open (NULL in its
+#: rows). The last columns of their table, so that `INSERT ... SELECT *` between two files agrees.
+ADDED_COLUMNS: dict[str, tuple[tuple[str, str], ...]] = {"runs": (("label", "TEXT"), ("notes", "TEXT"))}
+#: Additions to schema 3 that need the added columns (run after them), one statement each.
+ADDITIONS = ("CREATE INDEX IF NOT EXISTS runs_label ON runs (label, run_id)",)
+
+
+class _Connection(Protocol):
+    def execute(self, sql: str, /) -> Any: ...
+
+
+def add_to_schema(conn: _Connection) -> list[str]:
+    """Bring a file of schema 3 (SCHEMA already run on it) to today's additions; idempotent, and
+    inside the caller's transaction if it has one. Returns the columns added ("runs.label", ...)."""
+    added = []
+    for table, columns in ADDED_COLUMNS.items():
+        have = {row[1] for row in conn.execute(f"PRAGMA table_info({table})")}
+        for name, decl in columns:
+            if name not in have:
+                conn.execute(f"ALTER TABLE {table} ADD COLUMN {name} {decl}")
+                added.append(f"{table}.{name}")
+    for statement in ADDITIONS:
+        conn.execute(statement)
+    return added

@@ -22,7 +22,7 @@ from usmswitch.client import Client
 from usmswitch.daemon.records import RecordStore
 from usmswitch.fleet.pg_schema import CYCLE_COLUMNS, CYCLES_TABLE, RUN_COLUMNS, RUNS_TABLE
 from usmswitch.fleet.shipper import PostgresShipper
-from usmswitch.protocol.record import CycleRecord, RunRecord
+from usmswitch.protocol.record import RUN_FIELDS, CycleRecord, RunRecord
 
 FAST = {"retry_ns": (20_000_000, 200_000_000), "poll_ns": 50_000_000, "connect_timeout_s": 2}
 
@@ -104,7 +104,7 @@ def test_records_arrive_once_each_field_for_field_and_resume_from_the_database(p
     wait_for(lambda: again.runs_shipped >= 1, what="the run's end shipped")
     rows = server.query(db, f"SELECT {RUN_COLUMNS} FROM {RUNS_TABLE} ORDER BY run_id")
     assert [r[:8] for r in rows] == [(1, "cycling", 1, 5, {"count": 700}, 700, 9, "done")]
-    assert rows[0][-1] == "rigA"
+    assert rows[0][RUN_FIELDS.index("rig")] == "rigA"
 
     # A batch sent again (as after a connection lost during COMMIT) inserts nothing twice.
     again.shipped_cycle = 300
