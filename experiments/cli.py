@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from usmswitch.client import RecordsFileError, open_records
+from usmswitch.client.plots import wall_text
 from usmswitch.protocol.version import PACKAGE_VERSION
 
 from . import (
@@ -210,6 +211,14 @@ def main(argv: list[str] | None = None) -> int:
     except (RecordsFileError, OSError, RuntimeError) as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return EXIT_FAILED
+    ctx.date = f"{started:%Y-%m-%d %H:%M:%S}"
+    if ctx.recorded is not None:
+        run = ctx.recorded.run or {}
+        ctx.rig_name = run.get("rig") or str(args.rig or args.from_records)
+        if run.get("started_wall_ns"):
+            ctx.date = wall_text(run["started_wall_ns"])  # when the strokes were made, not read
+    elif ctx.rig is not None:
+        ctx.rig_name = ctx.rig.name
     if args.from_records is not None:
         data = f"read from {where} (read-only; nothing was written beside this report)"
     elif args.socket is not None:
@@ -236,6 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for name in names:
             key, fn = EXPERIMENTS[name]
+            ctx.run_ids = []  # each experiment's figures name its own runs
             try:
                 section = fn(ctx)
             except (NeedsSimulatedRig, NeedsStrokes) as exc:

@@ -13,7 +13,15 @@ from usmswitch.predictor import AR_MODELS, DEFAULT_MODEL, MODELS, make_predictor
 
 from .context import MS, Context
 from .data import Strokes
-from .figures import DIRECTION_COLOURS, DIRECTION_NAMES, histogram_with_normal, new_figure, save, thin
+from .figures import (
+    DIRECTION_COLOURS,
+    DIRECTION_NAMES,
+    MICRO,
+    histogram_with_normal,
+    legend_beside,
+    new_figure,
+    thin,
+)
 
 #: (T, drive frequency, the paper's std, max error % of T, operating-time band %) per condition.
 CONDITIONS = ((12 * MS, 40_000.0, 95_300, 0.41, 0.85), (24 * MS, 40_500.0, 102_700, 0.44, 0.42))
@@ -164,11 +172,11 @@ def run(ctx: Context) -> dict[str, Any]:
         a = ax_hist[0][k]
         for d, name in enumerate(DIRECTION_NAMES):
             histogram_with_normal(a, settled.of(d).error_ns / 1e3, name, DIRECTION_COLOURS[d])
-        a.set_xlabel("error = total - T (us)")
-        a.set_ylabel("density (1/us)")
+        a.set_xlabel(f"error = total - T ({MICRO})")
+        a.set_ylabel(f"density (1/{MICRO})")
         a.set_title(f"T = {target_ns / MS:g} ms, {freq / 1e3:g} kHz (Fig. 14)")
-        a.legend(fontsize=7)
-    figures += save(fig_hist, ctx.figures, "fig14_error_histogram")
+        legend_beside(a, fontsize=7)
+    figures += ctx.save(fig_hist, "fig14_error_histogram")
     return {"rows": rows, "conditions": conditions, "figures": figures, "settle_strokes": SETTLE}
 
 
@@ -185,7 +193,7 @@ def _figures(ctx: Context, s: Strokes, target_ns: int, freq: float, band_pct: fl
     a.set_xlabel("cycle")
     a.set_ylabel("operating time (ms)")
     a.set_title(f"Prediction against measurement, T = {target_ns / MS:g} ms, {freq / 1e3:g} kHz (Fig. 11)")
-    a.legend(fontsize=7, ncol=2)
+    legend_beside(a, fontsize=7)
     b = ax[1][0]
     x, y = thin(s.cycle, s.total_ns / 1e6)
     b.plot(x, y, ".", ms=2, color="tab:green", label="total = arrival - command")
@@ -195,8 +203,6 @@ def _figures(ctx: Context, s: Strokes, target_ns: int, freq: float, band_pct: fl
         b.axhline(t * (1 + sign * band_pct / 100), color="tab:red", lw=0.8, ls="--")
     b.set_xlabel("cycle")
     b.set_ylabel("total operating time (ms)")
-    b.set_title(
-        f"Closed loop; dashed: the paper's +-{band_pct} % (Fig. {12 if target_ns == 12 * MS else 13})"
-    )
-    b.legend(fontsize=7)
-    return save(fig, ctx.figures, f"fig11_13_closed_loop_{tag}")
+    b.set_title(f"Closed loop; dashed: the paper's ±{band_pct} % (Fig. {12 if target_ns == 12 * MS else 13})")
+    legend_beside(b, fontsize=7)
+    return ctx.save(fig, f"fig11_13_closed_loop_{tag}", runs=[s.run_id])

@@ -6,8 +6,12 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
+
+from usmswitch.client.plots import runs_text
 
 from .data import Strokes
+from .figures import save
 from .rig import Progress, Rig, RunSpec, SimulatedRig
 
 MS = 1_000_000
@@ -41,6 +45,11 @@ class Context:
     scale: float = 1.0
     progress: ProgressFactory = no_progress
     notes: list[str] = field(default_factory=list)
+    #: For the figures' titles: the rig's name and the date of its strokes ("2025-06-01 14:27:03").
+    rig_name: str = ""
+    date: str = ""
+    #: The runs the current experiment made (the CLI empties it before each experiment).
+    run_ids: list[int] = field(default_factory=list)
 
     @property
     def figures(self) -> Path:
@@ -63,7 +72,17 @@ class Context:
         if self.rig is None:
             raise NeedsStrokes(f"{name}: no rig and no records to analyse")
         with self.progress(name, count) as advance:
-            return self.rig.run(RunSpec(name, count, period_ns, target_ns, **kw), advance)  # type: ignore[arg-type]
+            made = self.rig.run(RunSpec(name, count, period_ns, target_ns, **kw), advance)  # type: ignore[arg-type]
+        if made.run_id is not None:
+            self.run_ids.append(made.run_id)
+        return made
+
+    def save(self, fig: Any, name: str, runs: list[int | None] | None = None) -> list[str]:
+        """The figure saved (figures.save) under a title naming its runs (default: the
+        experiment's so far), the rig and the date."""
+        if runs is None:
+            runs = [self.recorded.run_id] if self.recorded is not None else list(self.run_ids)
+        return save(fig, self.figures, name, stamp=f"{runs_text(runs)}, rig {self.rig_name}, {self.date}")
 
     def _where(self) -> str:
         if self.recorded is not None:

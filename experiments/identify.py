@@ -12,7 +12,7 @@ from usmswitch.protocol.record import CycleRecord
 from usmswitch.sim.params import TABLE1_2XI_WN, TABLE1_FREQUENCY_HZ, TABLE1_K_WN, TABLE1_WN2
 
 from .context import MS, Context
-from .figures import new_figure, save
+from .figures import legend_beside, new_figure
 
 
 def fit_second_order(tau: np.ndarray, speed: np.ndarray) -> tuple[float, float, float]:
@@ -72,11 +72,11 @@ def run(ctx: Context) -> dict[str, Any]:
     a_ax.set_xlabel("time from drive on (ms)")
     a_ax.set_ylabel("speed (m/s)")
     a_ax.set_title("Speed response at different drive frequencies, 500 Vpp (Fig. 8)")
-    a_ax.legend(fontsize=8)
+    legend_beside(a_ax)
     return {
         "rows": rows,
         "time_unit_ns": unit,
         "note": "one stroke per frequency, friction and warm-up included: the identified K w_n carries "
         "the stroke's friction scale (a few %), as an identification on a real rig would",
-        "figures": save(fig, ctx.figures, "fig08_speed_by_frequency"),
+        "figures": ctx.save(fig, "fig08_speed_by_frequency"),
     }

@@ -8,7 +8,7 @@ import numpy as np
 
 from .context import MS, Context
 from .data import describe_ns
-from .figures import DIRECTION_COLOURS, DIRECTION_NAMES, new_figure, save
+from .figures import DIRECTION_COLOURS, DIRECTION_NAMES, legend_beside, new_figure
 
 FREQUENCY_HZ = 39_600.0
 STROKES = 500
@@ -44,6 +44,6 @@ def run(ctx: Context) -> dict[str, Any]:
     a.set_xlabel("switch operation of the direction (cycle)")
     a.set_ylabel("operating time (ms)")
     a.set_title(f"Open loop at {FREQUENCY_HZ / 1e3:.1f} kHz, 500 Vpp (Fig. 6)")
-    a.legend()
-    out["figures"] = save(fig, ctx.figures, "fig06_open_loop")
+    legend_beside(a)
+    out["figures"] = ctx.save(fig, "fig06_open_loop")
     return out

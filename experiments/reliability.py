@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from .context import MS, Context
-from .figures import new_figure, save, thin
+from .figures import legend_beside, new_figure, thin
 
 STROKES = 100_000
 TARGET_NS = 10_500_000
@@ -46,7 +46,7 @@ def run(ctx: Context) -> dict[str, Any]:
     a.set_xlabel("cycle")
     a.set_ylabel("time (ms)")
     a.set_title(f"Reliability: {len(s):,} on/off strokes at a fixed {out['target_ns'] / 1e6:g} ms (Fig. 15)")
-    a.legend(fontsize=7)
+    legend_beside(a, fontsize=7)
     b = ax[1][0]
     x, y = thin(s.cycle, travel_mm)
     b.plot(x, y, ".", ms=1.5, color="tab:blue")
@@ -54,5 +54,5 @@ def run(ctx: Context) -> dict[str, Any]:
     b.set_xlabel("cycle")
     b.set_ylabel("travel per cycle (mm)")
     b.set_title(f"{s.arrived:,} of {len(s):,} cycles travelled the full {stroke_mm:g} mm (Fig. 16)")
-    out["figures"] = save(fig, ctx.figures, "fig15_16_reliability")
+    out["figures"] = ctx.save(fig, "fig15_16_reliability")
     return out

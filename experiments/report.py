@@ -12,7 +12,7 @@ from .aic import PAPER_AIC
 
 
 def _ns(v: float | int | None) -> str:
-    return "-" if v is None else format_ns(round(v))
+    return "-" if v is None else format_ns(round(v), micro="µs")
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -129,9 +129,9 @@ def render(summary: dict[str, Any]) -> str:
                 else "NOT the same sign on every seed."
             )
             lines += [
-                f"Trend: {t['slope_ms_per_c'] * 1e3:+.1f} us per C on this seed; over {len(slopes)} "
-                f"seeds {np.mean(slopes) * 1e3:+.1f} us per C, spread (sd) "
-                f"{t['slope_spread_ms_per_c'] * 1e3:.1f} us per C, from {min(slopes) * 1e3:+.1f} to "
+                f"Trend: {t['slope_ms_per_c'] * 1e3:+.1f} µs per C on this seed; over {len(slopes)} "
+                f"seeds {np.mean(slopes) * 1e3:+.1f} µs per C, spread (sd) "
+                f"{t['slope_spread_ms_per_c'] * 1e3:.1f} µs per C, from {min(slopes) * 1e3:+.1f} to "
                 f"{max(slopes) * 1e3:+.1f}: {sign}",
                 "",
             ]
@@ -150,7 +150,7 @@ def render(summary: dict[str, Any]) -> str:
                 )
         lines += _table(["reading", "AIC(1)", "AIC(2)", "AIC(3)", "best"], rows)
         lines += [
-            "AIC in the paper's units (sigma^2 in us^2). The paper does not say which strokes or which "
+            "AIC in the paper's units (sigma^2 in µs²). The paper does not say which strokes or which "
             "reading of Eq. 9 its Table 2 used; `docs/predictor.md` explains both. Under the in-sample fit "
             "AIC cannot grow by more than 2 per order, so the paper's steps of 16 and 70 fit only the "
             "rolling (one-step prediction) reading.",
@@ -188,7 +188,7 @@ def render(summary: dict[str, Any]) -> str:
                     f"{cond['target_ns'] / 1e6:g} ms",
                     f"{_ns(ours['std_ns'])} ({_ns(p['std_ns'])})",
                     f"{ours['max_abs_error_pct']} % ({p['max_error_pct']} %)",
-                    f"+-{cond['operating_time_within_pct']} % (+-{p['within_pct']} %)",
+                    f"±{cond['operating_time_within_pct']} % (±{p['within_pct']} %)",
                     str(cond["late"]),
                 ]
             )
@@ -210,9 +210,9 @@ def render(summary: dict[str, Any]) -> str:
         lines += [
             "The first strokes of each direction (the predictor's window) are left out, as the paper's "
             "figures show a running controller. A note on the paper's own numbers: a standard deviation of "
-            "95.3 us over hundreds of normally distributed strokes (Fig. 14) puts the largest error near "
-            "3 sigma, about 0.29 ms or 2.4 % of 12 ms; a maximum error of 0.41 % of 12 ms is 49 us, half "
-            "of one sigma, and cannot hold beside it. Its +-0.85 % band (+-102 us at 12 ms) and "
+            "95.3 µs over hundreds of normally distributed strokes (Fig. 14) puts the largest error near "
+            "3 sigma, about 0.29 ms or 2.4 % of 12 ms; a maximum error of 0.41 % of 12 ms is 49 µs, half "
+            "of one sigma, and cannot hold beside it. Its ±0.85 % band (±102 µs at 12 ms) and "
             '"less than 0.14 ms" agree with each other but not with the std either. We report ours as '
             "measured; the max error we give is the largest over the run.",
             "",

@@ -49,6 +49,8 @@ class Rig(Protocol):
 
     simulated: bool
     seed: int | None
+    #: The rig as its records name it (`[daemon] rig`; the simulated rig's "sim-seed-N").
+    name: str
 
     def run(self, spec: RunSpec, progress: Progress | None = None) -> Strokes: ...
 
@@ -75,7 +77,8 @@ class SimulatedRig:
         self.model = UsmSwitchModel(self.params, seed=seed)
         self.daq = SimDaq(self.model)
         self.daq.open()
-        self.store = RecordStore(records_path, driver="sim", rig=f"sim-seed-{seed}")
+        self.name = f"sim-seed-{seed}"
+        self.store = RecordStore(records_path, driver="sim", rig=self.name)
         nominal = self.params.nominal_operating_ns
         self.predictors = [
             ARPredictor(order=order, window=window, model=model, nominal_ns=nominal) for _ in range(2)
@@ -150,6 +153,7 @@ class LiveRig:
         self.restored: list[str] = []
         try:
             status = self.client.status()
+            self.name = str(status.get("rig") or address or "the local daemon")
             if status["state"] == "fault":
                 raise RuntimeError(f"the rig is in FAULT ({status['fault']}): `usmswitchctl reset` first")
             self.before = self._settings(status)

@@ -10,7 +10,7 @@ import numpy as np
 from usmswitch.protocol.record import CycleRecord
 
 from .context import MS, Context
-from .figures import new_figure, save
+from .figures import legend_beside, new_figure
 from .open_loop import FREQUENCY_HZ
 
 CYCLES = (50, 100, 150)
@@ -58,6 +58,6 @@ def run(ctx: Context) -> dict[str, Any]:
     a.set_xlabel("time from drive on (ms)")
     a.set_ylabel("speed (m/s)")
     a.set_title(f"Speed response at different cycles, {FREQUENCY_HZ / 1e3:.1f} kHz, 500 Vpp (Fig. 7)")
-    a.legend(fontsize=8)
-    out["figures"] = save(fig, ctx.figures, "fig07_speed")
+    legend_beside(a)
+    out["figures"] = ctx.save(fig, "fig07_speed")
     return out

@@ -17,7 +17,7 @@ import numpy as np
 
 from .context import MS, Context
 from .data import describe_ns
-from .figures import DIRECTION_NAMES, new_figure, save
+from .figures import DIRECTION_NAMES, legend_beside, new_figure
 from .rig import RunSpec, SimulatedRig
 
 TEMPERATURES_C = (25.0, 27.5, 30.0)
@@ -65,7 +65,7 @@ def run(ctx: Context) -> dict[str, Any]:
     a.set_xlabel("switch operation (cycle)")
     a.set_ylabel("operating time (ms)")
     a.set_title("Operating time at different motor temperatures (Fig. 9)")
-    a.legend(title="motor temperature")
+    legend_beside(a, title="motor temperature")
     temps = [r["motor_c_mean"] for r in rows]
     slope = _slope_ms_per_c(temps, [r["all"]["mean_ns"] for r in rows])
     slopes = [slope, *_other_seeds(ctx, sim)]
@@ -75,7 +75,7 @@ def run(ctx: Context) -> dict[str, Any]:
         "slopes_ms_per_c": [round(x, 4) for x in slopes],
         "slope_spread_ms_per_c": round(float(np.std(slopes, ddof=1)), 4) if len(slopes) > 1 else None,
         "every_seed_slower_when_warmer": all(x > 0 for x in slopes),
-        "figures": save(fig, ctx.figures, "fig09_temperature"),
+        "figures": ctx.save(fig, "fig09_temperature"),
     }
 
 

@@ -102,8 +102,10 @@ def parse_duration_ns(value: str | int) -> int:
     return int(ns)
 
 
-def format_ns(ns: int) -> str:
-    """Render integer nanoseconds for people, in the unit that fits: "12.000 ms", "95.3 us", "250 ns"."""
+def format_ns(ns: int, *, micro: str = "us") -> str:
+    """Render integer nanoseconds for people, in the unit that fits: "12.000 ms", "95.3 us", "250 ns".
+
+    `micro="µs"` for figures and reports (a terminal's and a CSV's reader gets plain ASCII "us")."""
     if isinstance(ns, bool) or not isinstance(ns, int):
         raise ValueError(f"format_ns needs integer nanoseconds, got {ns!r}")
     sign = "-" if ns < 0 else ""
@@ -114,7 +116,7 @@ def format_ns(ns: int) -> str:
     for exponent, step, unit in _FORMAT_STEPS:
         shown = Decimal(mag).scaleb(exponent).quantize(step)
         if shown < 1000:
-            return f"{sign}{shown} {unit}"
+            return f"{sign}{shown} {micro if unit == 'us' else unit}"
     return f"{sign}{Decimal(mag).scaleb(-9).quantize(Decimal('0.000001'))} s"
 
 

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import datetime
 from dataclasses import replace
 from pathlib import Path
 
+import matplotlib
+import matplotlib.text
 import pytest
 
-from usmswitch.client.plots import plot_run, run_marks
+from usmswitch.client.plots import draw_run, legends_over_data, plot_run, run_marks
 from usmswitch.daemon.loop import ControlLoop
 from usmswitch.daemon.records import RecordStore
 from usmswitch.predictor import ARPredictor
@@ -56,5 +59,38 @@ def test_a_sweep_is_marked_by_run_and_target_and_every_axis_has_its_unit(tmp_pat
     assert run_marks([replace(r, run_id=None) for r in records[:60]]) == []  # one T, no runs: no marks
     svg = plot_run(records, tmp_path / "sweep.svg").read_text()
     for text in ("run 2", "T on 14.000 ms", "cycle", "operating time t, predicted t_hat (ms)",
-                 "error = total - T (us)", "strokes (count)", "T = 12.000 ms, 14.000 ms"):  # fmt: skip
+                 "error = total - T (µs)", "strokes (count)", "T = 12.000 ms, 14.000 ms"):  # fmt: skip
         assert text in svg, text
+
+
+def test_the_title_names_the_run_the_rig_and_the_date_and_no_legend_covers_a_stroke(tmp_path: Path) -> None:
+    """Issue 37's bites: the plots wrote `us` and `+-`, the legend sat on the strokes (upper right,
+    where a drifting run's points are), and the title said neither which run, nor which rig, nor when."""
+    import matplotlib.pyplot as plt
+
+    records = [replace(r, run_id=7, rig="lab-a") for r in recorded(tmp_path, 6, (12_000_000, 400))]
+    day = datetime.datetime.fromtimestamp(records[0].wall_ns / 1e9).strftime("%Y-%m-%d %H:%M:%S")
+    fig = draw_run(records, title="after the bearing change")
+    try:
+        texts = [t.get_text() for t in fig.findobj(matplotlib.text.Text)]
+        assert fig.get_suptitle() == f"after the bearing change\nrun 7, rig lab-a, {day}"
+        assert not legends_over_data(fig)
+    finally:
+        plt.close(fig)
+    shown = " ".join(texts)
+    assert "µs" in shown and "±0.42 %" in shown
+    assert " us" not in shown and "(us)" not in shown and "+-" not in shown
+
+
+def test_a_legend_over_the_strokes_is_seen(tmp_path: Path) -> None:
+    """The check itself can fail: a legend put on the points is reported."""
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    ax.plot(range(100), [5] * 100, ".", label="strokes")
+    ax.legend(loc="center")
+    try:
+        (found,) = legends_over_data(fig)
+    finally:
+        plt.close(fig)
+    assert "its legend covers" in found

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 import sqlite3
 import subprocess
 import sys
@@ -87,11 +88,45 @@ def test_all_writes_the_summary_figures_and_report(everything: Path) -> None:
     figures = sorted(p.name for p in (everything / "figures").iterdir())
     assert len(figures) == 16 and all((everything / "figures" / f).stat().st_size > 5000 for f in figures)
     report = (everything / "report.md").read_text()
-    for paper_number in ("95.3 us", "102.7 us", "3574.2", "3660.5", "100,000", "0.41 %", "0.85 %"):
+    for paper_number in ("95.3 µs", "102.7 µs", "3574.2", "3660.5", "100,000", "0.41 %", "0.85 %"):
         assert paper_number in report, paper_number
     for f in figures:
         if f.endswith(".png"):
             assert f"(figures/{f})" in report
+
+
+def test_figures_and_report_write_micro_and_plus_minus_and_title_the_run_rig_and_date(
+    everything: Path,
+) -> None:
+    """Issue 37's bites: figures and report wrote `us` and `+-`, a legend covered data (save() now
+    refuses one that does: every figure here passed it), and no title said which run, rig or day."""
+    summary = json.loads((everything / "summary.json").read_text())
+    day = summary["meta"]["started"].replace("T", " ")
+    svgs = sorted((everything / "figures").glob("*.svg"))
+    assert len(svgs) == 8
+    for svg in svgs:
+        text = svg.read_text()  # matplotlib keeps each text drawn as paths in a comment beside them
+        assert f"rig sim-seed-3, {day}" in text, svg.name
+        assert re.search(r"<!-- runs? \d+(-\d+)?, rig sim-seed-3", text), svg.name
+        assert not re.search(r"\bus\b|\+-", " ".join(re.findall(r"<!-- (.*?) -->", text))), svg.name
+    fig11 = (everything / "figures" / "fig11_13_closed_loop_24ms.svg").read_text()
+    (run_24,) = [
+        c["run_id"] for c in summary["closed_loop_runs"]["conditions"] if c["target_ns"] == 24_000_000
+    ]
+    assert f"<!-- run {run_24}, rig sim-seed-3" in fig11 and "±" in fig11
+    report = (everything / "report.md").read_text()
+    assert "µs" in report and "±" in report
+    assert not re.search(r"\d us\b|\bus per\b|\+-", report), re.findall(r".{30}(?:\d us\b|\+-).{10}", report)
+
+
+def test_a_figure_with_a_legend_over_its_data_is_refused_by_name(tmp_path: Path) -> None:
+    from usmswitch.experiments.figures import new_figure, save
+
+    fig, ax = new_figure()
+    ax[0][0].plot(range(50), [1.0] * 50, ".", label="strokes")
+    ax[0][0].legend(loc="center")
+    with pytest.raises(ValueError, match="figure covered: a legend over the data"):
+        save(fig, tmp_path, "covered")
 
 
 def test_the_summary_agrees_with_the_records(everything: Path) -> None:
