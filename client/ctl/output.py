@@ -198,6 +198,46 @@ def _count(d: dict[str, Any], key: str) -> str:
     return str(d[key]) if key in d else "-"
 
 
+#: What each model's coefficients are (predictor/: each model's `coefficients`; docs/predictor.md).
+COEFFICIENTS_ABOUT = {
+    "kalman": "phi, the friction's AR(1) coefficient, and K, the gain, of the filter predicting now"
+    " (one of a grid of twelve); a_1 of the paper's AR(1) while the direction is cold",
+    "rls": "c and a of x_k - m = c + a (x_(k-1) - m), x the log stroke time less the conditions'"
+    " shifts; a_1 of the paper's AR(1) while cold",
+    "paper": "a_1 ... a_m of Eq. 2, no intercept",
+    "centered": "c, the intercept, then a_1 ... a_m",
+}
+
+
+def coefficient_names(model: str | None, n: int) -> list[str] | None:
+    """The names of a model's `n` coefficients in the order it stores them; None when not known."""
+    ar = [f"a_{i}" for i in range(1, n + 1)]
+    if model in ("kalman", "rls"):  # a single one: the cold start's AR(1)
+        return {1: ["a_1"], 2: ["phi", "K"] if model == "kalman" else ["c", "a"]}.get(n)
+    if model == "paper":
+        return ar
+    if model == "centered":
+        return ["c", *ar[: n - 1]] if n else []
+    return None
+
+
+def coefficients_text(model: str | None, values: list[float]) -> str:
+    """`phi 0.8, K 1` (a model known), else the bare numbers; "(none yet)" before a fit."""
+    if not values:
+        return "(none yet)"
+    names = coefficient_names(model, len(values))
+    if names is None:
+        return " ".join(f"{c:.6g}" for c in values)
+    return ", ".join(f"{name} {c:.6g}" for name, c in zip(names, values, strict=True))
+
+
+def stats_model(stats: dict[str, Any]) -> str | None:
+    """The predictor model of the strokes a stats reply covers: its run's, else the reply's own."""
+    run = stats.get("run") or {}
+    model = (run.get("settings") or {}).get("model") or stats.get("model")
+    return str(model) if model else None
+
+
 def stats_table(stats: dict[str, Any]) -> str:
     """The stats reply as one aligned table: a row per figure, a column per direction and both."""
     cols = [stats.get("on", {}), stats.get("off", {}), stats.get("all", {})]
@@ -208,6 +248,7 @@ def stats_table(stats: dict[str, Any]) -> str:
     def ns(key: str) -> Callable[[dict[str, Any]], str]:
         return lambda d: show_ns(d.get(key)) if d.get("count") or key.startswith("lateness") else "-"
 
+    model = stats_model(stats)
     rows = [
         row("strokes (completed)", lambda d: _count(d, "count")),
         row("strokes (incl. stalls)", lambda d: _count(d, "strokes")),
@@ -231,11 +272,7 @@ def stats_table(stats: dict[str, Any]) -> str:
         row("model order", lambda d: _count(d, "order")),
         row(
             "coefficients",
-            lambda d: (
-                (" ".join(f"{c:.6g}" for c in d["coefficients"]) or "(none yet)")
-                if "coefficients" in d
-                else "-"
-            ),
+            lambda d: coefficients_text(model, d["coefficients"]) if "coefficients" in d else "-",
         ),
         row("predictor ready", lambda d: ("yes" if d["ready"] else "no (nominal)") if "ready" in d else "-"),
         row("start lateness p50", ns("lateness_p50_ns")),
@@ -264,6 +301,9 @@ def stats_table(stats: dict[str, Any]) -> str:
             f"spurious edges {stats['spurious_edges']}, overruns {stats.get('overruns', '-')}, "
             f"driver bounces {stats.get('driver_bounces', '-')}"
         )
+    about = COEFFICIENTS_ABOUT.get(model or "")
+    if about:
+        lines.append(f"coefficients ({model}): {about}")
     scheduling = stats.get("scheduling")
     if scheduling and not scheduling.startswith("SCHED_FIFO"):
         both = stats.get("all", {})

@@ -239,6 +239,23 @@ def test_cycle_wait_stats_and_history(idle: Rig) -> None:
     assert [line.split()[0] for line in table[1:]] == [str(x["cycle"]) for x in recs]
 
 
+def test_stats_says_what_the_coefficients_are(idle: Rig) -> None:
+    """Issue 37's bites: `coefficients  1 0.85` read as nothing; the default model stores the chosen
+    filter's (phi, K), not AR coefficients a_1..a_m, and the table now names them."""
+    r = run(
+        idle, "cycle", "--period", "20ms", "--count", "70", "--wait"
+    )  # each direction past its cold start
+    assert r.returncode == 0, r.stderr
+    stats = json.loads(run(idle, "stats", "--json").stdout)
+    assert stats["run"]["settings"]["model"] == "kalman" and stats["on"]["ready"] and stats["off"]["ready"]
+    out = run(idle, "stats").stdout
+    row = next(line for line in out.splitlines() if line.startswith("coefficients "))
+    for d in ("on", "off"):
+        phi, k = stats[d]["coefficients"]
+        assert f"phi {phi:.6g}, K {k:.6g}" in row, (row, stats[d]["coefficients"])
+    assert "coefficients (kalman): phi, the friction's AR(1) coefficient, and K, the gain" in out
+
+
 def test_refused_call_exits_1_and_stop(idle: Rig) -> None:
     assert run(idle, "cycle", "--period", "20ms").returncode == 0
     wait_state(idle, "cycling")
