@@ -20,14 +20,13 @@ import os
 import signal
 import socket
 import sys
-import threading
 import time
 from collections.abc import Callable
 from typing import Any, cast
 
 import msgpack
 
-from usmswitch.protocol.rpc_params import PARAMS, check_params, show
+from usmswitch.protocol.rpc_params import MAX_EXPORT_STROKES, PARAMS, check_params, show
 from usmswitch.protocol.wire import (
     BUILTIN_METHODS,
     MAX_MSGID,
@@ -45,6 +44,7 @@ from usmswitch.runtime.logsetup import configure_logging
 from usmswitch.runtime.process_exit import exit_now
 from usmswitch.runtime.realtime import drop_realtime, renice, server_fifo
 from usmswitch.server.busy_poll import BusyPoll, usable_cpus
+from usmswitch.server.records_reads import READS, RecordsReaders
 
 log = logging.getLogger("usmswitch.rpc")
 
@@ -73,134 +73,18 @@ _WEB = "web"
 # so that the client reads the reason instead of a reset.
 _LINGER_S = 0.5
 _MAX_LINGERING = 256
-_HISTORY_CHUNK = 200
-_SMALL_READ = 1000  # history reads up to this many records take the small reads' lane
 # TCP auth back-off per peer address: free tries, then a wait doubling from 100 ms up to 30 s.
 _AUTH_FREE = 3
 _AUTH_BACKOFF_NS = 100_000_000
 _AUTH_MAX_NS = 30_000_000_000
 _AUTH_PEERS = 4096  # addresses remembered (the oldest forgotten first)
-_readers = threading.local()
-
-
-#: What opens a read-only store on the records file: the daemon names it (`records_reader`), so
-#: that this process serves the records without knowing the service that writes them.
-_open_records: Callable[[str], Any] | None = None
-
-
-def _reader(records_path: str, method: str) -> Any:
-    """This worker thread's read-only store on the records file (opened once per thread)."""
-    store = getattr(_readers, "store", None)
-    if store is None or str(store.path) != records_path:
-        assert _open_records is not None
-        try:
-            store = _readers.store = _open_records(records_path)
-        except OSError as exc:
-            raise RpcError(ErrorCode.UNAVAILABLE, f"{method}: {exc}") from None
-    return store
-
-
-def _known_run(store: Any, method: str, run_id: int) -> Any:
-    run = store.run(run_id)
-    if run is None:
-        last = store.last_run_id()
-        have = f"runs are 1..{last}" if last else "no run has been recorded yet"
-        raise RpcError(ErrorCode.INVALID_PARAMS, f"{method}: no run {run_id} ({have})")
-    return run
-
-
-class _Gone(Exception):
-    """The client of a read left before it was done."""
-
-
-def _history_reply(
-    records_path: str, n: int, run_id: int | None = None, gone: threading.Event | None = None
-) -> bytes:
-    """The last `n` records (of one run) packed as a msgpack array (a worker thread of the server
-    process).
-
-    Packed a chunk of records per call, so the event loop's thread gets the GIL between chunks
-    and an estop or a ping is answered while a large history is being packed.
-    """
-    store = _reader(records_path, "history")
-    if run_id is not None:
-        _known_run(store, "history", run_id)
-    records = store.history(n, run_id=run_id)
-    packer = msgpack.Packer(use_bin_type=True, autoreset=True)
-    parts = [packer.pack_array_header(len(records))]
-    for i in range(0, len(records), _HISTORY_CHUNK):
-        if gone is not None and gone.is_set():
-            raise _Gone
-        parts.append(b"".join(packer.pack(r.to_dict()) for r in records[i : i + _HISTORY_CHUNK]))
-    return b"".join(parts)
-
-
-def _runs_reply(records_path: str, n: int) -> bytes:
-    """The last `n` runs, oldest first, packed."""
-    return packb([r.to_dict() for r in _reader(records_path, "runs").runs(n)])
-
-
-def _stats_reply(
-    records_path: str, run_id: int | None, first_cycle: int | None, last_cycle: int | None
-) -> bytes:
-    """Statistics of a past run or a range of cycles, from the records file, packed."""
-    from usmswitch.protocol.stats import stats_of_records  # the server process only
-
-    store = _reader(records_path, "stats")
-    run = None if run_id is None else _known_run(store, "stats", run_id)
-    first = first_cycle or 1
-    last = last_cycle
-    if first_cycle is not None and last_cycle is not None and last_cycle < first_cycle:
-        raise RpcError(
-            ErrorCode.INVALID_PARAMS, f"stats: last_cycle {last_cycle} is before first_cycle {first_cycle}"
-        )
-    if run is not None and first_cycle is None and last_cycle is None:
-        # A run's statistics as kept while its strokes were written: the same cost at 10^7 strokes
-        # as at 10 (issue 36). A run without them yet (a file being migrated) is scanned.
-        kept = store.run_stats(run.run_id)
-        if kept is not None:
-            return packb(kept)
-    return packb(stats_of_records(store.iter_records(first, last, run_id=run_id), run))
-
-
-def _export_csv(records_path: str, run_id: int, put: Callable[[bytes], None]) -> int:
-    """A run's records as CSV, handed to `put` a chunk at a time (a worker thread of the server
-    process; `put` waits while the browser is behind, so memory stays a few chunks)."""
-    from usmswitch.protocol.record_csv import csv_header_line  # the panel's export only
-
-    store = _reader(records_path, "export")
-    run = _known_run(store, "export", run_id)
-    put(csv_header_line().encode())
-    n = 0
-    # Each chunk's text built by SQLite in one statement (no tuple, record or dict a stroke: issue
-    # 36), the same bytes as the csv module writes.
-    for strokes, _last, text in store.csv_chunks(run.first_cycle, run.last_cycle, run_id=run_id):
-        n += strokes
-        put(text.encode())
-    return n
-
-
-def _export_reply(
-    records_path: str, run_id: int | None, first_cycle: int, last_cycle: int | None, max_strokes: int
-) -> bytes:
-    """One chunk of an export over the socket: the CSV lines (no header) of up to `max_strokes`
-    strokes from `first_cycle` on (to `last_cycle`, of one run), built by SQLite as the file and the
-    panel's exports are; the client asks for the next chunk from `last_cycle` + 1. A chunk a call,
-    so the export's memory is one chunk, a client that has gone asks for no more, and the other
-    reads of the lane take their turns between chunks."""
-    store = _reader(records_path, "export")
-    if run_id is not None:
-        _known_run(store, "export", run_id)
-    for strokes, last, text in store.csv_chunks(first_cycle, last_cycle, run_id=run_id, chunk=max_strokes):
-        return packb({"strokes": strokes, "last_cycle": last, "csv": text})
-    return packb({"strokes": 0, "last_cycle": None, "csv": ""})
 
 
 #: The worker threads' SCHED_FIFO priority when the event loop has one: the lowest there is. At
-#: SCHED_OTHER a reader holding the GIL was preempted by the machine's ordinary processes and the
-#: event loop waited for it: an estop by the main socket took up to 105 ms, by the panel 575 ms, under
-#: the abuse bench's read loads (5.7-7.6 ms and 39-54 ms with the readers here). Below the event
-#: loop, a reader gives the GIL back within the switch interval whenever the event loop wants it.
+#: SCHED_OTHER a worker holding the GIL was preempted by the machine's ordinary processes and the
+#: event loop waited for it (an estop by the panel took up to 575 ms under the abuse bench's loads).
+#: Below the event loop, a worker gives the GIL back within the switch interval whenever the event
+#: loop wants it. (The records reads run in processes of their own: server/records_reads.py.)
 WORKER_PRIORITY = 1
 
 
@@ -215,15 +99,6 @@ def _worker_priority() -> None:
 def _workers(n: int, name: str) -> concurrent.futures.ThreadPoolExecutor:
     """A pool of `n` worker threads below the event loop (`_worker_priority`)."""
     return concurrent.futures.ThreadPoolExecutor(n, thread_name_prefix=name, initializer=_worker_priority)
-
-
-#: Methods answered from the records file by a worker thread, and how.
-_FILE_READS: dict[str, Callable[..., bytes]] = {
-    "history": _history_reply,
-    "runs": _runs_reply,
-    "stats": _stats_reply,
-    "export": _export_reply,
-}
 
 
 # -- the server process ----------------------------------------------------------------------------
@@ -269,16 +144,13 @@ class _Hub:
         self.done: asyncio.Future[None] = loop.create_future()
         window = cfg["busy_poll_ns"]
         self.busy = BusyPoll(loop, window, usable_cpus()) if window else None
-        # History is read from the records file here, not in the daemon: the loop's process never
-        # reads or packs a large reply. The pool bounds how many reads run at once.
-        self.records_path: str | None = cfg["records_path"]
-        if self.records_path:
-            global _open_records
-            _open_records = _import(cfg["records_reader"])
-        self.reads = _workers(self.limits.max_reads, "rpc-read") if self.records_path else None
-        # A lane of its own for small reads (a few hundred records, the runs list): never queued
-        # behind CSV exports or history [10000] floods (a history [5] took 8-30 s behind 4 exports).
-        self.small_reads = _workers(1, "rpc-read-small") if self.records_path else None
+        # The records file is read here, not in the daemon: the loop's process never reads or packs
+        # a large reply; and by processes of their own, never holding the GIL against this loop.
+        self.readers = (
+            RecordsReaders(loop, cfg["records_path"], cfg["records_reader"], self.limits.max_reads)
+            if cfg["records_path"]
+            else None
+        )
 
     def snapshot(self, method: str) -> bytes | None:
         """The packed result of a snapshot method, finished from its raw form when it has to be."""
@@ -394,34 +266,26 @@ class _Hub:
         return None
 
     def read(self, conn: _Conn, msgid: int, method: str, params: list[Any]) -> bytes | None:
-        """A read (history, runs, a past run's stats) served from the records file by a worker
-        thread of this process."""
+        """A read (history, runs, a past run's stats, an export's chunk) answered from the records
+        file by a reader process (server/records_reads.py)."""
         if conn.outstanding >= self.limits.max_outstanding:
             return self._too_many(conn, msgid, method)
-        assert self.reads is not None and self.small_reads is not None and self.records_path is not None
+        assert self.readers is not None
         conn.outstanding += 1
-        small = method == "runs" or (method == "history" and params[0] <= _SMALL_READ)
-        gone = conn.gone
-        fn = _FILE_READS[method]
-        path = self.records_path
-
-        def job() -> bytes:
-            if gone.is_set():  # its client left while it waited: no read for nobody
-                raise _Gone
-            return fn(path, *params, gone=gone) if method == "history" else fn(path, *params)
-
-        fut = self.loop.run_in_executor(self.small_reads if small else self.reads, job)
+        fut = self.readers.read(method, params, lambda: conn.closed)
         conn.reads.add(fut)
 
         def done(fut: asyncio.Future[bytes]) -> None:
             conn.outstanding -= 1
             conn.reads.discard(fut)
-            if fut.cancelled() or isinstance(fut.exception(), _Gone):
+            if fut.cancelled() or conn.closed:
                 return
             exc = fut.exception()
             if exc is None:
                 conn.write(ok_frame(msgid, fut.result()))
             elif isinstance(exc, RpcError):
+                if exc.code == ErrorCode.INTERNAL:
+                    log.error("rpc: %s read failed: %s", method, exc.message)
                 conn.write(error_frame(msgid, exc.code, exc.message))
             else:
                 log.error("rpc: %s read failed: %s", method, exc)
@@ -565,8 +429,7 @@ class _Conn(asyncio.Protocol):
         self.drop_pending = 0
         self.drop_total = 0
         self.reserved = False  # taken past the door's budget: auth and estop only, briefly
-        self.gone = threading.Event()  # set when the connection closes: its reads stop
-        self.reads: set[asyncio.Future[bytes]] = set()
+        self.reads: set[asyncio.Future[bytes]] = set()  # in a reader's queue or being read
 
     # asyncio callbacks
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
@@ -597,8 +460,7 @@ class _Conn(asyncio.Protocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.closed = True
-        self.gone.set()
-        for fut in list(self.reads):  # queued reads are dropped; a running one stops at its next chunk
+        for fut in list(self.reads):  # queued reads are dropped unread; a running one is not sent
             fut.cancel()
         self._uncount()
         if self.hub.busy is not None:
@@ -688,7 +550,7 @@ class _Conn(asyncio.Protocol):
                 if snap is not None:
                     return ok_frame(msgid, snap)
                 if any(p is not None for p in params):
-                    if self.hub.reads is not None:
+                    if self.hub.readers is not None:
                         return self.hub.read(self, msgid, method, params)
                     raise RpcError(
                         ErrorCode.UNAVAILABLE,
@@ -696,7 +558,7 @@ class _Conn(asyncio.Protocol):
                         "this server has none",
                     )
                 raise RpcError(ErrorCode.UNAVAILABLE, f"{method}: nothing published yet")
-            if method in _FILE_READS and self.hub.reads is not None:
+            if method in READS and self.hub.readers is not None:
                 return self.hub.read(self, msgid, method, params)
             snap = self.hub.snapshot(method)
             if snap is not None and not params:
@@ -876,33 +738,29 @@ class _PanelConn(_Conn):
         self.listeners.append(listener)
 
     async def export_csv(self, run_id: int, write: Callable[[bytes], Any]) -> int:
-        """A run as CSV, read by a worker thread and written as the browser takes it."""
-        if self.hub.reads is None or self.hub.records_path is None:
+        """A run as CSV, a chunk at a time (read by a reader process, as the socket's `export`),
+        each written as the browser takes it: the memory is a chunk, a browser gone reads no more."""
+        from usmswitch.protocol.record_csv import csv_header_line  # the panel's export only
+
+        hub = self.hub
+        if hub.readers is None:
             raise RpcError(ErrorCode.UNAVAILABLE, "export: this server has no records file")
-        loop = asyncio.get_running_loop()  # the HTTP doors' (server/http_doors.py)
-        chunks: asyncio.Queue[bytes | None] = asyncio.Queue(maxsize=4)
-        gone = threading.Event()
+        readers = hub.readers
 
-        def put(chunk: bytes) -> None:
-            if gone.is_set():
-                raise ConnectionError("the browser went away")
-            asyncio.run_coroutine_threadsafe(chunks.put(chunk), loop).result(timeout=60)
+        async def chunk(first: int) -> bytes:  # on the hub's loop, where the readers live
+            return await readers.read("export", [run_id, first, None, MAX_EXPORT_STROKES])
 
-        def produce() -> int:
-            try:
-                return _export_csv(cast(str, self.hub.records_path), run_id, put)
-            finally:
-                loop.call_soon_threadsafe(chunks.put_nowait, None)
-
-        job = loop.run_in_executor(self.hub.reads, produce)
-        try:
-            while (chunk := await chunks.get()) is not None:
-                await write(chunk)
-        finally:
-            gone.set()
-            while not chunks.empty():  # a producer waiting on a full queue goes on, and ends
-                chunks.get_nowait()
-        return await job
+        first, n = 1, 0
+        while True:  # on the HTTP doors' loop (server/http_doors.py)
+            got = await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(chunk(first), hub.loop))
+            part = msgpack.unpackb(got, raw=False)
+            if first == 1:  # the run is known (its first read said so): the header
+                await write(csv_header_line().encode())
+            if not part["strokes"]:
+                return n
+            n += part["strokes"]
+            await write(part["csv"].encode())
+            first = part["last_cycle"] + 1
 
     def write(self, data: bytes) -> None:
         _, msgid, error, result = msgpack.unpackb(data, raw=False)
@@ -987,9 +845,8 @@ async def _serve(
         for conn in list(hub.conns):
             if conn.transport is not None:
                 conn.transport.abort()
-        for pool in (hub.reads, hub.small_reads):
-            if pool is not None:
-                pool.shutdown(wait=False, cancel_futures=True)
+        if hub.readers is not None:
+            hub.readers.close()
 
 
 def _loop_factory() -> Callable[[], asyncio.AbstractEventLoop] | None:
@@ -1014,7 +871,7 @@ def descriptors_needed(limits: Limits) -> int:
     doors = limits.max_connections + limits.max_tcp_connections + 2 * limits.urgent_reserve
     # A door sheds or refuses a newcomer only after accepting it: one more per door, briefly.
     http = PANEL_CONNECTIONS + METRICS_CONNECTIONS + 2
-    readers = 3 * (limits.max_reads + 1)  # each reader thread: the file, its -wal and -shm
+    readers = limits.max_reads + 1  # a socket to each reader process (their files are theirs)
     return doors + http + _MAX_LINGERING + readers + 64  # 64: listeners, channels, std streams, libs
 
 

@@ -4,7 +4,10 @@ its records file holds >10,000 strokes in a few seconds."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
+import subprocess
 import threading
 import time
 from collections.abc import Iterator
@@ -80,9 +83,24 @@ def test_a_small_history_is_not_queued_behind_big_reads(rig: tuple[Path, int]) -
         raw.close()
 
 
-def _cpu_s(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+def _readers(server_pid: int) -> list[int]:
+    """The server's records reader processes (server/records_reads.py)."""
+    found = subprocess.run(
+        ["pgrep", "-P", str(server_pid), "-f", "usmswitch.server.records_reads"],
+        capture_output=True,
+        text=True,
+    )
+    return [int(pid) for pid in found.stdout.split()]
+
+
+def _cpu_s(server_pid: int) -> float:
+    """CPU seconds of the server process and its records readers, where the reads are done."""
+    total = 0.0
+    for pid in (server_pid, *_readers(server_pid)):
+        with contextlib.suppress(FileNotFoundError):
+            fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+            total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
 
 
 def test_reads_of_a_client_that_left_are_dropped(rig: tuple[Path, int]) -> None:
@@ -92,7 +110,7 @@ def test_reads_of_a_client_that_left_are_dropped(rig: tuple[Path, int]) -> None:
         raw = Raw(str(sock))
         raw.send(*([0, i, "history", [10_000]] for i in range(1, 33)))
         raw.close()
-    time.sleep(2.0)  # the reads that had begun run to their next chunk and stop
+    time.sleep(2.0)  # the reads that had begun end (one of 10,000 records: well under a second)
     before = _cpu_s(server_pid)
     time.sleep(2.0)
     used = _cpu_s(server_pid) - before
@@ -100,3 +118,22 @@ def test_reads_of_a_client_that_left_are_dropped(rig: tuple[Path, int]) -> None:
     assert used < 0.5, f"the server used {used:.2f} s of CPU in 2 s after its clients left"
     with Client(str(sock), timeout=60) as c:
         assert len(c.history(5)) == 5
+
+
+def test_a_reader_process_that_dies_is_replaced(rig: tuple[Path, int]) -> None:
+    """The reads run in processes of their own (no GIL shared with the event loop that answers an
+    estop): killed, each is started again at its lane's next read, which is answered."""
+    sock, server_pid = rig
+    with Client(str(sock), timeout=60) as c:
+        assert len(c.history(2000)) == 2000  # the large lane's reader is up
+        readers = _readers(server_pid)
+        assert readers, "no records reader process: the reads share the event loop's GIL"
+        for pid in readers:
+            os.kill(pid, signal.SIGKILL)
+        raw = Raw(str(sock))
+        raw.send([0, 1, "history", [10_000]])
+        (reply,) = raw.read(1)  # a new reader is started for it
+        raw.close()
+        assert reply[2] is None and len(reply[3]) == 10_000, reply[2]
+        assert len(c.history(5)) == 5
+        assert c.ping() == "pong"

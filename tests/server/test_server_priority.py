@@ -1,14 +1,16 @@
 """The socket's server process beside a real-time loop (issue 35: an estop through the main socket,
 TCP or the panel waited 15-600 ms for the CPU behind the machine's ordinary processes): its event
 loop runs SCHED_FIFO two below the loop, the HTTP doors' thread (server/http_doors.py) one below
-that, its worker threads SCHED_FIFO 1, a restarted server is put back there; with the loop at
-SCHED_OTHER the server stays at SCHED_OTHER. A real daemon (subprocess)."""
+that, its worker threads SCHED_FIFO 1 at most, a restarted server is put back there; the records
+reads' processes (server/records_reads.py) at SCHED_OTHER, holding no GIL of the event loop's; with
+the loop at SCHED_OTHER the server stays at SCHED_OTHER. A real daemon (subprocess)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
 import signal
+import subprocess
 import time
 from pathlib import Path
 
@@ -18,6 +20,13 @@ import pytest
 from usmswitch.client import Client
 
 SERVER = "usmswitch.server.rpc_process"
+READER = "usmswitch.server.records_reads"
+
+
+def _readers(server: int) -> list[int]:
+    """The server's records reader processes."""
+    found = subprocess.run(["pgrep", "-P", str(server), "-f", READER], capture_output=True, text=True)
+    return [int(pid) for pid in found.stdout.split()]
 
 
 def _policies(pid: int) -> dict[int, tuple[int, int]]:
@@ -80,13 +89,16 @@ def test_the_server_event_loop_runs_real_time_below_the_loop_and_its_workers_at_
                 f"the {round_} server's HTTP doors at SCHED_FIFO 47",
                 lambda server=server, http=http: _policies(server).get(http) == (os.SCHED_FIFO, 47),
             )
-            with Client(str(sock), timeout=30) as c:  # a read of each lane starts its worker
+            with Client(str(sock), timeout=30) as c:  # a read of each lane starts its process
                 c.history(5)
                 c.history(2000)
             workers = {tid: p for tid, p in _policies(server).items() if tid not in (server, http)}
-            assert (os.SCHED_FIFO, 1) in workers.values(), workers
-            # None of them above FIFO 1: a read's bulk never outranks the event loop's estop.
+            # None of them above FIFO 1: a worker's bulk never outranks the event loop's estop.
             assert all(p in ((os.SCHED_FIFO, 1), (os.SCHED_OTHER, 0)) for p in workers.values()), workers
+            readers = _readers(server)
+            assert len(readers) == 2, f"one reader process a lane: {readers}"
+            for reader in readers:  # below everything real-time, from their birth
+                assert set(_policies(reader).values()) == {(os.SCHED_OTHER, 0)}, reader
             if round_ == "first":
                 # Restarted by the daemon's bridge thread (SCHED_FIFO 49): put back at 48.
                 os.kill(server, signal.SIGKILL)
@@ -112,6 +124,7 @@ def test_with_the_loop_at_sched_other_the_server_stays_there(tmp_path: Path) -> 
             c.history(5)
             c.history(2000)
         assert {p for p in _policies(server).values()} == {(os.SCHED_OTHER, 0)}
+        assert len(_readers(server)) == 2
     finally:
         daemonproc.stop(proc)
 
