@@ -189,6 +189,8 @@ class AsyncClient(Api):
         allow_late: bool = False,
         take_over: bool = False,
         timeout: float | None = None,
+        label: str | None = None,
+        notes: str | None = None,
     ) -> AsyncRun:
         """Start a run; `async for` over the result yields its strokes and ends with the run."""
         added = [t for t in ("stroke", "run") if t not in self.topics]
@@ -196,7 +198,13 @@ class AsyncClient(Api):
             self.topics = set((await self.call("subscribe", added))["topics"])
         try:
             started = await self.start_cycling(
-                period, count, target=target, allow_late=allow_late, take_over=take_over
+                period,
+                count,
+                target=target,
+                allow_late=allow_late,
+                take_over=take_over,
+                label=label,
+                notes=notes,
             )
         except BaseException:
             if added and self.connected:

@@ -17,6 +17,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from usmswitch.protocol.record import check_label, check_notes
 from usmswitch.protocol.sockets import client_socket_paths, rig_socket_path
 from usmswitch.protocol.units import parse_duration_ns
 
@@ -125,6 +126,8 @@ class Api(ABC):
         allow_late: bool = False,
         take_over: bool = False,
         owner: str | None = None,
+        label: str | None = None,
+        notes: str | None = None,
     ) -> Cycling:
         """Open a run: alternate on/off strokes every `period`, `count` of them (0: until stopped),
         at `target` when given (else the current targets).
@@ -132,12 +135,36 @@ class Api(ABC):
         The daemon's own start-up run (`make run`) gives way to it. A run that a client or an
         experiment started raises WrongState naming it, unless `take_over` ends it first. `owner`
         (default: this user, host, pid and program) is who the run is recorded as started by; the
-        daemon's own start-up run is owned by "autostart", and gives way to any other.
+        daemon's own start-up run is owned by "autostart", and gives way to any other. `label` (a
+        short word: `runs --label`, `stats --label` find it) and `notes` (free text) say what the
+        run is for; `annotate_run` edits them later.
         """
         period_ns = duration_ns("period", period)
         target_ns = None if target is None else duration_ns("target", target)
         who = run_owner() if owner is None else owner
-        return self.call("start_cycling", period_ns, count, target_ns, allow_late, take_over, who)
+        params = [period_ns, count, target_ns, allow_late, take_over, who]
+        if label is not None or notes is not None:  # a daemon from before labels takes six params
+            params += [check_label(label) if label else label, None if notes is None else check_notes(notes)]
+        return self.call("start_cycling", *params)
+
+    def annotate_run(
+        self,
+        run: int,
+        notes: str | None = None,
+        *,
+        label: str | None = None,
+        operator: bool = False,
+        owner: str | None = None,
+    ) -> RunInfo:
+        """Set a run's notes and/or label (None: unchanged; "": cleared), during or after it; returns
+        the run. A run another person started (its owner's `user@host`) is refused with WrongState
+        unless `operator`: as `take_over`, a guard against editing another's run by mistake."""
+        if label:
+            check_label(label)
+        if notes is not None:
+            check_notes(notes)
+        who = run_owner() if owner is None else owner
+        return self.call("annotate_run", run, notes, label, who, operator)
 
     def stop_cycling(self) -> dict[str, Any]:
         """Stop cycling after the stroke in progress; the reply carries the ended run."""

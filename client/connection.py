@@ -415,16 +415,25 @@ class Client(Api):
         allow_late: bool = False,
         take_over: bool = False,
         timeout: float | None = None,
+        label: str | None = None,
+        notes: str | None = None,
     ) -> Run:
         """Start a run and return it: iterating the `Run` yields its stroke records (none missed:
         the subscription is made before the start) and ends when the run ends. `timeout`: seconds
-        to wait for each stroke (None: forever)."""
+        to wait for each stroke (None: forever). `label` and `notes` say what the run is for
+        (`start_cycling`)."""
         added = [t for t in ("stroke", "run") if t not in self.topics]
         if added:
             self._subscribed(self.call("subscribe", added))
         try:
             started = self.start_cycling(
-                period, count, target=target, allow_late=allow_late, take_over=take_over
+                period,
+                count,
+                target=target,
+                allow_late=allow_late,
+                take_over=take_over,
+                label=label,
+                notes=notes,
             )
         except BaseException:
             if added and self.connected:

@@ -127,6 +127,8 @@ class RunInfo(TypedDict):
     settings: dict[str, Any]  # period_ns, count, target_on_ns, target_off_ns, mode, model, ...
     driver: str | None
     rig: str | None
+    label: str | None  # what the run is for, a short word (None: none given)
+    notes: str | None  # free text, editable during and after the run (annotate_run)
 
 
 class Cycling(TypedDict):

@@ -285,12 +285,14 @@ class ControlLoop:
         *,
         kind: str = "cycling",
         settings: dict[str, Any] | None = None,
+        label: str | None = None,
+        notes: str | None = None,
     ) -> RunRecord:
         """Command a stroke every `period_ns`, alternately on and off, `count` strokes (0: until
         stopped), as a new run; returns the run (its id, its first cycle, its settings).
 
-        `kind` and `settings` describe the run for its record (an experiment names itself and
-        adds its own settings to the loop's).
+        `kind`, `settings`, `label` and `notes` describe the run for its record (an experiment names
+        itself and adds its own settings to the loop's).
         """
         check_ns("period_ns", period_ns, minimum=1)
         if isinstance(count, bool) or not isinstance(count, int) or count < 0:
@@ -306,7 +308,8 @@ class ControlLoop:
         # command_lead_ns before the instant (it was laid 2 ms ahead, inside the MCU's 4 ms lead).
         self._next_tick_ns = self.clock.now_ns() + self.daq.command_lead_ns + COMMAND_LEAD_NS
         self.state = State.CYCLING
-        return self._open_run(kind, {"period_ns": period_ns, "count": count, **(settings or {})})
+        settings = {"period_ns": period_ns, "count": count, **(settings or {})}
+        return self.runs.open(kind, self.cycle, {**self.run_settings(), **settings}, label, notes)
 
     def stop_cycling(self, reason: str = "stopped") -> None:
         """Command no more strokes (the loop thread calls it between strokes); ends the run."""
@@ -328,9 +331,6 @@ class ControlLoop:
             "window": getattr(p[0], "window", None),
             "driver": self.daq.name,
         }
-
-    def _open_run(self, kind: str, settings: dict[str, Any]) -> RunRecord:
-        return self.runs.open(kind, self.cycle, {**self.run_settings(), **settings})
 
     def _end_run(self, reason: str) -> None:
         """End the open run (if any) with `reason`; during a stroke, once that stroke is recorded."""

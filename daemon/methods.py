@@ -27,6 +27,7 @@ from usmswitch.protocol.wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcErro
 from usmswitch.server.estop_socket import EstopSocket
 from usmswitch.server.rpc import RpcServer
 
+from . import run_notes
 from .config import Config
 from .config_values import parse_host_port, parse_listen
 from .loop import AUTOSTART_OWNER, ControlLoop, LoopError, Mode, State
@@ -95,6 +96,7 @@ class Methods:
             "set_mode": self.set_mode,
             "reset_fault": self.reset_fault,
             "set_drive": self.set_drive,
+            "annotate_run": self.annotate_run,
         }
 
     def urgent(self) -> dict[str, Callable[[list[Any]], object]]:
@@ -261,7 +263,7 @@ class Methods:
         what `make run` starts) gives way to a client's run with a log line; a run a client or an
         experiment started is taken over only when asked (`take_over`), else refused naming it.
         """
-        period_ns, count, target_ns, allow_late, take_over, owner = params
+        period_ns, count, target_ns, allow_late, take_over, owner, label, notes = params
 
         def run() -> dict[str, Any]:
             loop = self.loop
@@ -276,7 +278,7 @@ class Methods:
             if taken is not None:
                 settings["took_over_run"] = taken.run_id
             try:
-                run = loop.start_cycling(period_ns, count, settings=settings)
+                run = loop.start_cycling(period_ns, count, settings=settings, label=label, notes=notes)
             except Exception:
                 loop.set_targets(old)  # a refused run changes nothing
                 raise
@@ -320,6 +322,44 @@ class Methods:
         log.info("run taken over", run=going.run_id, owner=by, by=owner or "a client", at_cycle=loop.cycle)
         loop.stop_cycling(f"taken over by {owner or 'a client'}")
         return going
+
+    def annotate_run(self, params: list[Any]) -> Future[Any]:
+        """A run's label and notes edited (daemon/run_notes.py); answered with the run once the
+        edit is in the file, and told to subscribers as a `run` notification."""
+        run_id, notes, label, owner, operator = params
+        if notes is None and label is None:
+            raise RpcError(ErrorCode.INVALID_PARAMS, "annotate_run: give notes, a label or both")
+        latest = self.loop.latest_run
+        run = latest if latest is not None and latest.run_id == run_id else self.store.run(run_id)
+        if run is None:
+            last = self.store.last_run_id()
+            have = f"runs are 1..{last}" if last else "no run has been recorded yet"
+            raise RpcError(ErrorCode.INVALID_PARAMS, f"annotate_run: no run {run_id} ({have})")
+        refused = run_notes.may_edit(run, owner, operator)
+        if refused is not None:
+            raise RpcError(ErrorCode.STATE, f"annotate_run: {refused}")
+        if run is latest:  # the loop's copy, which the run's end writes and tells, has them too
+            if label is not None:
+                latest.label = label or None
+            if notes is not None:
+                latest.notes = notes or None
+        self.store.record_event("notes", run_id=run_id, label=label, notes=notes, by=owner)
+        done: Future[Any] = Future()
+
+        def written(fut: Future[Any]) -> None:
+            exc = fut.exception()
+            if exc is not None:
+                done.set_exception(exc)
+                return
+            edited: RunRecord | None = fut.result()
+            if edited is None:  # moved to the archive since (retention)
+                done.set_exception(RpcError(ErrorCode.INVALID_PARAMS, f"annotate_run: no run {run_id}"))
+                return
+            self.on_run(edited)
+            done.set_result(edited.to_dict())
+
+        self.store.write(run_notes.edit(run_id, label, notes)).add_done_callback(written)
+        return done
 
     def stop_cycling(self, params: list[Any]) -> Future[Any]:
         def run() -> dict[str, Any]:

@@ -30,6 +30,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
@@ -82,6 +83,19 @@ class _Flush:
 
 
 _STOP = object()
+
+
+class _Write:
+    """A marker in the queue: `fn(conn)` run in the batch's transaction (a savepoint of its own, so
+    a refusal undoes only itself), its result or error given to `done` once the batch is committed."""
+
+    __slots__ = ("done", "error", "fn", "result")
+
+    def __init__(self, fn: Callable[[sqlite3.Connection], Any]) -> None:
+        self.fn = fn
+        self.done: Future[Any] = Future()
+        self.result: Any = None
+        self.error: BaseException | None = None
 
 
 class RecordStore:
@@ -221,6 +235,16 @@ class RecordStore:
         """Queue a run's row (at its open, and again at its end), in order with the records."""
         self._stamp(run, RunRecord, "submit_run")
         self._queue.put(RunRecord(**run.to_dict()))  # a copy: the loop goes on changing its own
+
+    def write(self, fn: Callable[[sqlite3.Connection], Any]) -> Future[Any]:
+        """Queue `fn(conn)` for the writer (run edits, the queue of runs): run in the transaction of
+        its batch, after the batch's strokes and run rows, so it sees everything queued before it;
+        the future has its result once committed, or the exception it raised."""
+        if self._closed:
+            raise RecordStoreError(f"record store {self.path} is closed (or read-only)")
+        item = _Write(fn)
+        self._queue.put(item)
+        return item.done
 
     def _stamp(self, item: CycleRecord | RunRecord, kind: type, call: str) -> None:
         """Refuse what cannot be queued; stamp the store's driver and rig where the item has none."""
@@ -702,9 +726,13 @@ class RecordStore:
         events = []
         runs = []
         unconvertible: list[tuple[int, str]] = []
+        writes = []
         for item in batch:
             if type(item) is tuple:
                 events.append(item)
+                continue
+            if type(item) is _Write:
+                writes.append(item)
                 continue
             if type(item) is RunRecord:
                 runs.append(item.to_row())
@@ -730,6 +758,16 @@ class RecordStore:
                 conn.executemany(INSERT_EVENT, events)
             if runs:
                 conn.executemany(UPSERT_RUN, runs)
+            for w in writes:
+                conn.execute("SAVEPOINT write")
+                try:
+                    w.result, w.error = w.fn(conn), None
+                except sqlite3.OperationalError:
+                    raise  # the file's trouble (locked, full): the batch is retried
+                except Exception as exc:
+                    conn.execute("ROLLBACK TO write")
+                    w.error = exc
+                conn.execute("RELEASE write")
             conn.execute("COMMIT")
         except BaseException:
             if conn.in_transaction:
@@ -779,6 +817,11 @@ class RecordStore:
                 self._tell(self.on_commit, records)
                 records = []
                 self._tell(self.on_run, item)
+            elif type(item) is _Write:
+                if item.error is None:
+                    item.done.set_result(item.result)
+                else:
+                    item.done.set_exception(item.error)
         self._tell(self.on_commit, records)
 
     def _tell(self, listener: Callable[[Any], None] | None, what: Any) -> None:

@@ -28,7 +28,14 @@ class RunBook:
         run = self.latest
         return run.run_id if run is not None and run.running else None
 
-    def open(self, kind: str, first_cycle: int, settings: dict[str, Any]) -> RunRecord:
+    def open(
+        self,
+        kind: str,
+        first_cycle: int,
+        settings: dict[str, Any],
+        label: str | None = None,
+        notes: str | None = None,
+    ) -> RunRecord:
         """A new run from `first_cycle`; an open one is ended first ("superseded", at the cycle
         before)."""
         self.end("superseded", first_cycle - 1, in_stroke=False)  # never two open runs
@@ -38,6 +45,8 @@ class RunBook:
             first_cycle=first_cycle,
             started_wall_ns=time.time_ns(),
             settings=settings,
+            label=label,
+            notes=notes,
         )
         self._next_id += 1
         self.latest = run

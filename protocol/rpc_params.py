@@ -9,6 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from .record import check_label, check_notes
 from .wire import MAX_HISTORY, ErrorCode, RpcError
 
 _REQUIRED = object()
@@ -93,6 +94,23 @@ def _text(name: str, max_len: int) -> Callable[[str, object], object]:
     return check
 
 
+def _label(method: str, value: object) -> object:
+    """A run's label (record.check_label), or "" for none."""
+    if value == "" and type(value) is str:
+        return value
+    try:
+        return check_label(value)
+    except ValueError as exc:
+        raise RpcError(ErrorCode.INVALID_PARAMS, f"{method}: {exc}") from None
+
+
+def _notes(method: str, value: object) -> object:
+    try:
+        return check_notes(value)
+    except ValueError as exc:
+        raise RpcError(ErrorCode.INVALID_PARAMS, f"{method}: {exc}") from None
+
+
 def _topics(method: str, value: object) -> object:
     if type(value) is not list or not all(type(t) is str for t in value):
         raise RpcError(
@@ -165,6 +183,15 @@ PARAMS: dict[str, _Spec] = {
         ("allow_late", _boolean("allow_late"), False),
         ("take_over", _boolean("take_over"), False),
         ("owner", _text("owner", 200), ""),
+        ("label", _optional(_label), None),
+        ("notes", _optional(_notes), None),
+    ),
+    "annotate_run": (
+        ("run", _integer("run", 1, _MAX_ID), _REQUIRED),
+        ("notes", _optional(_notes), None),
+        ("label", _optional(_label), None),
+        ("owner", _text("owner", 200), ""),
+        ("operator", _boolean("operator"), False),
     ),
     "stop_cycling": (),
     "set_mode": (

@@ -35,6 +35,7 @@ METHODS = (
     "reset_fault",
     "estop",
     "set_drive",
+    "annotate_run",
 )
 
 
@@ -102,6 +103,9 @@ def test_every_typed_method_sends_the_documented_params(server: RpcServer, rec: 
         assert c.switch("on") == {"cycle": 41, "direction": 0}
         c.start_cycling(50_000_000, 1000)
         c.start_cycling(period="20ms", target="12ms")
+        c.start_cycling("20ms", 5, label="sweep-1", notes="why")
+        c.annotate_run(3, "seen")
+        c.annotate_run(3, label="x", operator=True)
         c.stop_cycling()
         c.set_mode("open")
         c.set_mode("open", "2ms")
@@ -121,8 +125,11 @@ def test_every_typed_method_sends_the_documented_params(server: RpcServer, rec: 
         ("history", [5, 3]),
         ("runs", [20]),
         ("switch", ["on"]),
-        ("start_cycling", [50_000_000, 1000, None, False, False, run_owner()]),
-        ("start_cycling", [20_000_000, 0, 12_000_000, False, False, run_owner()]),
+        ("start_cycling", [50_000_000, 1000, None, False, False, run_owner(), None, None]),
+        ("start_cycling", [20_000_000, 0, 12_000_000, False, False, run_owner(), None, None]),
+        ("start_cycling", [20_000_000, 5, None, False, False, run_owner(), "sweep-1", "why"]),
+        ("annotate_run", [3, "seen", None, run_owner(), False]),
+        ("annotate_run", [3, None, "x", run_owner(), True]),
         ("stop_cycling", []),
         ("set_mode", ["open", None]),
         ("set_mode", ["open", 2_000_000]),

@@ -564,3 +564,28 @@ def test_a_full_disk_is_a_writer_error_and_nothing_is_lost_when_space_returns(sm
     assert store.flush()
     assert store.writer_error is None and store.backlog == 0 and store.dropped == 0
     assert store.count() == i + 20 and store.close()
+
+
+def test_a_write_runs_in_order_with_the_records_and_a_refused_one_undoes_only_itself(tmp_path: Path) -> None:
+    """`RecordStore.write` (run edits, the queue of runs): run by the writer with what was queued
+    before it in the file, its result once committed; one that raises leaves nothing of its own
+    and the batch around it still lands."""
+    store = RecordStore(tmp_path / "records.sqlite")
+    try:
+        store.submit(make_record(1))
+        seen = store.write(lambda conn: conn.execute("SELECT max(cycle) FROM cycles").fetchone()[0])
+
+        def refused(conn: sqlite3.Connection) -> None:
+            conn.execute("INSERT INTO meta (key, value) VALUES ('half', 'done')")
+            raise ValueError("no such run")
+
+        failed = store.write(refused)
+        store.submit(make_record(2))
+        assert seen.result(10) >= 1  # record 1, queued before it, is there
+        with pytest.raises(ValueError, match="no such run"):
+            failed.result(10)
+        assert store.flush() and store.last_cycle() == 2
+        meta = store._reader().execute("SELECT count(*) FROM meta WHERE key = 'half'").fetchone()[0]
+        assert meta == 0
+    finally:
+        store.close()
