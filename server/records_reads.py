@@ -21,8 +21,8 @@ import argparse
 import asyncio
 import collections
 import contextlib
-import importlib
 import logging
+import pkgutil
 import socket
 import subprocess
 import sys
@@ -113,11 +113,6 @@ _REPLIES: dict[str, Callable[..., bytes]] = {
 }
 
 
-def _import(ref: str) -> Callable[[str], Any]:
-    module, _, name = ref.partition(":")
-    return getattr(importlib.import_module(module), name)  # type: ignore[no-any-return]
-
-
 def answer(store: Any, method: str, params: list[Any]) -> list[Any]:
     """[error or None, packed result]: one read, as the reader process sends it back."""
     try:
@@ -159,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     sock = socket.socket(fileno=args.fd)
     sock.setblocking(True)
     with contextlib.suppress(BrokenPipeError, ConnectionResetError, KeyboardInterrupt):
-        worker(sock, args.records, _import(args.reader))
+        worker(sock, args.records, pkgutil.resolve_name(args.reader))
     return 0
 
 
