@@ -135,6 +135,7 @@ class DirectionAggregate(DirectionStats):
         self.late, self.stalls, self.bounces, self.faults = st.get("counters", (0, 0, 0, 0))
         self.implausible = int(st.get("implausible", 0))
         self.mismatched = int(st.get("mismatched", 0))
+        self.cut_short = int(st.get("cut_short", 0))  # absent from aggregates kept before it was counted
         self.commissioning = list(st.get("commissioning", ()))
 
     def snapshot(self, raw: bool = False) -> dict[str, Any]:
@@ -159,6 +160,7 @@ class DirectionAggregate(DirectionStats):
             "counters": [self.late, self.stalls, self.bounces, self.faults],
             "implausible": self.implausible,
             "mismatched": self.mismatched,
+            "cut_short": self.cut_short,
             "commissioning": self.commissioning,
         }
 

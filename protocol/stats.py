@@ -145,6 +145,9 @@ class DirectionStats:
         self.commissioning: list[dict[str, int | None]] = []
         self.implausible = 0  # strokes the hardware side reported that were not strokes
         self.mismatched = 0  # strokes whose stamps the device's own account did not bear out
+        # Strokes ended before an arrival by an estop, a fault or the daemon's stop, not a stall: in
+        # the run's cycles as every stroke is, so `strokes` counts what `runs` counts.
+        self.cut_short = 0
 
     def add(
         self,
@@ -220,6 +223,7 @@ class DirectionStats:
                     if pct > self.max_abs_error_pct:
                         self.max_abs_error_pct = pct
             self.stalls += bool(flags & _STALL)
+            self.cut_short += rec.error_ns is None and not flags & _STALL
         lateness = rec.lateness_ns
         if lateness is not None:
             self.lateness.add(lateness)
@@ -234,7 +238,12 @@ class DirectionStats:
         `raw=True` leaves the percentiles to `finish_direction`: the windows travel as bytes.
         """
         strokes = (
-            self.error.count + self.stalls + len(self.commissioning) + self.implausible + self.mismatched
+            self.error.count
+            + self.stalls
+            + self.cut_short
+            + len(self.commissioning)
+            + self.implausible
+            + self.mismatched
         )
         out: dict[str, object] = {"count": self.operating.count, "strokes": strokes}
         out.update(self.operating.as_dict("operating"))
@@ -247,6 +256,7 @@ class DirectionStats:
         out["commissioning"] = list(self.commissioning)
         out["implausible"] = self.implausible
         out["mismatched"] = self.mismatched
+        out["cut_short"] = self.cut_short
         return out if raw else finish_direction(out)
 
 

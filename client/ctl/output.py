@@ -251,7 +251,7 @@ def stats_table(stats: dict[str, Any]) -> str:
     model = stats_model(stats)
     rows = [
         row("strokes (completed)", lambda d: _count(d, "count")),
-        row("strokes (incl. stalls)", lambda d: _count(d, "strokes")),
+        row("strokes (all recorded)", lambda d: _count(d, "strokes")),
         row("operating mean", ns("operating_mean_ns")),
         row("operating std", ns("operating_std_ns")),
         row("total mean", ns("total_mean_ns")),
@@ -267,6 +267,7 @@ def stats_table(stats: dict[str, Any]) -> str:
         row("stalls", lambda d: _count(d, "stalls")),
         row("bounces", lambda d: _count(d, "bounces")),
         row("faults", lambda d: _count(d, "faults")),
+        row("cut short (estop, fault, stop)", lambda d: _count(d, "cut_short")),
         row("implausible (not strokes)", lambda d: _count(d, "implausible")),
         row("mismatched (device disagreed)", lambda d: _count(d, "mismatched")),
         row("model order", lambda d: _count(d, "order")),
