@@ -104,12 +104,19 @@ class PostgresRecords(RecordsSource):
         sql = f"SELECT coalesce(max(cycle), 0) AS c FROM {CYCLES_TABLE} WHERE rig = %s"
         return int(self._query(sql, (self.rig,))[0]["c"])
 
-    def runs(self) -> list[dict[str, Any]]:
-        """The rig's runs, oldest first."""
+    def runs(self, label: str | None = None) -> list[dict[str, Any]]:
+        """The rig's runs (with that label), oldest first."""
         # Every column there is: a database only older daemons shipped to has no label or notes.
-        sql = f"SELECT * FROM {RUNS_TABLE} WHERE rig = %s ORDER BY run_id"
-        rows = self._query(sql, (self.rig,))
+        where, args = ("", ()) if label is None else (" AND label = %s", (label,))
+        if label is not None and "label" not in self._run_columns():
+            return []
+        sql = f"SELECT * FROM {RUNS_TABLE} WHERE rig = %s{where} ORDER BY run_id"
+        rows = self._query(sql, (self.rig, *args))
         return [RunRecord.from_row(r).to_dict() for r in rows]
+
+    def _run_columns(self) -> set[str]:
+        sql = "SELECT column_name AS c FROM information_schema.columns WHERE table_name = %s"
+        return {r["c"] for r in self._query(sql, (RUNS_TABLE,))}
 
     def _chunk(self, after: int, last: int, run: int | None, n: int) -> list[Any]:
         where, args = ("", ()) if run is None else (" AND run_id = %s", (run,))

@@ -48,12 +48,23 @@ class RecordsSource(ABC):
     name = ""
 
     def records(
-        self, first: int = 1, last: int | None = None, chunk: int = 1000, run: int | None = None
+        self,
+        first: int = 1,
+        last: int | None = None,
+        chunk: int = 1000,
+        run: int | None = None,
+        *,
+        label: str | None = None,
     ) -> Iterator[dict[str, Any]]:
-        """Every record from cycle `first` to `last` (inclusive; of one run) in cycle order, as dicts.
+        """Every record from cycle `first` to `last` (inclusive; of one run; of every run with
+        `label`) in cycle order, as dicts.
 
         Read `chunk` rows at a time, each its own short read (a daemon writing beside a long
         analysis is never held up by it)."""
+        if label is not None:
+            for labelled in self.runs(label):
+                yield from self.records(first, last, chunk, labelled["run_id"])
+            return
         after = first - 1
         stop = last if last is not None else (1 << 63) - 1
         if run is not None:
@@ -67,17 +78,29 @@ class RecordsSource(ABC):
             after = rows[-1]["cycle"]
 
     def table_rows(
-        self, first: int = 1, last: int | None = None, chunk: int = 20_000, run: int | None = None
+        self,
+        first: int = 1,
+        last: int | None = None,
+        chunk: int = 20_000,
+        run: int | None = None,
+        *,
+        label: str | None = None,
     ) -> Iterator[tuple[Any, ...]]:
         """The same records as `records`, as the file's rows (FIELDS order, coefficients as JSON
         text): for exports, which write them as they are (`record_csv.csv_rows_of_table`)."""
-        for rec in self.records(first, last, chunk, run):
+        for rec in self.records(first, last, chunk, run, label=label):
             yield tuple(
                 json.dumps([float(c) for c in rec[f]]) if f == "coefficients" else rec[f] for f in FIELDS
             )
 
     def csv_chunks(
-        self, first: int = 1, last: int | None = None, run: int | None = None, chunk: int = 10_000
+        self,
+        first: int = 1,
+        last: int | None = None,
+        run: int | None = None,
+        chunk: int = 10_000,
+        *,
+        label: str | None = None,
     ) -> Iterator[tuple[int, int, str]]:
         """The same records as CSV text (record_csv's lines, each ending in a newline, no header),
         `chunk` strokes at a time: (strokes, the chunk's last cycle, text). What exports write."""
@@ -85,7 +108,7 @@ class RecordsSource(ABC):
         buf = io.StringIO()
         writer = csv.writer(buf, lineterminator="\n")
         batch: list[tuple[Any, ...]] = []
-        for row in self.table_rows(first, last, run=run):
+        for row in self.table_rows(first, last, run=run, label=label):
             batch.append(row)
             if len(batch) == chunk:
                 writer.writerows(csv_rows_of_table(batch))
@@ -109,8 +132,8 @@ class RecordsSource(ABC):
         """Up to `n` rows (mappings of FIELDS) with after < cycle <= last (of one run), by cycle."""
 
     @abstractmethod
-    def runs(self) -> list[dict[str, Any]]:
-        """Every run, oldest first."""
+    def runs(self, label: str | None = None) -> list[dict[str, Any]]:
+        """Every run (with that label), oldest first."""
 
     @abstractmethod
     def _column_values(self, field: str, first: int, last: int) -> list[Any]:
@@ -158,10 +181,12 @@ class RecordsSource(ABC):
         *,
         run: int | None = None,
         index_col: str | None = None,
+        label: str | None = None,
     ) -> Any:
         """The records as a pandas DataFrame, as `pandas.read_sql` gives a table: one column per
         field, a default RangeIndex unless `index_col` names one (`index_col="cycle"`), `run` for
-        one run's strokes. Needs pandas (the `analysis` extra).
+        one run's strokes, `label` for those of every run with that label (`run_id` tells them
+        apart). Needs pandas (the `analysis` extra).
 
         Two fields would hide DataFrame attributes (`df.flags`, `df.mode()`): they are the columns
         `flag_bits` and `loop_mode`, and each flag is also a boolean column (`late`, `stall`, ...).
@@ -172,7 +197,8 @@ class RecordsSource(ABC):
             raise ImportError(
                 "RecordsFile.dataframe needs pandas: pip install 'usmswitch[analysis]'"
             ) from None
-        frame = pd.DataFrame.from_records(list(self.records(first, last, run=run)), columns=list(FIELDS))
+        rows = list(self.records(first, last, run=run, label=label))
+        frame = pd.DataFrame.from_records(rows, columns=list(FIELDS))
         frame = frame.rename(columns=DATAFRAME_RENAMES)
         bits = frame["flag_bits"].astype("int64")
         for flag in Flag:
@@ -221,17 +247,33 @@ class RecordsFile(RecordsSource):
         """The highest cycle number in the file (0 when empty)."""
         return int(self._db.execute("SELECT coalesce(max(cycle), 0) FROM cycles").fetchone()[0])
 
-    def runs(self) -> list[dict[str, Any]]:
-        """Every run in the file, oldest first (none in a file from before runs)."""
+    def runs(self, label: str | None = None) -> list[dict[str, Any]]:
+        """Every run in the file (with that label), oldest first (none in a file from before runs;
+        none with a label in one from before labels)."""
         if not self._has_runs:
             return []
-        rows = self._db.execute("SELECT * FROM runs ORDER BY run_id").fetchall()
+        if label is None:
+            rows = self._db.execute("SELECT * FROM runs ORDER BY run_id").fetchall()
+        elif "label" not in {r[1] for r in self._db.execute("PRAGMA table_info(runs)")}:
+            return []
+        else:
+            rows = self._db.execute("SELECT * FROM runs WHERE label = ? ORDER BY run_id", (label,)).fetchall()
         return [RunRecord.from_row(r).to_dict() for r in rows]
 
     def table_rows(
-        self, first: int = 1, last: int | None = None, chunk: int = 20_000, run: int | None = None
+        self,
+        first: int = 1,
+        last: int | None = None,
+        chunk: int = 20_000,
+        run: int | None = None,
+        *,
+        label: str | None = None,
     ) -> Iterator[tuple[Any, ...]]:
         """The file's rows as they are, in chunks of plain tuples (no record, no dict made)."""
+        if label is not None:
+            for labelled in self.runs(label):
+                yield from self.table_rows(first, last, chunk, labelled["run_id"])
+            return
         after = first - 1
         stop = last if last is not None else (1 << 63) - 1
         if run is not None:
@@ -254,14 +296,21 @@ class RecordsFile(RecordsSource):
             after = rows[-1][c]
 
     def csv_chunks(
-        self, first: int = 1, last: int | None = None, run: int | None = None, chunk: int = 10_000
+        self,
+        first: int = 1,
+        last: int | None = None,
+        run: int | None = None,
+        chunk: int = 10_000,
+        *,
+        label: str | None = None,
     ) -> Iterator[tuple[int, int, str]]:
-        """The records as CSV text, each chunk's built by SQLite in one statement (issue 36: within
-        2x `sqlite3 -csv` of the same rows), the same bytes as the csv module writes of them."""
+        """The records (of a run, of the runs with a label) as CSV text, each chunk's built by SQLite
+        in one statement (issue 36: within 2x `sqlite3 -csv` of the same rows), the same bytes as
+        the csv module writes of them."""
         if run is not None:
             self.run(run)
         try:
-            yield from csv_text_chunks(self._db, first, last, run, chunk)
+            yield from csv_text_chunks(self._db, first, last, run, chunk, label=label)
         except BadCell as exc:
             raise RecordsFileError(f"{self.path}: {exc}") from None
 

@@ -54,7 +54,7 @@ from usmswitch.protocol.records_schema import (
 from usmswitch.runtime.realtime import drop_realtime
 
 from .retention import Retention
-from .run_aggregates import AggregateKeeper, run_stats
+from .run_aggregates import AggregateKeeper, label_stats, run_stats
 
 log = structlog.get_logger("usmswitch.records")
 
@@ -405,22 +405,40 @@ class RecordStore:
             after = rows[-1]["cycle"]
 
     def csv_chunks(
-        self, first: int = 1, last: int | None = None, run_id: int | None = None, chunk: int = 10_000
+        self,
+        first: int = 1,
+        last: int | None = None,
+        run_id: int | None = None,
+        chunk: int = 10_000,
+        label: str | None = None,
     ) -> Iterator[tuple[int, int, str]]:
-        """The records as CSV text (record_csv's lines), `chunk` strokes a read, each chunk's text
-        built by SQLite in one short statement: (strokes, last cycle, text). What the panel's export
-        streams (issue 36: within 2x `sqlite3 -csv`); ValueError where a cell is not what it should be."""
+        """The records (of a run, of the runs with a label) as CSV text (record_csv's lines), `chunk`
+        strokes a read, each chunk's text built by SQLite in one short statement: (strokes, last
+        cycle, text). What the exports stream (issue 36: within 2x `sqlite3 -csv`); ValueError where
+        a cell is not what it should be."""
         try:
-            yield from csv_text_chunks(self._reader(), first, last, run_id, chunk)
+            yield from csv_text_chunks(self._reader(), first, last, run_id, chunk, label=label)
         except BadCell as exc:
             raise ValueError(f"record file {self.path}: {exc}") from None
 
-    def runs(self, n: int = 20) -> list[RunRecord]:
-        """The last `n` runs, oldest first (none in a file from before runs)."""
+    def runs(self, n: int = 20, label: str | None = None) -> list[RunRecord]:
+        """The last `n` runs (with that label), oldest first (none in a file from before runs)."""
         if self.schema_version < 3:
             return []
-        rows = self._reader().execute("SELECT * FROM runs ORDER BY run_id DESC LIMIT ?", (n,)).fetchall()
+        where, args = ("", ()) if label is None else (" WHERE label = ?", (label,))
+        try:
+            rows = (
+                self._reader()
+                .execute(f"SELECT * FROM runs{where} ORDER BY run_id DESC LIMIT ?", (*args, n))
+                .fetchall()
+            )
+        except sqlite3.OperationalError:  # read-only, a file from before labels: no run has one
+            return []
         return [RunRecord.from_row(r) for r in reversed(rows)]
+
+    def label_stats(self, label: str, n: int = 1000) -> dict[str, Any]:
+        """The statistics of the last `n` runs with `label`, pooled and per run (`run_aggregates`)."""
+        return label_stats(self._reader(), self._select, label, self.runs(n, label))
 
     def run(self, run_id: int) -> RunRecord | None:
         """One run by its id, or None."""

@@ -20,7 +20,7 @@ from typing import Any
 import msgpack
 import structlog
 
-from usmswitch.protocol.aggregate import RunAggregate
+from usmswitch.protocol.aggregate import ExactRunning, RunAggregate, Sketch
 from usmswitch.protocol.record import CycleRecord, RunRecord
 from usmswitch.protocol.stats import model_of
 
@@ -115,6 +115,53 @@ def run_stats(conn: sqlite3.Connection, select: str, run: RunRecord) -> dict[str
             ).fetchone()
         out[name] = {**snap, **model_of(None if row is None else CycleRecord.from_row(row))}
     return out
+
+
+def merge_into(into: RunAggregate, other: RunAggregate) -> None:
+    """`other`'s strokes pooled into `into`, as if folded one by one, without reading them: exact
+    sums and counts added, sketches merged (the same buckets: the same stated error), maxima kept,
+    commissioning strokes listed. Over the figures' attributes by kind (an int is a count, a float
+    a maximum), so a counter added to `DirectionStats` pools without a change here."""
+    for mine, theirs in zip((*into.per, into.both), (*other.per, other.both), strict=True):
+        for name, value in vars(theirs).items():
+            have = getattr(mine, name)
+            if isinstance(have, ExactRunning):
+                have.count, have.s, have.ss = have.count + value.count, have.s + value.s, have.ss + value.ss
+                have.max_abs = max(have.max_abs, value.max_abs)
+            elif isinstance(have, Sketch):
+                have.hist.add(value.hist)
+            elif isinstance(have, list):
+                have.extend(value)
+            elif isinstance(have, int) and not isinstance(have, bool):
+                setattr(mine, name, have + value)
+            elif isinstance(have, float):
+                setattr(mine, name, max(have, value))
+    firsts = [c for c in (into.first_cycle, other.first_cycle) if c is not None]
+    lasts = [c for c in (into.last_cycle, other.last_cycle) if c is not None]
+    into.first_cycle = min(firsts, default=None)
+    into.last_cycle = max(lasts, default=None)
+    into.records += other.records
+
+
+def label_stats(conn: sqlite3.Connection, select: str, label: str, runs: list[RunRecord]) -> dict[str, Any]:
+    """The statistics of every run with one label: pooled (`on`, `off`, `all` over all their
+    strokes, from their kept aggregates merged) and per run (`per_run`, each as `stats --run`)."""
+    pooled = RunAggregate()
+    per_run = []
+    for run in runs:
+        agg = load(conn, select, run.run_id)
+        if agg is None:  # none kept yet (a file being migrated): its strokes folded now
+            agg = RunAggregate()
+            _fold_after(conn, select, agg, run.run_id)
+        merge_into(pooled, agg)
+        per_run.append(run_stats(conn, select, run) or {"run": run.to_dict(), **_summary(agg)})
+    return {
+        "label": label,
+        "run": None,
+        "runs": [r.to_dict() for r in runs],
+        **_summary(pooled),
+        "per_run": per_run,
+    }
 
 
 class AggregateKeeper:

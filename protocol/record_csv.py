@@ -186,11 +186,29 @@ def csv_line_sql(columns: Mapping[str, str | None], *, slots: bool = False) -> s
     return "printf('" + ",".join(["%s"] * len(cells)) + "', " + ", ".join(cells) + ")"
 
 
-def csv_header_line() -> str:
-    """The CSV's first line, as the csv module writes CSV_HEADER."""
+def csv_header_line(runs: Iterable[Mapping[str, Any]] = ()) -> str:
+    """The CSV's first line, as the csv module writes CSV_HEADER, after a comment line for each of
+    `runs` (the runs the export covers) with a label or notes (`csv_run_lines`)."""
     buf = io.StringIO()
     csv.writer(buf, lineterminator="\n").writerow(CSV_HEADER)
-    return buf.getvalue()
+    return csv_run_lines(runs) + buf.getvalue()
+
+
+#: What starts a comment line of a CSV export (a run's label and notes), before the header.
+CSV_COMMENT = "#"
+
+
+def csv_run_lines(runs: Iterable[Mapping[str, Any]]) -> str:
+    """One line for each run with a label or notes: `# run 3: {"label": "sweep-12", "notes": "..."}`,
+    a JSON object on one line (newlines in the notes escaped). An export of runs with neither has
+    none: the same bytes as before labels. Readers skip them (`pandas.read_csv(f, comment="#")`;
+    no cell of a stroke starts with `#`)."""
+    lines = []
+    for run in runs:
+        said = {k: run.get(k) for k in ("label", "notes") if run.get(k)}
+        if said:
+            lines.append(f"{CSV_COMMENT} run {run['run_id']}: {json.dumps(said, ensure_ascii=False)}\n")
+    return "".join(lines)
 
 
 class BadCell(ValueError):
@@ -219,13 +237,15 @@ def csv_text_chunks(
     last: int | None = None,
     run_id: int | None = None,
     chunk: int = 10_000,
+    *,
+    label: str | None = None,
 ) -> Iterator[tuple[int, int, str]]:
     """The CSV lines (each ending "\n") of the records file's strokes from cycle `first` to `last`
-    (of one run), `chunk` strokes a read, each read its own short transaction: (strokes, the last
-    cycle, text) per chunk. SQLite builds the lines (printf of the cells, group_concat of the
-    lines) with a SLOT for each REAL cell; the REAL columns are read in the same transaction and
-    their reprs put in the slots by one join. BadCell where a stroke's coefficients are not JSON
-    (as a record's read refuses them), before that chunk's text is given."""
+    (of one run; of the runs with `label`), `chunk` strokes a read, each read its own short
+    transaction: (strokes, the last cycle, text) per chunk. SQLite builds the lines (printf of the
+    cells, group_concat of the lines) with a SLOT for each REAL cell; the REAL columns are read in
+    the same transaction and their reprs put in the slots by one join. BadCell where a stroke's
+    coefficients are not JSON (as a record's read refuses them), before that chunk's text is given."""
     register_csv_functions(conn)
     cur = conn.cursor()
     cur.row_factory = None  # plain tuples, whatever the connection's rows are
@@ -233,6 +253,10 @@ def csv_text_chunks(
     where = " AND run_id = ?" if run_id is not None else ""
     if run_id is not None and "run_id" not in columns:
         return  # a file from before runs has no run's strokes
+    if label is not None:
+        if "label" not in {r[1] for r in cur.execute("PRAGMA table_info(runs)")}:
+            return  # a file from before labels (or runs) has no labelled run's strokes
+        where += " AND run_id IN (SELECT run_id FROM runs WHERE label = ?)"
     reals = [f for f in FIELDS if f in columns and _is_real(columns[f])]
 
     def lines_sql(slots: bool) -> str:
@@ -251,7 +275,7 @@ def csv_text_chunks(
     )
     after = first - 1
     stop = last if last is not None else (1 << 63) - 1
-    args = () if run_id is None else (run_id,)
+    args = (*(() if run_id is None else (run_id,)), *(() if label is None else (label,)))
     while True:
         own = not conn.in_transaction  # the lines and the values from one snapshot of the file
         if own:
