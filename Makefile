@@ -41,10 +41,12 @@ clean:
 firmware:
 	$(MAKE) -C firmware firmware
 
-# The firmware soak (tests/firmware/soak.py): 100,000 strokes in simavr, every stamp and drive-off
-# against the harness's truth, then the soak must catch a planted one-period stamp error (~2 min).
+# The soaks: the firmware's (tests/firmware/soak.py: 100,000 strokes in simavr, every stamp and
+# drive-off against the harness's truth, then the soak must catch a planted one-period stamp error)
+# and the daemon loop's (100,000 strokes in virtual time, every one in SQLite, memory flat): ~4 min.
 soak: $(STAMP)
 	USMSWITCH_SOAK_STROKES=100000 USMSWITCH_SOAK_PLANT=1 $(PY) -m pytest tests/firmware/test_soak.py -q -s -rs
+	$(PY) -m pytest -m soak -q -s -rs
 
 flash:
 	$(MAKE) -C firmware flash PORT=$(PORT)

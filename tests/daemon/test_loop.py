@@ -211,6 +211,7 @@ def test_estop_from_another_thread_stops_a_stroke_in_motion() -> None:
     daq.close()
 
 
+@pytest.mark.soak
 def test_reliability_100k_strokes_all_recorded_memory_flat(tmp_path: Path) -> None:
     """The paper's reliability run: 100,000 on/off strokes at T = 10.5 ms, every one in SQLite."""
     store = RecordStore(tmp_path / "records.sqlite")
