@@ -7,6 +7,7 @@ that `make test` leaves the tree as it found it."""
 
 from __future__ import annotations
 
+import datetime
 import os
 import shutil
 import time
@@ -170,6 +171,19 @@ def test_a_clients_run_is_taken_over_only_when_confirmed(rig: dict[str, Any], br
         (ended,) = [r for r in c.runs(3) if r["run_id"] == theirs]
         assert ended["end_reason"] == "taken over by panel"
         assert c.status()["state"] == "cycling"  # the page's endless run, for the tests after
+
+
+def test_the_runs_dates_are_iso_as_the_cli_writes_them(rig: dict[str, Any], browser: Any) -> None:
+    """Issue 37's bites: the panel wrote the browser locale's dates (11/26/2025, 2:27:03 PM) where
+    usmswitchctl writes ISO (2025-11-26 14:27:03)."""
+    browser.get(f"{rig['url']}?token={rig['token']}")
+    with Client(str(rig["sock"])) as c:
+        runs = c.runs(3)
+    for r in runs:
+        want = datetime.datetime.fromtimestamp(r["started_wall_ns"] / 1e9).strftime("%Y-%m-%d %H:%M:%S")
+        row = f'#runs tr[data-run="{r["run_id"]}"] td:nth-child(4)'
+        wait_for(f"run {r['run_id']} listed", lambda row=row: browser.find_elements("css selector", row))
+        assert browser.find_element("css selector", row).text == want
 
 
 def test_the_urls_token_becomes_an_httponly_cookie_and_leaves_every_url(

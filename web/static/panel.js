@@ -153,7 +153,15 @@ function showStats(st) {
 }
 
 // -- runs --------------------------------------------------------------------------------------------
-function wall(ns) { return ns ? new Date(ns / 1e6).toLocaleString() : "-"; }
+// Wall-clock times as usmswitchctl writes them (ISO, local time: 2025-06-01 14:27:03), never the
+// browser locale's (11/26/2025, 2:27:03 PM reads differently in every lab).
+const pad2 = (n) => String(n).padStart(2, "0");
+function wall(ns) {
+  if (!ns) return "-";
+  const d = new Date(ns / 1e6);
+  return `${d.getFullYear()}-${pad2(d.getMonth() + 1)}-${pad2(d.getDate())} ` +
+    `${pad2(d.getHours())}:${pad2(d.getMinutes())}:${pad2(d.getSeconds())}`;
+}
 function esc(s) { return String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" })[c]); }
 let runsVersion = -1, runsBusy = false;
 async function loadRuns(version) {
