@@ -442,29 +442,50 @@ class Client(Api):
         return Run(self, started, added, check_timeout("timeout", timeout))
 
     # -- methods with a transport of their own ----------------------------------------------------
-    def estop(self) -> dict[str, Any]:
+    def estop(self, by: str = "") -> dict[str, Any]:
         """Stop the drive now and latch FAULT until reset_fault.
 
         The reply means the drive is off and nothing is scheduled. Over a Unix socket the call goes
         through the estop socket beside it (`<name>.estop.sock`): a connection and slots of its own,
         so no flood on the main socket holds it up; this connection is the fallback (and a fresh
-        one after it: a full door keeps a few slots that take only an estop).
+        one after it: a full door keeps a few slots that take only an estop). The fault latched
+        names the path and `by` when given: `estop (usmswitchctl, estop socket)`.
         """
         if self.family == "unix":
             try:
-                return _estop_on(estop_socket_path(self.address), self.timeout)
+                return _estop_on(estop_socket_path(self.address), self.timeout, by)
             except (ConnectionClosed, OSError):
                 pass  # busy or gone: the main connection still carries it
-        return self.call("estop")
+        return _estop_call(self, _source(by, self.family))
 
 
-def _estop_on(path: str | os.PathLike[str], timeout: float | None) -> dict[str, Any]:
+def _source(by: str, family: str) -> str:
+    """An estop's source as the main door's caller says it (the estop socket names itself)."""
+    door = "TCP" if family == "tcp" else "main socket"
+    return f"{by}, {door}" if by else door
+
+
+def _estop_call(client: Client, source: str) -> dict[str, Any]:
+    """`estop [source]`; a daemon from before estop took a source refuses it: then bare, at once."""
+    try:
+        return client.call("estop", source)  # type: ignore[no-any-return]
+    except RpcError as exc:
+        if exc.code != ErrorCode.INVALID_PARAMS:
+            raise
+        return client.call("estop")  # type: ignore[no-any-return]
+
+
+def _estop_on(path: str | os.PathLike[str], timeout: float | None, by: str = "") -> dict[str, Any]:
     with Client(path, timeout=timeout, retry=False) as c:
-        return c.call("estop")  # type: ignore[no-any-return]
+        return _estop_call(c, by) if by else c.call("estop")  # type: ignore[no-any-return]
 
 
 def estop_by_every_path(
-    address: str | os.PathLike[str], *, timeout: float | None = DEFAULT_TIMEOUT, token: str | None = None
+    address: str | os.PathLike[str],
+    *,
+    timeout: float | None = DEFAULT_TIMEOUT,
+    token: str | None = None,
+    by: str = "",
 ) -> dict[str, Any]:
     """An estop however the daemon's doors are held: its estop socket, then its main socket (or
     TCP), each on a fresh connection, twice round; raises the last failure when none answered.
@@ -474,11 +495,11 @@ def estop_by_every_path(
     family, path, _ = parse_address(address)
     tries: list[Any] = []
     if family == "unix":
-        tries.append(lambda: _estop_on(estop_socket_path(path), timeout))
+        tries.append(lambda: _estop_on(estop_socket_path(path), timeout, by))
 
     def main_door() -> dict[str, Any]:
         with Client(address, timeout=timeout, token=token, retry=False) as c:
-            return c.call("estop")  # type: ignore[no-any-return]
+            return _estop_call(c, _source(by, family))
 
     tries.append(main_door)
     last: Exception | None = None

@@ -55,7 +55,9 @@ class Daemon(Protocol):
     def records_status(self) -> dict[str, Any]: ...
 
 
-ESTOP_REASON = "estop (socket)"
+#: The path an estop came by, when its caller did not say: the main socket's and TCP's come through
+#: the server process's urgent channel alike. The estop socket's, the panel's and our clients' say.
+ESTOP_UNNAMED = "main socket or TCP"
 #: How often a loop cycling in virtual time (hundreds of strokes a second) rebuilds the stats snapshot.
 SNAPSHOT_EVERY_VIRTUAL_NS = 20_000_000
 DIRECTIONS = {"on": (Direction.ON,), "off": (Direction.OFF,), "both": (Direction.ON, Direction.OFF)}
@@ -102,6 +104,10 @@ class Methods:
     def urgent(self) -> dict[str, Callable[[list[Any]], object]]:
         """Methods no other call may hold up: answered by a thread of their own."""
         return {"estop": self.estop}
+
+    def urgent_estop_socket(self) -> dict[str, Callable[[list[Any]], object]]:
+        """The estop socket's methods: its estop names that socket as its path, whatever it is told."""
+        return {"estop": self.estop_on_estop_socket}
 
     # -- read-only ---------------------------------------------------------------------------
     def status(self, params: list[Any]) -> dict[str, Any]:
@@ -387,11 +393,22 @@ class Methods:
         return self._on_loop(run)
 
     def estop(self, params: list[Any]) -> dict[str, Any]:
+        """An estop by the urgent channel: its source as its caller names it (`panel`,
+        `usmswitchctl, TCP`), else ESTOP_UNNAMED."""
+        return self._estop(params[0] if params and params[0] else ESTOP_UNNAMED)
+
+    def estop_on_estop_socket(self, params: list[Any]) -> dict[str, Any]:
+        """An estop by the estop socket: who its caller says it is, and that socket."""
+        who = params[0] if params and params[0] else ""
+        return self._estop(f"{who}, estop socket" if who else "estop socket")
+
+    def _estop(self, source: str) -> dict[str, Any]:
         # Not queued behind anything: on the urgent thread, the drive goes off and the driver is
         # halted before this returns, so the reply means "drive off, nothing scheduled".
-        self.loop.estop(ESTOP_REASON)
-        self.store.record_event("estop", source="socket")
-        return {"state": str(State.FAULT), "fault": ESTOP_REASON}
+        reason = f"estop ({source})"
+        self.loop.estop(reason)
+        self.store.record_event("estop", source=source)
+        return {"state": str(State.FAULT), "fault": reason}
 
     def set_drive(self, params: list[Any]) -> Future[Any]:
         (settings,) = params
@@ -567,7 +584,9 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         _announce_panel(web_url(server.web_address), token)
     methods.server = server
     assert server.urgent_listener is not None
-    estop = EstopSocket(server.urgent_listener, methods.urgent(), server.limits, gate=daemon.loop.wait_turn)
+    estop = EstopSocket(
+        server.urgent_listener, methods.urgent_estop_socket(), server.limits, gate=daemon.loop.wait_turn
+    )
     estop.start()
     server.companions.append(estop)
     assert daemon.loop is not None

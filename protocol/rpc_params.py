@@ -199,7 +199,7 @@ PARAMS: dict[str, _Spec] = {
         ("open_delay_ns", _integer("open_delay_ns", 0, _MAX_TARGET_NS), None),
     ),
     "reset_fault": (),
-    "estop": (),
+    "estop": (("source", _text("source", 80), ""),),  # who pressed it, by which path (for people)
     "set_drive": (("settings", _drive, {}),),
     "subscribe": (("topics", _topics, None),),
     "unsubscribe": (("topics", _topics, None),),

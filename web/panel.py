@@ -430,6 +430,8 @@ def _control_params(name: str, body: Any) -> tuple[str, list[Any]]:
             p if p is not None else d for p, d in zip(params, (None, 0, None, False, False), strict=True)
         ]
         params.append("panel")  # the run's owner
+    if method == "estop":
+        params = ["panel"]  # the fault names the path that pressed it
     return method, params
 
 

@@ -104,7 +104,9 @@ def main(argv: list[str] | None = None) -> int:
             # No connection beforehand: the estop socket, then the main one, each fresh.
             address = resolve_address(args)
             try:
-                return print_estop(estop_by_every_path(address, timeout=timeout, token=args.token), args)
+                return print_estop(
+                    estop_by_every_path(address, timeout=timeout, token=args.token, by=PROG), args
+                )
             except ValueError as exc:
                 raise UsageError(str(exc)) from None
         with connect() as client:

@@ -152,6 +152,9 @@ def test_tcp_with_token(idle: Rig) -> None:
     env = {k: v for k, v in os.environ.items() if k != "USMSWITCH_TOKEN"}
     r = run(None, "--tcp", idle.tcp, "status", env=env)
     assert r.returncode == 2 and "token" in r.stderr
+    # An estop over TCP says so in the fault latched (it said `estop (socket)`: issue 37's bites).
+    r = run(None, "--tcp", idle.tcp, "--token", TOKEN, "--json", "estop")
+    assert r.returncode == 0 and json.loads(r.stdout)["fault"] == "estop (usmswitchctl, TCP)", r.stdout
 
 
 def test_web_url_without_a_panel_says_how_to_serve_one(idle: Rig) -> None:

@@ -8,7 +8,7 @@ import sqlite3
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import daemonproc
@@ -99,6 +99,38 @@ def test_client_estop_gets_through_every_slot_held(rig: Rig) -> None:
         for raw in held:
             raw.close()
     assert rig.state() == "fault"
+
+
+def test_the_fault_names_the_path_that_pressed_the_estop(rig: Rig) -> None:
+    """Issue 37's bites: every estop latched `estop (socket)`, the panel's too (its own test says
+    `estop (panel)`; TCP's is test_ctl's). The estop socket names itself whatever a caller says."""
+
+    def pressed(press: Callable[[], object]) -> str:
+        rig.reset()
+        press()
+        with rig.client() as c:
+            return str(c.status()["fault"])
+
+    def raw_estop(path: Path, *params: str) -> None:
+        raw = Raw(str(path))
+        try:
+            assert raw.call("estop", *params)[2] is None
+        finally:
+            raw.close()
+
+    assert pressed(lambda: rig.client().estop()) == "estop (estop socket)"
+    assert pressed(lambda: rig.client().estop(by="lab script")) == "estop (lab script, estop socket)"
+    assert pressed(lambda: rig.ctl("estop")) == "estop (usmswitchctl, estop socket)"
+    assert pressed(lambda: raw_estop(rig.estop_sock, "panel")) == "estop (panel, estop socket)"
+    assert pressed(lambda: raw_estop(rig.sock)) == "estop (main socket or TCP)"
+    aside = rig.tmp / "estop-socket-aside"
+    rig.estop_sock.rename(aside)  # gone: the client's estop takes the main socket
+    try:
+        assert pressed(lambda: rig.client().estop()) == "estop (main socket)"
+        assert pressed(lambda: rig.ctl("estop")) == "estop (usmswitchctl, main socket)"
+    finally:
+        aside.rename(rig.estop_sock)
+    rig.reset()
 
 
 def test_set_drive_is_refused_with_fault_while_fault_is_latched(rig: Rig) -> None:
