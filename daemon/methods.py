@@ -361,7 +361,7 @@ class Methods:
             if edited is None:  # moved to the archive since (retention)
                 done.set_exception(RpcError(ErrorCode.INVALID_PARAMS, f"annotate_run: no run {run_id}"))
                 return
-            self.on_run(edited)
+            (self.store.on_run or self.on_run)(edited)  # subscribers, and the shipper woken
             done.set_result(edited.to_dict())
 
         self.store.write(run_notes.edit(run_id, label, notes)).add_done_callback(written)

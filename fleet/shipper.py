@@ -112,6 +112,17 @@ class LocalRecords:
         sql = f"SELECT {', '.join(RUN_FIELDS)} FROM runs WHERE run_id >= ? ORDER BY run_id LIMIT ?"
         return self.db.execute(sql, (run_id, n)).fetchall()
 
+    def edited_runs(self, after_event: int) -> tuple[int, list[tuple[Any, ...]]]:
+        """Runs whose label or notes were edited (events `notes`) after event id `after_event`: (the
+        last such event's id, their rows as `runs_from` gives them)."""
+        edits = "SELECT id, json_extract(data, '$.run_id') FROM events WHERE kind = 'notes' AND id > ?"
+        rows = self.db.execute(edits, (after_event,)).fetchall()
+        if not rows:
+            return after_event, []
+        ids = sorted({r[1] for r in rows})
+        sql = f"SELECT {', '.join(RUN_FIELDS)} FROM runs WHERE run_id IN ({', '.join('?' * len(ids))})"
+        return max(r[0] for r in rows), self.db.execute(sql, ids).fetchall()
+
     def close(self) -> None:
         """Close the read-only connection."""
         self.db.close()
@@ -170,6 +181,9 @@ class PostgresShipper:
         self.connected = False
         self._run_from = 1
         self._runs_sent: dict[int, tuple[Any, ...]] = {}  # run_id -> the row shipped, while it may change
+        # The last edit of a run's label or notes (an event id) shipped: an ended run edited later is
+        # sent again. From 0 at each connect: every edited run once (edits are few).
+        self._edits_after = 0
 
     # -- the daemon's side -----------------------------------------------------------------------
     def start(self) -> None:
@@ -314,6 +328,7 @@ class PostgresShipper:
                 last = conn.execute(LAST_SHIPPED, (self.rig,)).fetchone()
                 self._run_from = conn.execute(RUNS_FROM, (self.rig,)).fetchone()[0]
             self._runs_sent = {}
+            self._edits_after = 0
             shipped = 0 if last is None else last[0]
             if last is not None:
                 self._check_same_file(reader, last)
@@ -364,8 +379,11 @@ class PostgresShipper:
 
     def _ship_batch(self, conn: Any, reader: LocalRecords) -> bool:
         """One transaction: the next strokes and the runs that changed. False when nothing was new."""
-        runs = [pg_run(r, self.rig) for r in reader.runs_from(self._run_from, MAX_RUNS_PER_PASS)]
-        runs = [row for row in runs if self._runs_sent.get(row[0]) != row]  # an open run: once a change
+        fresh = [pg_run(r, self.rig) for r in reader.runs_from(self._run_from, MAX_RUNS_PER_PASS)]
+        fresh = [row for row in fresh if self._runs_sent.get(row[0]) != row]  # an open run: once a change
+        edits_after, edited = reader.edited_runs(self._edits_after)
+        listed = {row[0] for row in fresh}
+        runs = fresh + [row for row in (pg_run(r, self.rig) for r in edited) if row[0] not in listed]
         if reader.last_cycle() <= self.shipped_cycle and not runs:
             return False
         sent = inserted = last = 0
@@ -389,12 +407,13 @@ class PostgresShipper:
             self.committed_cycle = max(self.committed_cycle, last)
             self.shipped += inserted
             self.duplicates += sent - inserted
+        self._edits_after = edits_after
         for row in runs:
             self._runs_sent[row[0]] = row
         self.runs_shipped += len(runs)
-        if runs:
-            still_open = [row[0] for row in runs if row[_RUN_END] is None]
-            self._run_from = min(still_open) if still_open else runs[-1][0] + 1
+        if fresh:
+            still_open = [row[0] for row in fresh if row[_RUN_END] is None]
+            self._run_from = min(still_open) if still_open else fresh[-1][0] + 1
             self._runs_sent = {k: v for k, v in self._runs_sent.items() if k >= self._run_from}
         return True
 

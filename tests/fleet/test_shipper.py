@@ -325,3 +325,57 @@ def test_a_frozen_shipper_does_not_hold_the_exit_and_the_rest_ships_next_time(pg
     wait_for(lambda: again.shipped_cycle == local[-1].cycle, what="the rest shipped")
     assert again.duplicates == 0
     assert pg_records(server, db, "rigA") == local
+
+
+def test_label_and_notes_reach_postgresql_an_edit_after_the_run_too(pg, ship, tmp_path: Path) -> None:
+    """Issue 38: a database the shipper made before labels (no label, no notes) gains the columns
+    at the next connect, its rows kept, at the same schema version; a run's label and notes ship
+    with it, and notes edited after the run ended (annotate_run: an event `notes`) ship again."""
+    import psycopg
+
+    from usmswitch.client.pgrecords import PostgresRecords
+    from usmswitch.daemon import run_notes
+    from usmswitch.fleet.pg_schema import SCHEMA, SET_VERSION
+
+    server, db, url = pg
+    with psycopg.connect(url, autocommit=True) as conn:  # as the shipper of 7f3fa01 left it
+        for statement in SCHEMA:
+            conn.execute(statement)
+        conn.execute(SET_VERSION, ("1",))
+        conn.execute(f"ALTER TABLE {RUNS_TABLE} DROP COLUMN label, DROP COLUMN notes")
+        conn.execute(
+            f"INSERT INTO {RUNS_TABLE} (run_id, kind, first_cycle, started_wall_ns, settings, rig)"
+            " VALUES (1, 'cycling', 1, 5, '{}', 'oldrig')"
+        )
+    path = tmp_path / "records.sqlite"
+    run = RunRecord(
+        run_id=1, kind="cycling", first_cycle=1, started_wall_ns=5, label="pg-test", notes="first"
+    )
+    ended = RunRecord(**{**run.to_dict(), "last_cycle": 50, "ended_wall_ns": 9, "end_reason": "done"})
+    write(path, pgserver.synthetic_records(1, 50, run_id=1), runs=[run, ended])
+    shipper = ship(path, url, "rigA")
+    runs = f"SELECT rig, run_id, label, notes, end_reason FROM {RUNS_TABLE} ORDER BY rig"
+
+    def shipped() -> list[tuple[Any, ...]]:
+        try:
+            return server.query(db, runs)
+        except psycopg.errors.UndefinedColumn:  # the shipper has not connected yet
+            return [()]
+
+    wait_for(lambda: shipped()[-1][-1:] == ("done",), what="the ended run shipped")
+    assert shipped() == [
+        ("oldrig", 1, None, None, None),
+        ("rigA", 1, "pg-test", "first", "done"),
+    ]
+    assert server.query(db, "SELECT value FROM usmswitch_meta WHERE key = 'schema_version'") == [("1",)]
+
+    store = RecordStore(path, driver="sim", rig="rigA")  # the daemon's annotate_run, after the end
+    store.record_event("notes", run_id=1, label=None, notes="second look: drift", by="test")
+    store.write(run_notes.edit(1, None, "second look: drift")).result(10)
+    assert store.close()
+    shipper.wake()
+    wait_for(lambda: shipped()[-1][3] == "second look: drift", what="the edit shipped")
+    with PostgresRecords(url, rig="rigA") as copy:
+        assert [(r["run_id"], r["label"]) for r in copy.runs(label="pg-test")] == [(1, "pg-test")]
+        assert copy.runs(label="nothing") == []
+        assert len(list(copy.records(label="pg-test"))) == 50
