@@ -64,7 +64,11 @@ def cmd_status(client: Client, args: argparse.Namespace) -> int:
 def cmd_stats(client: Client, args: argparse.Namespace) -> int:
     """A run's statistics (the current or last one by default) or a range of cycles', as a table."""
     cycles = None if args.first is None else (args.first, args.last if args.last is not None else 2**62)
-    stats = client.stats(args.run, cycles=cycles)
+    return print_stats(client.stats(args.run, cycles=cycles), args)
+
+
+def print_stats(stats: dict[str, Any], args: argparse.Namespace) -> int:
+    """A stats reply (the daemon's, or one read from the records) as `stats` prints it."""
     if args.json:
         print_json(stats)
     else:
@@ -75,7 +79,11 @@ def cmd_stats(client: Client, args: argparse.Namespace) -> int:
 
 def cmd_runs(client: Client, args: argparse.Namespace) -> int:
     """The last runs as a table, oldest first."""
-    runs = client.runs(args.n)
+    return print_runs(client.runs(args.n), args)
+
+
+def print_runs(runs: list[dict[str, Any]], args: argparse.Namespace) -> int:
+    """The last runs (the daemon's, or read from the records), oldest first, as `runs` prints them."""
     if args.json:
         print_json(runs)
     elif not runs:

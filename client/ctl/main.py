@@ -37,6 +37,7 @@ from .args import (
 )
 from .commands import COMMANDS, print_estop
 from .exports import cmd_export, cmd_plot
+from .from_records import cmd_runs_from, cmd_stats_from, records_source
 from .parser import build_parser, check_args
 
 
@@ -96,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
             except ValueError as exc:  # a malformed address, a TCP connection without a token
                 raise UsageError(str(exc)) from None
 
+        if args.command in ("runs", "stats") and records_source(args) is not None:
+            return (cmd_runs_from if args.command == "runs" else cmd_stats_from)(args)
         if args.command == "export":
             return cmd_export(args, connect)
         if args.command == "plot":

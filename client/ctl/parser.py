@@ -100,6 +100,14 @@ def _from_flag(c: argparse.ArgumentParser) -> None:
     )
 
 
+def _records_flags(c: argparse.ArgumentParser) -> None:
+    """--state-dir and --from for a command that reads the records: no daemon needed."""
+    c.add_argument(
+        "--state-dir", help="read this state directory's records.sqlite (or this .sqlite file), read-only"
+    )
+    _from_flag(c)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Every command and flag; `usmswitchctl COMMAND --help` shows one command's."""
     p = _Parser(
@@ -124,8 +132,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--run", type=int, help="this run's (see `runs`)")
     c.add_argument("--first", type=int, help="statistics of cycles --first..--last instead of a run")
     c.add_argument("--last", type=int, help="with --first: the last cycle (default: the newest)")
+    _records_flags(c)
     c = command("runs", "the last runs: id, strokes, settings, how each ended")
     c.add_argument("-n", type=int, default=20, help="how many (1..1000, default 20)")
+    _records_flags(c)
     c = command("target", "get or set the target total time T")
     c.add_argument("action", nargs="?", choices=("get", "set"), help="get (default) or set")
     c.add_argument("value", nargs="?", help="the new T for `set`, e.g. 12ms, 10500us, 0.012s")

@@ -259,6 +259,35 @@ def test_stats_says_what_the_coefficients_are(idle: Rig) -> None:
     assert "coefficients (kalman): phi, the friction's AR(1) coefficient, and K, the gain" in out
 
 
+def test_runs_and_stats_read_the_records_with_no_daemon(idle: Rig) -> None:
+    """Issue 37's bites: `runs` and `stats` needed a running daemon where export reads the file
+    (`--state-dir`, `--from`). Here with a socket that does not exist: nothing is asked of a daemon."""
+    r = run(idle, "cycle", "--period", "20ms", "--count", "12", "--wait")
+    assert r.returncode == 0, r.stderr
+    gone = ("--socket", str(idle.state_dir / "no-daemon.sock"))
+    records = str(idle.state_dir / "records.sqlite")
+    by_socket = run(idle, "runs", "-n", "5")
+    by_file = run(None, *gone, "runs", "-n", "5", "--state-dir", str(idle.state_dir))
+    assert by_file.returncode == 0, by_file.stderr
+    assert by_file.stdout == by_socket.stdout and by_file.stdout.count("\n") >= 2
+    live = json.loads(run(idle, "stats", "--json").stdout)
+    read = json.loads(run(None, *gone, "stats", "--from", records, "--json").stdout)
+    run_id = live["run"]["run_id"]
+    assert read["run"]["run_id"] == run_id and (read["first_cycle"], read["last_cycle"]) == (
+        live["first_cycle"],
+        live["last_cycle"],
+    )
+    for part in ("on", "off", "all"):
+        for key in ("count", "strokes", "late", "stalls", "cut_short", "error_max_abs_ns"):
+            assert read[part][key] == live[part][key], (part, key)
+    table = run(None, *gone, "stats", "--state-dir", str(idle.state_dir), "--run", str(run_id))
+    assert table.returncode == 0, table.stderr
+    assert table.stdout.startswith(f"run {run_id} (cycling, ended: done), cycles {live['first_cycle']}..")
+    assert "(the run's settings)" in table.stdout and "coefficients (kalman)" in table.stdout
+    missing = run(None, *gone, "stats", "--state-dir", str(idle.state_dir), "--run", "9999")
+    assert missing.returncode == 2 and f"{records} has no run 9999 (runs 1.." in missing.stderr
+
+
 def test_refused_call_exits_1_and_stop(idle: Rig) -> None:
     assert run(idle, "cycle", "--period", "20ms").returncode == 0
     wait_state(idle, "cycling")
