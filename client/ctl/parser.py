@@ -61,9 +61,14 @@ def _did_you_mean(message: str) -> str:
     return f"; did you mean {' or '.join(repr(c) for c in near)}?" if near else ""
 
 
-def _connection_flags(p: argparse.ArgumentParser, suppress: bool) -> None:
+#: The heading of the connection flags in every command's --help, after the command's own options.
+CONNECTION_GROUP = "connection and output (also taken before the command)"
+
+
+def _connection_flags(p: Any, suppress: bool) -> None:
     # Declared on the main parser and on every command, so `usmswitchctl stats --json` works too;
     # on the commands the default is SUPPRESS so they never overwrite a flag given before the command.
+    # `p` is a parser or an argument group of one (argparse's _ActionsContainer).
     d = (lambda v: argparse.SUPPRESS) if suppress else (lambda v: v)
     p.add_argument(
         "--socket",
@@ -116,13 +121,14 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Exit codes: 0 ok, 1 refused by the daemon, 2 usage, 3 cannot connect, 4 rig in FAULT.",
     )
     p.add_argument("--version", action="version", version=version_text(PROG, PROTOCOL_VERSION))
-    _connection_flags(p, suppress=False)
+    _connection_flags(p.add_argument_group(CONNECTION_GROUP.split(" (")[0]), suppress=False)
     sub = p.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     sub.required = True
+    commands: list[argparse.ArgumentParser] = []
 
     def command(name: str, help_text: str) -> argparse.ArgumentParser:
         c = sub.add_parser(name, help=help_text, description=help_text)
-        _connection_flags(c, suppress=True)
+        commands.append(c)
         return c
 
     command("ping", "check that the daemon answers")
@@ -206,6 +212,10 @@ def build_parser() -> argparse.ArgumentParser:
     en = c.add_mutually_exclusive_group()
     en.add_argument("--enable", dest="enabled", action="store_true", default=None, help="drive on")
     en.add_argument("--disable", dest="enabled", action="store_false", help="drive off")
+    # Last, in a group of their own: a command's --help and usage show its own options first, and
+    # the connection flags once, under one heading, after them.
+    for c in commands:
+        _connection_flags(c.add_argument_group(CONNECTION_GROUP), suppress=True)
     return p
 
 

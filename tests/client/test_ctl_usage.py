@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import re
 import sqlite3
@@ -133,3 +134,21 @@ def test_a_mistyped_command_gets_a_did_you_mean() -> None:
     assert j.returncode == 2 and json.loads(j.stderr)["error"]["message"].endswith("did you mean 'cycle'?")
     far = ctl("zzzz")
     assert far.returncode == 2 and "did you mean" not in far.stderr
+
+
+def test_a_commands_help_shows_its_own_options_first_and_the_connection_flags_once_after() -> None:
+    """Issue 37's bites: every command's --help began with 12 lines of connection options."""
+    from usmswitch.client.ctl.parser import CONNECTION_GROUP, build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    for name in sub.choices:
+        r = ctl(name, "--help")
+        assert r.returncode == 0, (name, r.stderr)
+        usage, rest = r.stdout.split("\n\n", 1)
+        own, heading, connection = rest.partition(f"\n{CONNECTION_GROUP}:\n")
+        assert heading and "--socket" in connection and "--json" in connection, (name, r.stdout)
+        assert "--socket" not in own and "--timeout" not in own, (name, own)
+        assert r.stdout.count(CONNECTION_GROUP) == 1
+        # The usage line too: the command's own options before the connection flags.
+        flags = re.findall(r"\[(--?[\w-]+)", usage)
+        assert flags.index("--socket") == len(flags) - 6, (name, flags)
