@@ -106,10 +106,11 @@ def run(args: argparse.Namespace) -> int:
             return 1
         rig.set_mode(args.mode)
         # A run: subscribed before it starts, so iterating it sees every stroke, and it ends itself.
-        strokes = rig.run(count=args.strokes, period=args.period, target=args.target)
-        for seen, rec in enumerate(strokes, 1):
-            if not args.json and seen % args.progress == 0:
-                print(f"  {seen}/{args.strokes} strokes, last error {show(rec['error_ns'])}", flush=True)
+        # Leaving the `with` by an exception (Ctrl-C included) stops the rig: no run outlives the script.
+        with rig.run(count=args.strokes, period=args.period, target=args.target) as strokes:
+            for seen, rec in enumerate(strokes, 1):
+                if not args.json and seen % args.progress == 0:
+                    print(f"  {seen}/{args.strokes} strokes, last error {show(rec['error_ns'])}", flush=True)
         stats = strokes.stats()  # the daemon's statistics of exactly this run
     if args.json:
         print(json.dumps(stats, indent=2))

@@ -12,8 +12,8 @@ with Client() as rig:  # found as usmswitchctl finds it
     if rig.status()["state"] == "cycling":
         rig.stop_cycling()  # the sim cycles on its own at start; the sweep wants the rig
     for target in ("12ms", "13ms", "14ms"):
-        run = rig.run(count=100, period="30ms", target=target)
-        worst = max(abs(rec["error_ns"]) for rec in run)  # this run's strokes, then the loop ends
+        with rig.run(count=100, period="30ms", target=target) as run:  # Ctrl-C in here stops the rig
+            worst = max(abs(rec["error_ns"]) for rec in run)  # this run's strokes, then the loop ends
         stats = run.stats()["all"]
         print(
             f"T = {target}: run {run.run_id}, {stats['strokes']} strokes, "

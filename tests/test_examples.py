@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import signal
 import statistics
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -103,3 +106,40 @@ def test_bad_arguments_and_no_daemon(tmp_path: Path) -> None:
     assert r.returncode == 2 and "--period" in r.stderr
     r = run_example(tmp_path / "none.sock", "--strokes", "5", "--socket", str(tmp_path / "none.sock"))
     assert r.returncode == 1 and "none.sock" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_the_readmes_lab_script_stopped_by_ctrl_c_leaves_the_rig_stopped(
+    daemon_socket: Path, tmp_path: Path
+) -> None:
+    """Issue 37's bites: README's lab script, Ctrl-C'd, left the rig cycling its 100 strokes: its
+    run had no `with`. The README's block itself, interrupted at its first stroke."""
+    readme = (EXAMPLES.parent / "README.md").read_text()
+    block = next(b for b in re.findall(r"```python\n(.*?)```", readme, re.S) if "with Client() as rig" in b)
+    script = tmp_path / "lab.py"
+    script.write_text(block)
+    env = {**os.environ, "USMSWITCH_SOCKET": str(daemon_socket)}
+    proc = subprocess.Popen(
+        [sys.executable, "-u", str(script)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        assert proc.stdout is not None
+        first = proc.stdout.readline()  # a stroke of the script's first run: it is cycling
+        assert first.strip(), proc.stderr.read() if proc.stderr else ""
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert "KeyboardInterrupt" in err
+    cycle = int(first.split()[0])
+    with Client(str(daemon_socket)) as c:
+        (run,) = [r for r in c.runs(10) if r["first_cycle"] <= cycle and (r["last_cycle"] or cycle) >= cycle]
+        while c.status()["state"] == "cycling":  # the stroke in progress finishes first
+            time.sleep(0.02)
+        (run,) = [r for r in c.runs(10) if r["run_id"] == run["run_id"]]
+    assert run["end_reason"] == "stopped", run
+    assert run["last_cycle"] - run["first_cycle"] + 1 < 100
