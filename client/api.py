@@ -93,25 +93,39 @@ class Api(ABC):
         target_ns = duration_ns("target", target)  # checked before anything is sent
         return self.call("set_target", target_ns, direction, allow_late)
 
-    def stats(self, run: int | None = None, *, cycles: tuple[int, int] | None = None) -> Stats:
-        """Statistics of a run (default: the current or last one) or of cycles (first, last)."""
+    def stats(
+        self, run: int | None = None, *, cycles: tuple[int, int] | None = None, label: str | None = None
+    ) -> Stats:
+        """Statistics of a run (default: the current or last one), of cycles (first, last), or of
+        every run with `label`: pooled over all their strokes (`on`, `off`, `all`) and per run
+        (`per_run`, each as `stats(run)`), with the runs (`runs`)."""
         first, last = (None, None) if cycles is None else cycles
-        return self.call("stats", run, first, last)
+        if label is None:  # a daemon from before labels takes three params
+            return self.call("stats", run, first, last)
+        return self.call("stats", run, first, last, check_label(label))
 
     def history(self, n: int = 20, run: int | None = None) -> list[CycleRecord]:
         """The last `n` stroke records (of one run, or any), oldest first."""
         return self.call("history", n, run)
 
     def export_chunk(
-        self, run: int | None = None, first: int = 1, last: int | None = None, max_strokes: int = 10_000
+        self,
+        run: int | None = None,
+        first: int = 1,
+        last: int | None = None,
+        max_strokes: int = 10_000,
+        label: str | None = None,
     ) -> dict[str, Any]:
         """One chunk of an export: {"strokes", "last_cycle", "csv"}, the CSV lines (no header) of up
-        to `max_strokes` strokes from cycle `first` on; ask again from last_cycle + 1 until none."""
-        return self.call("export", run, first, last, max_strokes)
+        to `max_strokes` strokes from cycle `first` on (of a run, of the runs with `label`); ask
+        again from last_cycle + 1 until none."""
+        if label is None:
+            return self.call("export", run, first, last, max_strokes)
+        return self.call("export", run, first, last, max_strokes, check_label(label))
 
-    def runs(self, n: int = 20) -> list[RunInfo]:
-        """The last `n` runs, oldest first."""
-        return self.call("runs", n)
+    def runs(self, n: int = 20, label: str | None = None) -> list[RunInfo]:
+        """The last `n` runs (with that label), oldest first."""
+        return self.call("runs", n) if label is None else self.call("runs", n, check_label(label))
 
     def switch(self, direction: str = "next") -> CycleRecord:
         """Make one stroke ("on", "off" or "next") and return its record once it has finished."""

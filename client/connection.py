@@ -266,13 +266,14 @@ class Client(Api):
         return result_of(self._wait(msgid))
 
     def export_csv(
-        self, run: int | None = None, first: int = 1, last: int | None = None
+        self, run: int | None = None, first: int = 1, last: int | None = None, *, label: str | None = None
     ) -> Iterator[tuple[int, int, str]]:
-        """Every stroke (of a run, from cycle `first` to `last`) as CSV lines without the header
-        (`usmswitch.protocol.record_csv.csv_header_line`), a chunk a call: (strokes, last cycle,
-        text). Memory is one chunk on both ends; stop iterating and the server reads no more."""
+        """Every stroke (of a run, of the runs with `label`, from cycle `first` to `last`) as CSV
+        lines without the header (`usmswitch.protocol.record_csv.csv_header_line`), a chunk a call:
+        (strokes, last cycle, text). Memory is one chunk on both ends; stop iterating and the server
+        reads no more."""
         while True:
-            chunk = self.export_chunk(run, first, last)
+            chunk = self.export_chunk(run, first, last, label=label)
             if not chunk["strokes"]:
                 return
             yield chunk["strokes"], chunk["last_cycle"], chunk["csv"]

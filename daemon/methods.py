@@ -362,7 +362,14 @@ class Methods:
                 done.set_exception(RpcError(ErrorCode.INVALID_PARAMS, f"annotate_run: no run {run_id}"))
                 return
             (self.store.on_run or self.on_run)(edited)  # subscribers, and the shipper woken
-            done.set_result(edited.to_dict())
+            if run is not latest:
+                done.set_result(edited.to_dict())
+                return
+            # The loop's run: `stats` answers from its snapshot, rebuilt (in the loop's slack) before
+            # the reply, so a `stats` after it shows the edit.
+            self.loop.call(self.daemon.refresh_snapshot).add_done_callback(
+                lambda _: done.set_result(edited.to_dict())
+            )
 
         self.store.write(run_notes.edit(run_id, label, notes)).add_done_callback(written)
         return done

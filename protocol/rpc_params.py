@@ -163,17 +163,19 @@ PARAMS: dict[str, _Spec] = {
         ("run", _optional(_integer("run", 1, _MAX_ID)), None),
         ("first_cycle", _optional(_integer("first_cycle", 1, _MAX_ID)), None),
         ("last_cycle", _optional(_integer("last_cycle", 1, _MAX_ID)), None),
+        ("label", _optional(_label), None),
     ),
     "history": (
         ("n", _integer("n", 1, MAX_HISTORY), 20),
         ("run", _optional(_integer("run", 1, _MAX_ID)), None),
     ),
-    "runs": (("n", _integer("n", 1, MAX_RUNS), 20),),
+    "runs": (("n", _integer("n", 1, MAX_RUNS), 20), ("label", _optional(_label), None)),
     "export": (
         ("run", _optional(_integer("run", 1, _MAX_ID)), None),
         ("first_cycle", _integer("first_cycle", 1, _MAX_ID), 1),
         ("last_cycle", _optional(_integer("last_cycle", 1, _MAX_ID)), None),
         ("max_strokes", _integer("max_strokes", 1, MAX_EXPORT_STROKES), MAX_EXPORT_STROKES),
+        ("label", _optional(_label), None),
     ),
     "switch": (("direction", _choice("direction", ("on", "off", "next")), "next"),),
     "start_cycling": (

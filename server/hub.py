@@ -120,8 +120,8 @@ class Hub:
 
     def stats_from_snapshot(self, params: list[Any]) -> bytes | None:
         """The published stats when `params` ask for what they cover (the current or last run)."""
-        run, first, last = params
-        if first is not None or last is not None:
+        run, first, last, label = params
+        if first is not None or last is not None or label is not None:
             return None
         snap = self.snapshot("stats")
         if snap is None or (run is not None and self.snap_runs.get("stats") != run):

@@ -65,15 +65,22 @@ def history_reply(store: Any, n: int, run_id: int | None = None) -> bytes:
     return b"".join(parts)
 
 
-def runs_reply(store: Any, n: int) -> bytes:
-    """The last `n` runs, oldest first, packed."""
-    return packb([r.to_dict() for r in store.runs(n)])
+def runs_reply(store: Any, n: int, label: str | None = None) -> bytes:
+    """The last `n` runs (with that label), oldest first, packed."""
+    return packb([r.to_dict() for r in store.runs(n, label=label or None)])
 
 
-def stats_reply(store: Any, run_id: int | None, first_cycle: int | None, last_cycle: int | None) -> bytes:
-    """Statistics of a past run or a range of cycles, from the records file, packed."""
+def stats_reply(
+    store: Any, run_id: int | None, first_cycle: int | None, last_cycle: int | None, label: str | None = None
+) -> bytes:
+    """Statistics of a past run, a range of cycles or a label's runs (pooled and per run), from the
+    records file, packed."""
     from usmswitch.protocol.stats import stats_of_records
 
+    if label:
+        if run_id is not None or first_cycle is not None or last_cycle is not None:
+            raise RpcError(ErrorCode.INVALID_PARAMS, "stats: a label's runs, or a run or cycles, not both")
+        return packb(store.label_stats(label))
     run = None if run_id is None else _known_run(store, "stats", run_id)
     if first_cycle is not None and last_cycle is not None and last_cycle < first_cycle:
         raise RpcError(
@@ -89,18 +96,24 @@ def stats_reply(store: Any, run_id: int | None, first_cycle: int | None, last_cy
 
 
 def export_reply(
-    store: Any, run_id: int | None, first_cycle: int, last_cycle: int | None, max_strokes: int
+    store: Any,
+    run_id: int | None,
+    first_cycle: int,
+    last_cycle: int | None,
+    max_strokes: int,
+    label: str | None = None,
 ) -> bytes:
     """One chunk of an export: the CSV lines (no header) of up to `max_strokes` strokes from
-    `first_cycle` on (to `last_cycle`, of one run), each chunk's text built by SQLite in one
-    statement (issue 36: within 2x `sqlite3 -csv`); the client asks for the next chunk from
+    `first_cycle` on (to `last_cycle`, of one run, of a label's runs), each chunk's text built by
+    SQLite in one statement (issue 36: within 2x `sqlite3 -csv`); the client asks for the next chunk from
     `last_cycle` + 1. A chunk a call: the export's memory is one chunk, a client that has gone asks
     for no more, and the lane's other reads take their turns between chunks."""
     if run_id is not None:
         run = _known_run(store, "export", run_id)
         # A run's strokes lie within its cycles: read from there, not through the runs before it.
         first_cycle = max(first_cycle, run.first_cycle or 1)
-    for strokes, last, text in store.csv_chunks(first_cycle, last_cycle, run_id=run_id, chunk=max_strokes):
+    chunks = store.csv_chunks(first_cycle, last_cycle, run_id=run_id, chunk=max_strokes, label=label or None)
+    for strokes, last, text in chunks:
         return packb({"strokes": strokes, "last_cycle": last, "csv": text})
     return packb({"strokes": 0, "last_cycle": None, "csv": ""})
 

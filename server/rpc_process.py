@@ -103,12 +103,16 @@ class PanelConn(Conn):
         async def chunk(first: int) -> bytes:  # on the hub's loop, where the readers live
             return await readers.read("export", [run_id, first, None, MAX_EXPORT_STROKES])
 
+        async def run() -> bytes:  # its label and notes, for the header's comment line
+            return await readers.read("stats", [run_id, None, None, None])
+
         first, n = 1, 0
         while True:  # on the HTTP doors' loop (server/http_doors.py)
             got = await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(chunk(first), hub.loop))
             part = msgpack.unpackb(got, raw=False)
             if first == 1:  # the run is known (its first read said so): the header
-                await write(csv_header_line().encode())
+                got = await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(run(), hub.loop))
+                await write(csv_header_line([msgpack.unpackb(got, raw=False)["run"]]).encode())
             if not part["strokes"]:
                 return n
             n += part["strokes"]

@@ -23,11 +23,14 @@ from .args import (
 )
 from .output import (
     HISTORY_HEADER,
+    PER_RUN_HEADER,
     RUN_HEADER,
     CycleProgress,
     WatchView,
     drive_table,
     history_row,
+    notes_lines,
+    per_run_rows,
     print_json,
     record_rows,
     run_row,
@@ -62,7 +65,10 @@ def cmd_status(client: Client, args: argparse.Namespace) -> int:
 
 
 def cmd_stats(client: Client, args: argparse.Namespace) -> int:
-    """A run's statistics (the current or last one by default) or a range of cycles', as a table."""
+    """A run's statistics (the current or last one by default), a range of cycles', or a label's
+    runs' (pooled and per run), as a table."""
+    if args.label is not None:
+        return print_stats(client.stats(label=args.label), args)
     cycles = None if args.first is None else (args.first, args.last if args.last is not None else 2**62)
     return print_stats(client.stats(args.run, cycles=cycles), args)
 
@@ -71,15 +77,27 @@ def print_stats(stats: dict[str, Any], args: argparse.Namespace) -> int:
     """A stats reply (the daemon's, or one read from the records) as `stats` prints it."""
     if args.json:
         print_json(stats)
-    else:
-        print(scope_line(stats))
+        return EXIT_OK
+    if "label" in stats:  # a label's runs: pooled, then a row a run
+        ids = ", ".join(str(r["run_id"]) for r in stats["runs"]) or "none"
+        print(f"label {stats['label']}: runs {ids} pooled, {scope_line({**stats, 'run': None})}")
         print(stats_table(stats))
+        if stats["per_run"]:
+            print()
+            print(table(per_run_rows(stats["per_run"]), PER_RUN_HEADER))
+        for line in notes_lines(stats["runs"]):
+            print(line)
+        return EXIT_OK
+    print(scope_line(stats))
+    print(stats_table(stats))
+    if stats.get("run") and stats["run"].get("notes"):
+        print(*notes_lines([stats["run"]]), sep="\n")
     return EXIT_OK
 
 
 def cmd_runs(client: Client, args: argparse.Namespace) -> int:
-    """The last runs as a table, oldest first."""
-    return print_runs(client.runs(args.n), args)
+    """The last runs (with a label) as a table, oldest first."""
+    return print_runs(client.runs(args.n, label=args.label), args)
 
 
 def print_runs(runs: list[dict[str, Any]], args: argparse.Namespace) -> int:
@@ -87,10 +105,14 @@ def print_runs(runs: list[dict[str, Any]], args: argparse.Namespace) -> int:
     if args.json:
         print_json(runs)
     elif not runs:
-        print("no run recorded yet (`cycle` starts one)")
+        label = getattr(args, "label", None)
+        print(f"no run labelled {label}" if label else "no run recorded yet (`cycle` starts one)")
     else:
         print(table([run_row(r) for r in runs], RUN_HEADER))
-        if runs[0]["run_id"] > 1:  # older runs exist: say that this is the tail, and how to see more
+        for line in notes_lines(runs):
+            print(line)
+        # Older runs exist: say that this is the tail, and how to see more.
+        if runs[0]["run_id"] > 1 and not getattr(args, "label", None):
             print(
                 f"(the last {len(runs)} runs; runs 1..{runs[0]['run_id'] - 1} are older: `runs -n N` shows"
                 " more)"
@@ -145,14 +167,26 @@ def cmd_cycle(client: Client, args: argparse.Namespace) -> int:
     """Start a run of on/off strokes; with --wait, follow it to its end and report how it ended."""
     if not args.wait:
         result = client.start_cycling(
-            args.period, args.count, target=args.target, allow_late=args.allow_late, take_over=args.take_over
+            args.period,
+            args.count,
+            target=args.target,
+            allow_late=args.allow_late,
+            take_over=args.take_over,
+            label=args.label,
+            notes=args.notes,
         )
         _print_cycling(result, args)
         return EXIT_OK
     # Subscribed before the start: the end of a short run cannot slip past. From the start on, a
     # Ctrl-C (even one that lands while the first line prints) leaves the daemon cycling, and says so.
     run = client.run(
-        args.count, args.period, args.target, allow_late=args.allow_late, take_over=args.take_over
+        args.count,
+        args.period,
+        args.target,
+        allow_late=args.allow_late,
+        take_over=args.take_over,
+        label=args.label,
+        notes=args.notes,
     )
     try:
         _print_cycling(run.started, args)
@@ -182,6 +216,20 @@ def _print_cycling(result: dict[str, Any], args: argparse.Namespace) -> None:
     )
     for warning in result.get("warnings", []):
         print(f"{PROG}: warning: {warning}", file=sys.stderr)
+
+
+def cmd_notes(client: Client, args: argparse.Namespace) -> int:
+    """A run's notes and label: shown, or edited (its owner, or --operator)."""
+    if args.text is None and args.label is None:
+        run = client.stats(args.run)["run"]
+    else:
+        run = client.annotate_run(args.run, args.text, label=args.label, operator=args.operator)
+    if args.json:
+        print_json(run)
+    else:
+        print(f"run {run['run_id']} label: {run.get('label') or '-'}")
+        print(f"notes: {run.get('notes') or '-'}")
+    return EXIT_OK
 
 
 def cmd_stop(client: Client, args: argparse.Namespace) -> int:
@@ -334,6 +382,7 @@ COMMANDS: dict[str, Callable[[Client, argparse.Namespace], int]] = {
     "target": cmd_target,
     "switch": cmd_switch,
     "cycle": cmd_cycle,
+    "notes": cmd_notes,
     "stop": cmd_stop,
     "mode": cmd_mode,
     "history": cmd_history,

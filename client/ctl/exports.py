@@ -9,7 +9,7 @@ import sqlite3
 import sys
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from usmswitch.protocol.record import CycleRecord as Record
 from usmswitch.protocol.record_csv import csv_header_line
@@ -72,20 +72,43 @@ def _write(records: Iterable[CycleRecord] | _CsvChunks, out: IO[str], where: str
         raise UsageError(f"export: reading the records failed partway through {where}: {exc}") from None
 
 
+def covered(
+    runs: Iterable[dict[str, Any]], first: int, last: int | None, run: int | None
+) -> list[dict[str, Any]]:
+    """The runs an export covers (for their label and notes above its header): the one asked for,
+    else those whose cycles meet first..last."""
+    top = last if last is not None else 1 << 62
+    return [
+        r
+        for r in runs
+        if (
+            r["run_id"] == run
+            if run is not None
+            else r["first_cycle"] <= top and (r["last_cycle"] or top) >= first
+        )
+    ]
+
+
 class _CsvChunks:
     """A records source's strokes as CSV text a chunk at a time (built by SQLite for a records file:
     issue 36), written as they come; a progress bar on a terminal's stderr past a second."""
 
-    def __init__(self, records: RecordsSource, first: int, last: int | None, run: int | None) -> None:
-        self.records, self.first, self.last, self.run = records, first, last, run
+    def __init__(
+        self, records: RecordsSource, first: int, last: int | None, run: int | None, label: str | None = None
+    ) -> None:
+        self.records, self.first, self.last, self.run, self.label = records, first, last, run, label
 
     def write(self, out: IO[str], progress: bool) -> int:
         n = 0
         with self.records:
-            span = self.records.cycle_span(self.first, self.last, self.run) if progress else None
-            out.write(csv_header_line())
+            span = None
+            if progress and self.label is None:
+                span = self.records.cycle_span(self.first, self.last, self.run)
+            runs = self.records.runs(self.label)
+            out.write(csv_header_line(runs if self.label else covered(runs, self.first, self.last, self.run)))
+            chunks = self.records.csv_chunks(self.first, self.last, self.run, label=self.label)
             with ExportProgress(span, sys.stderr if progress else None) as bar:
-                for strokes, last_cycle, text in self.records.csv_chunks(self.first, self.last, self.run):
+                for strokes, last_cycle, text in chunks:
                     out.write(text)
                     n += strokes
                     bar.update(last_cycle, n)
@@ -95,23 +118,32 @@ class _CsvChunks:
 class _SocketChunks(_CsvChunks):
     """Every stroke (of a run, a range) over the socket, a chunk of CSV text a call (`export`)."""
 
-    def __init__(self, connect: Callable[[], Client], first: int, last: int | None, run: int | None) -> None:
-        self.connect, self.first, self.last, self.run = connect, first, last, run
+    def __init__(
+        self,
+        connect: Callable[[], Client],
+        first: int,
+        last: int | None,
+        run: int | None,
+        label: str | None = None,
+    ) -> None:
+        self.connect, self.first, self.last, self.run, self.label = connect, first, last, run, label
 
     def write(self, out: IO[str], progress: bool) -> int:
         n = 0
         with self.connect() as client:
             span = None
+            listed = client.runs(1000, label=self.label)
             if progress and self.run is not None:
-                runs = {r["run_id"]: r for r in client.runs(1000)}
-                run = runs.get(self.run)
+                run = {r["run_id"]: r for r in listed}.get(self.run)
                 if run is not None:
                     span = (max(self.first, run["first_cycle"]), run["last_cycle"] or self.last or 0)
-            elif progress and self.last is not None:
+            elif progress and self.last is not None and self.label is None:
                 span = (self.first, self.last)
-            out.write(csv_header_line())
+            covers = listed if self.label else covered(listed, self.first, self.last, self.run)
+            out.write(csv_header_line(covers))
+            chunks = client.export_csv(self.run, self.first, self.last, label=self.label)
             with ExportProgress(span, sys.stderr if progress else None) as bar:
-                for strokes, last_cycle, text in client.export_csv(self.run, self.first, self.last):
+                for strokes, last_cycle, text in chunks:
                     out.write(text)
                     n += strokes
                     bar.update(last_cycle, n)
@@ -119,7 +151,7 @@ class _SocketChunks(_CsvChunks):
 
 
 def _csv_chunks_from(
-    source: str | Path, first: int, last: int | None, run: int | None, rig: str | None
+    source: str | Path, first: int, last: int | None, run: int | None, rig: str | None, label: str | None
 ) -> _CsvChunks:
     try:
         records = open_records(source, rig)
@@ -127,7 +159,7 @@ def _csv_chunks_from(
             records.run(run)
     except RecordsFileError as exc:
         raise UsageError(f"export: {exc}") from None
-    return _CsvChunks(records, first, last, run)
+    return _CsvChunks(records, first, last, run, label)
 
 
 def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
@@ -136,15 +168,17 @@ def cmd_export(args: argparse.Namespace, connect: Callable[[], Client]) -> int:
         raise UsageError("export needs --csv FILE (or --csv - for standard output)")
     if _source(args) is not None:
         records: Iterable[CycleRecord] | _CsvChunks = _csv_chunks_from(
-            _source(args), args.first, args.last, args.run, args.rig if args.source else None
+            _source(args), args.first, args.last, args.run, args.rig if args.source else None, args.label
         )
     elif args.n is not None:
         if args.first != 1 or args.last is not None:
             raise UsageError("export: -n (the last n strokes) or --first/--last, not both")
+        if args.label is not None:
+            raise UsageError("export: -n (the last n strokes) or --label, not both")
         with connect() as client:
             records = client.history(args.n, args.run)
     else:
-        records = _SocketChunks(connect, args.first, args.last, args.run)
+        records = _SocketChunks(connect, args.first, args.last, args.run, args.label)
     if args.csv == "-":
         n = _write(records, sys.stdout, "standard output", not args.json)
         sys.stdout.flush()

@@ -33,7 +33,7 @@ def _open(args: argparse.Namespace) -> RecordsSource:
 def cmd_runs_from(args: argparse.Namespace) -> int:
     """`runs` of a records file: its last -n runs, oldest first."""
     with _open(args) as records:
-        runs = records.runs()
+        runs = records.runs(args.label)
     return print_runs(runs[-args.n :], args)
 
 
@@ -42,6 +42,8 @@ def cmd_stats_from(args: argparse.Namespace) -> int:
     stroke read (exact percentiles, as the daemon's for a range)."""
     with _open(args) as records:
         try:
+            if args.label is not None:
+                return print_stats(_label_stats(records, args.label), args)
             run: dict[str, Any] | None = None
             if args.first is not None:
                 rows = records.records(args.first, args.last)
@@ -57,3 +59,15 @@ def cmd_stats_from(args: argparse.Namespace) -> int:
             raise UsageError(f"stats: {exc}") from None
     stats["run"] = run
     return print_stats(stats, args)
+
+
+def _label_stats(records: RecordsSource, label: str) -> dict[str, Any]:
+    """`stats --label` of a records file: every stroke of the label's runs read (exact, as a range),
+    pooled and per run, in the daemon's reply's shape."""
+    runs = records.runs(label)
+    per_run = []
+    for run in runs:
+        part = stats_of_records(CycleRecord.from_row(r) for r in records.records(run=run["run_id"]))
+        per_run.append({**part, "run": run})
+    pooled = stats_of_records(CycleRecord.from_row(r) for r in records.records(label=label))
+    return {**pooled, "label": label, "run": None, "runs": runs, "per_run": per_run}

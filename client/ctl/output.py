@@ -564,7 +564,19 @@ def _isatty(stream: IO[str]) -> bool:
 
 
 # -- runs ------------------------------------------------------------------------------------------
-RUN_HEADER = ("run", "kind", "cycles", "strokes", "started", "period", "T on", "T off", "mode", "ended")
+RUN_HEADER = (
+    "run",
+    "kind",
+    "cycles",
+    "strokes",
+    "started",
+    "period",
+    "T on",
+    "T off",
+    "mode",
+    "ended",
+    "label",
+)
 
 
 def run_strokes(run: dict[str, Any]) -> str:
@@ -596,7 +608,13 @@ def run_row(run: dict[str, Any]) -> list[str]:
         show_ns(st.get("target_off_ns")),
         str(st.get("mode", "-")),
         run["end_reason"] or "running",
+        run.get("label") or "-",
     ]
+
+
+def notes_lines(runs: Sequence[dict[str, Any]]) -> list[str]:
+    """Each run's notes under its table, one line a run (its line breaks shown as " / ")."""
+    return [f"run {r['run_id']} notes: {' / '.join(r['notes'].splitlines())}" for r in runs if r.get("notes")]
 
 
 def scope_line(stats: dict[str, Any]) -> str:
@@ -608,4 +626,29 @@ def scope_line(stats: dict[str, Any]) -> str:
         live = "state" in stats  # the daemon's own figures, not a range read from the records
         return f"{cycles} (no run yet: every stroke since the daemon started)" if live else cycles
     state = "running" if run["end_reason"] is None else f"ended: {run['end_reason']}"
-    return f"run {run['run_id']} ({run['kind']}, {state}), {cycles}"
+    label = f" {run['label']}" if run.get("label") else ""
+    return f"run {run['run_id']}{label} ({run['kind']}, {state}), {cycles}"
+
+
+#: A label's per-run table (`stats --label`): the run and its main figures, both directions together.
+PER_RUN_HEADER = ("run", "cycles", "strokes", "error mean", "error std", "max |error| % of T", "|error| p99")
+
+
+def per_run_rows(per_run: Sequence[dict[str, Any]]) -> list[list[str]]:
+    """One row a run of a label's statistics."""
+    rows = []
+    for part in per_run:
+        run, both = part["run"], part.get("all", {})
+        counted = bool(both.get("count"))
+        rows.append(
+            [
+                str(run["run_id"]),
+                f"{part.get('first_cycle') or '-'}..{part.get('last_cycle') or ''}",
+                _count(both, "strokes"),
+                show_ns(both.get("error_mean_ns")) if counted else "-",
+                show_ns(both.get("error_std_ns")) if counted else "-",
+                _pct(both.get("max_abs_error_pct")) if counted else "-",
+                show_ns(both.get("abs_error_p99_ns")) if counted else "-",
+            ]
+        )
+    return rows

@@ -9,6 +9,7 @@ import re
 import sys
 from typing import Any, NoReturn
 
+from usmswitch.protocol.record import check_label
 from usmswitch.protocol.version import version_text
 from usmswitch.protocol.wire import MAX_HISTORY, PROTOCOL_VERSION
 
@@ -138,9 +139,11 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--run", type=int, help="this run's (see `runs`)")
     c.add_argument("--first", type=int, help="statistics of cycles --first..--last instead of a run")
     c.add_argument("--last", type=int, help="with --first: the last cycle (default: the newest)")
+    c.add_argument("--label", help="every run with this label: pooled, and each run's")
     _records_flags(c)
-    c = command("runs", "the last runs: id, strokes, settings, how each ended")
+    c = command("runs", "the last runs: id, strokes, settings, how each ended, label and notes")
     c.add_argument("-n", type=int, default=20, help="how many (1..1000, default 20)")
+    c.add_argument("--label", help="only the runs with this label")
     _records_flags(c)
     c = command("target", "get or set the target total time T")
     c.add_argument("action", nargs="?", choices=("get", "set"), help="get (default) or set")
@@ -167,6 +170,15 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="end a run another client started first (the daemon's start-up run gives way anyway)",
     )
+    c.add_argument("--label", help="what the run is for, a short word (e.g. sweep-12ms): `runs --label`")
+    c.add_argument("--notes", help="free text about the run (`notes RUN TEXT` edits it later)")
+    c = command("notes", "show or edit a run's notes and label, during or after it")
+    c.add_argument("run", type=int, help="the run (see `runs`)")
+    c.add_argument("text", nargs="?", help='its notes ("" clears them); none: show them')
+    c.add_argument("--label", help='its label ("" clears it)')
+    c.add_argument(
+        "--operator", action="store_true", help="edit another person's run (refused without, by mistake)"
+    )
     command("stop", "stop cycling after the stroke in progress")
     c = command("mode", "closed loop (T_d = T - t_hat) or open loop (fixed delay)")
     c.add_argument("mode", choices=("open", "closed"))
@@ -192,6 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--first", type=int, default=1, help="first cycle (default 1)")
     c.add_argument("--last", type=int, help="last cycle (default: the newest)")
     c.add_argument("--run", type=int, help="this run's strokes only")
+    c.add_argument("--label", help="the strokes of every run with this label")
     c = command("plot", "draw a run to an image (PNG, SVG or PDF by the file's suffix)")
     c.add_argument("--out", required=True, metavar="FILE", help="e.g. run.png")
     c.add_argument("--state-dir", help="read the records from this state directory, read-only")
@@ -248,6 +261,17 @@ def check_args(args: argparse.Namespace) -> None:
         raise UsageError("stats: --last needs --first")
     if args.command == "stats" and args.first is not None and args.run is not None:
         raise UsageError("stats: give --run or --first/--last, not both")
+    if (
+        args.command in ("stats", "export")
+        and args.label is not None
+        and (args.run is not None or args.first not in (None, 1) or args.last is not None)
+    ):
+        raise UsageError(f"{args.command}: give --label or --run/--first/--last, not both")
+    if getattr(args, "label", None):
+        try:  # before connecting, as the daemon would refuse it
+            check_label(args.label)
+        except ValueError as exc:
+            raise UsageError(f"{args.command}: {exc}") from None
     if args.command == "runs" and not 1 <= args.n <= 1000:
         raise UsageError(f"runs: -n must be in 1..1000, got {args.n}")
     if args.command == "cycle" and args.count < 0:

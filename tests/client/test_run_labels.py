@@ -96,3 +96,60 @@ def test_a_bad_label_is_refused_before_anything_starts(rig: Rig) -> None:
         with pytest.raises(InvalidParams, match="notes are 4,001 bytes"):
             lab.call("start_cycling", 25_000_000, 2, None, False, False, "", "ok", "x" * 4001)
         assert lab.runs()[-1]["run_id"] == before
+
+
+def test_runs_stats_and_export_of_a_label_over_the_socket(rig: Rig) -> None:
+    """`runs --label`, `stats --label` (pooled and per run) and `export --label`: read from the
+    records file by the server's reader processes, the file's own answers."""
+    with rig.client() as lab:
+        ids = [lab.run(count=8, period=PERIOD, label="socket-pool").wait()["run_id"] for _ in range(2)]
+        lab.run(count=3, period=PERIOD, label="elsewhere").wait()
+        assert [r["run_id"] for r in lab.runs(100, label="socket-pool")] == ids
+        assert lab.runs(label="never-used") == []
+        stats = lab.stats(label="socket-pool")
+        assert [r["run_id"] for r in stats["runs"]] == ids
+        assert [p["run"]["run_id"] for p in stats["per_run"]] == ids
+        assert stats["all"]["strokes"] == 16 == sum(p["all"]["strokes"] for p in stats["per_run"])
+        assert stats["per_run"][0]["all"] == lab.stats(ids[0])["all"]
+        with pytest.raises(InvalidParams, match="not both"):
+            lab.call("stats", ids[0], None, None, "socket-pool")
+        text = "".join(t for _, _, t in lab.export_csv(label="socket-pool"))
+    with RecordsFile(rig.tmp / "state") as f:
+        assert text == "".join(t for _, _, t in f.csv_chunks(label="socket-pool"))
+        assert text.count("\n") == 16
+
+
+def test_usmswitchctl_sets_shows_edits_and_exports_a_label(rig: Rig) -> None:
+    """The CLI's side: `cycle --label --notes`, `runs --label`, `notes`, `stats --label` and
+    `export --label`, over the socket and from the records file (--state-dir), the same answers."""
+    state = str(rig.tmp / "state")
+    done = rig.ctl(
+        "cycle", "--count", "6", "--period", PERIOD, "--label", "cli-a", "--notes", "by cli", "--wait"
+    )
+    assert done.returncode == 0, done.stderr
+    run_id = int(done.stdout.split()[1].rstrip(":"))
+    for where in ((), ("--state-dir", state)):
+        listed = rig.ctl("runs", "--label", "cli-a", *where)
+        assert listed.returncode == 0 and "cli-a" in listed.stdout, listed.stderr
+        assert f"run {run_id} notes: by cli" in listed.stdout
+        stats = rig.ctl("stats", "--label", "cli-a", *where)
+        assert stats.returncode == 0, stats.stderr
+        assert stats.stdout.startswith(f"label cli-a: runs {run_id} pooled"), stats.stdout
+    edited = rig.ctl("notes", str(run_id), "seen: fine\nline two")
+    assert edited.returncode == 0 and "notes: seen: fine" in edited.stdout, edited.stderr
+    shown = rig.ctl("notes", str(run_id), "--json")
+    assert shown.returncode == 0 and '"notes": "seen: fine\\nline two"' in shown.stdout
+    assert f"run {run_id} notes: seen: fine / line two" in rig.ctl("runs").stdout
+    refused = rig.ctl("runs", "--label", "two words")
+    assert refused.returncode != 0 and "not a label" in refused.stderr
+
+    exports = []
+    for where in ((), ("--state-dir", state)):
+        out = rig.tmp / f"cli-a{len(exports)}.csv"
+        made = rig.ctl("export", "--label", "cli-a", "--csv", str(out), *where)
+        assert made.returncode == 0, made.stderr
+        exports.append(out.read_text())
+    assert exports[0] == exports[1]
+    lines = exports[0].splitlines()
+    assert lines[0] == f'# run {run_id}: {{"label": "cli-a", "notes": "seen: fine\\nline two"}}'
+    assert lines[1].startswith("cycle,") and len(lines) == 2 + 6

@@ -149,8 +149,10 @@ def test_errors_carry_documented_codes_and_name_the_value(server: RpcServer) -> 
     assert err[0] == ErrorCode.INVALID_PARAMS and "'sideways'" in err[1]
     err = c.call("set_target", True)[2]  # a bool is not an integer of ns
     assert err[0] == ErrorCode.INVALID_PARAMS
+    err = c.call("stats", 1, None, None, None, 5)[2]
+    assert err[0] == ErrorCode.INVALID_PARAMS and "at most 4" in err[1]
     err = c.call("stats", 1, None, None, 4)[2]
-    assert err[0] == ErrorCode.INVALID_PARAMS and "at most 3" in err[1]
+    assert err[0] == ErrorCode.INVALID_PARAMS and "label 4 is not a label" in err[1]
     err = c.call("stats", 0)[2]
     assert err[0] == ErrorCode.INVALID_PARAMS and "run must be an integer" in err[1]
     err = c.call("stats", 1)[2]  # a past run is read from the records file: this server has none
@@ -178,8 +180,8 @@ def test_errors_carry_documented_codes_and_name_the_value(server: RpcServer) -> 
 
 def test_check_params_fills_defaults_and_refuses_extra() -> None:
     assert check_params("history", []) == [20, None]
-    assert check_params("start_cycling", [50_000_000]) == [50_000_000, 0, None, False, False, ""]
-    assert check_params("stats", [None, 5]) == [None, 5, None]
+    assert check_params("start_cycling", [50_000_000]) == [50_000_000, 0, None, False, False, "", None, None]
+    assert check_params("stats", [None, 5]) == [None, 5, None, None]
     assert check_params("switch", []) == ["next"]
     assert check_params("set_drive", [{"enabled": False, "voltage_vpp": 480.5}]) == [
         {"enabled": False, "voltage_vpp": 480.5}

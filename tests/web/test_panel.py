@@ -217,6 +217,19 @@ def test_a_run_exports_as_csv_with_every_stroke(rig: dict[str, Any]) -> None:
     assert request(f"{rig['url']}api/runs/x1.csv")[0] in (400, 404)
 
 
+def test_a_labelled_runs_csv_says_its_label_and_notes_above_the_header(rig: dict[str, Any]) -> None:
+    """Issue 38: the panel's export is the same CSV as the others, its run's label and notes in a
+    comment line above the header."""
+    with Client(str(rig["sock"])) as c:
+        run = c.run(count=4, period="15ms", take_over=True, label="panel-csv", notes='a "quoted"\nnote')
+        run.wait()
+    status, body, _ = request(f"{rig['url']}api/runs/{run.run_id}.csv")
+    lines = body.decode().split("\n")
+    assert status == 200
+    assert lines[0] == f'# run {run.run_id}: {{"label": "panel-csv", "notes": "a \\"quoted\\"\\nnote"}}'
+    assert tuple(next(csv.reader([lines[1]]))) == CSV_HEADER and len(lines) == 2 + 4 + 1
+
+
 def test_usmswitchctl_web_url_prints_the_url_with_the_token(rig: dict[str, Any], tmp_path: Path) -> None:
     from usmswitch.client.ctl import main
 
