@@ -55,6 +55,7 @@ from usmswitch.runtime.realtime import drop_realtime
 
 from .retention import Retention
 from .run_aggregates import AggregateKeeper, label_stats, run_stats
+from .wal import settle_wal
 
 log = structlog.get_logger("usmswitch.records")
 
@@ -268,7 +269,9 @@ class RecordStore:
     def close(self, timeout_ns: int = 10_000_000_000) -> bool:
         """Write everything still queued, stop the writer, close the file; False if records were left."""
         if self._closed and self._thread is None:
-            self._close_readers()
+            self._close_readers()  # opened since (a count after the close)
+            if not self.readonly:
+                settle_wal(self.path)
             return True
         self._closed = True
         left = True
@@ -281,6 +284,8 @@ class RecordStore:
             else:
                 self._thread = None
         self._close_readers()
+        if left and not self.readonly:
+            settle_wal(self.path)  # no -wal and -shm left beside the file (daemon/wal.py)
         return left and self.backlog == 0
 
     def __enter__(self) -> RecordStore:

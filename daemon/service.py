@@ -451,6 +451,7 @@ class Daemon:
         unwritten at close, dropped, or rejected by the database), else 0.
         """
         status = 0
+        closed_store = None  # the store, once closed with its writer finished
         self.notifier.stopping(status="stopping: drive off, flushing records")
         if self.daq is not None:
             try:
@@ -475,6 +476,7 @@ class Daemon:
                 store.record_event("stop", cycle=self.loop.cycle - 1)
             failing = store.writer_error is not None
             flushed = store.close(CLOSE_TIMEOUT_FAILING_NS if failing else CLOSE_TIMEOUT_NS)
+            closed_store = store if flushed else None  # a writer still stuck is not waited for twice
             try:
                 records: int | None = store.count()
             except RecordStoreError:
@@ -505,6 +507,10 @@ class Daemon:
             asked = self._stop_asked_ns if self._stop_asked_ns is not None else time.monotonic_ns()
             self.fleet.stop(asked + STOP_BUDGET_NS)
             self.fleet = None
+        if closed_store is not None:
+            # Again, last, when nothing else reads the file (the shipper, the count above): its
+            # readers closed and no -wal or -shm left beside it (daemon/wal.py).
+            closed_store.close()
         if self._lock_fd is not None:
             os.close(self._lock_fd)  # the lock goes with it
             self._lock_fd = None

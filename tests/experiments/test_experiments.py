@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import re
+import signal
 import sqlite3
 import subprocess
 import sys
@@ -173,6 +174,35 @@ def test_open_loop_and_aic_agree_with_the_records(everything: Path) -> None:
     on = [r["operating_ns"] for r in _records(everything, a["run_id"]) if r["direction"] == 0]
     table = aic_table(on, 3, "paper", "fit")
     assert a["values"] == [round(v - table.n_rows * np.log(1e6), 1) for v in table.values]
+
+
+def test_no_wal_or_shm_left_when_done_or_interrupted(everything: Path, tmp_path: Path) -> None:
+    """Issue 37's bites: `make paper`, done or Ctrl-C'd, left records.sqlite-wal and -shm beside
+    the records file (the store's read-only readers closed after its writer: SQLite keeps them)."""
+    assert sorted(p.name for p in everything.glob("records.sqlite*")) == ["records.sqlite"]
+    exe = Path(sys.executable).parent / "usmswitch-experiment"
+    out = tmp_path / "cut"
+    proc = subprocess.Popen(
+        [str(exe), "reliability", "--scale", "0.5", "--seed", "2", "--out", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        while not (out / "records.sqlite-wal").exists():  # strokes being written: mid-run
+            assert proc.poll() is None, proc.stderr.read() if proc.stderr else b""
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode != 0  # cut short, as asked
+    assert sorted(p.name for p in out.glob("records.sqlite*")) == ["records.sqlite"]
+    con = sqlite3.connect(f"file:{out / 'records.sqlite'}?mode=ro", uri=True)
+    try:
+        assert con.execute("SELECT count(*) FROM cycles").fetchone()[0] > 0  # what was made is kept
+    finally:
+        con.close()
 
 
 def test_a_seed_replays(tmp_path: Path) -> None:
