@@ -10,6 +10,7 @@ from collections.abc import Callable
 from typing import Any
 
 from .record import check_label, check_notes
+from .units import format_ns
 from .wire import MAX_HISTORY, ErrorCode, RpcError
 
 _REQUIRED = object()
@@ -29,8 +30,19 @@ def show(value: object) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
+def _human_ns(ns: int) -> str:
+    """A duration in a message, as people read it: 250 ns, 95.3 us, 12.000 ms, 12.000 s."""
+    return format_ns(ns) if abs(ns) < 1_000_000_000 else f"{ns / 1e9:.3f} s"
+
+
 def _integer(name: str, lo: int, hi: int) -> Callable[[str, object], object]:
     def check(method: str, value: object) -> object:
+        if type(value) is int and not lo <= value <= hi and name.endswith("_ns"):
+            # A duration out of range: said in units, not as 12000000000 (a panel's box in ms).
+            raise RpcError(
+                ErrorCode.INVALID_PARAMS,
+                f"{method}: {name} must be from {_human_ns(lo)} to {_human_ns(hi)}, got {_human_ns(value)}",
+            )
         if type(value) is not int or not lo <= value <= hi:
             raise RpcError(
                 ErrorCode.INVALID_PARAMS,

@@ -108,7 +108,11 @@ def test_bad_controls_get_a_clear_400_and_change_nothing(rig: dict[str, Any]) ->
     status, data = control(rig, "launch", {})
     assert status == 400 and "unknown control 'launch'" in data["error"] and "estop" in data["error"]
     status, data = control(rig, "target", {"target_ns": 99_000 * MS})
-    assert status == 400 and "target_ns must be an integer in [1, 10000000000]" in data["error"]
+    assert status == 400 and "target_ns must be from 1 ns to 10.000 s, got 99.000 s" in data["error"]
+    # Issue 37's bites: the panel's start with a 12 s target said `... 12000000000`.
+    status, data = control(rig, "start", {"count": 10, "period_ns": 20 * MS, "target_ns": 12_000 * MS})
+    assert status == 400 and data["error"].endswith("target_ns must be from 1 ns to 10.000 s, got 12.000 s")
+    assert "12000000000" not in data["error"]
     status, data = control(rig, "target", {"target_ns": "12ms"})
     assert status == 400 and "target_ns" in data["error"]
     status, data = control(rig, "target", {"target": 12 * MS})
