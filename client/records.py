@@ -160,7 +160,7 @@ class RecordsSource(ABC):
                 return run
         ids = [r["run_id"] for r in runs]
         have = f"runs {ids[0]}..{ids[-1]}" if ids else "no runs"
-        raise RecordsFileError(f"{self.name} has no run {run_id} ({have})")
+        raise RecordsFileError(f"no run {run_id} in {self.name} ({have})")
 
     def column(self, field: str, first: int = 1, last: int | None = None) -> Any:
         """One field over cycles `first`..`last` as a numpy array (float64 with NaN where it is

@@ -4,6 +4,7 @@ PostgreSQL copy (`--from`)."""
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import sqlite3
 import sys
@@ -140,10 +141,11 @@ class _SocketChunks(_CsvChunks):
             elif progress and self.last is not None and self.label is None:
                 span = (self.first, self.last)
             covers = listed if self.label else covered(listed, self.first, self.last, self.run)
-            out.write(csv_header_line(covers))
             chunks = client.export_csv(self.run, self.first, self.last, label=self.label)
+            first = next(chunks, None)  # a run the daemon lacks: refused before the header is out
+            out.write(csv_header_line(covers))
             with ExportProgress(span, sys.stderr if progress else None) as bar:
-                for strokes, last_cycle, text in chunks:
+                for strokes, last_cycle, text in itertools.chain([first] if first else [], chunks):
                     out.write(text)
                     n += strokes
                     bar.update(last_cycle, n)

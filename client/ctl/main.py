@@ -18,7 +18,9 @@ import argparse
 import contextlib
 import json
 import os
+import re
 import sys
+from collections.abc import Callable
 from typing import Any
 
 from usmswitch.protocol.wire import ErrorCode, RpcError
@@ -70,6 +72,19 @@ def _fail(args: argparse.Namespace, code: int, message: str, rpc_code: int | Non
     return code
 
 
+def _no_such_run(args: argparse.Namespace, exc: RpcError, connect: Callable[[], Client]) -> str | None:
+    """`--run N` the records lack, refused by the daemon, said as a usage error as a file's is:
+    "export: no run 999 in /var/lib/usmswitch/records.sqlite (runs are 1..2)"; None for any other."""
+    run = getattr(args, "run", None)
+    found = re.search(rf"\bno run {run}\b(?: \((.*)\))?$", exc.message) if run is not None else None
+    if exc.code != ErrorCode.INVALID_PARAMS or found is None:
+        return None
+    where = "the daemon's records"
+    with contextlib.suppress(OSError, RpcError, UsageError, ConnectionError), connect() as client:
+        where = client.status()["records"].get("path") or where
+    return f"{args.command}: no run {run} in {where}" + (f" ({found.group(1)})" if found.group(1) else "")
+
+
 def _code_name(code: int) -> str:
     try:
         return ErrorCode(code).name
@@ -117,6 +132,9 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as exc:
         return _fail(args, EXIT_USAGE, str(exc))
     except RpcError as exc:
+        missing = _no_such_run(args, exc, connect)
+        if missing is not None:
+            return _fail(args, EXIT_USAGE, missing)
         exit_code = EXIT_FAULT if exc.code == ErrorCode.FAULT else EXIT_REFUSED
         return _fail(args, exit_code, f"refused: [{exc.code} {_code_name(exc.code)}] {exc.message}", exc.code)
     except ReplyTimeout as exc:  # which call, how long, and whether the daemon still answers

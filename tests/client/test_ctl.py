@@ -285,7 +285,27 @@ def test_runs_and_stats_read_the_records_with_no_daemon(idle: Rig) -> None:
     assert table.stdout.startswith(f"run {run_id} (cycling, ended: done), cycles {live['first_cycle']}..")
     assert "(the run's settings)" in table.stdout and "coefficients (kalman)" in table.stdout
     missing = run(None, *gone, "stats", "--state-dir", str(idle.state_dir), "--run", "9999")
-    assert missing.returncode == 2 and f"{records} has no run 9999 (runs 1.." in missing.stderr
+    assert missing.returncode == 2 and f"no run 9999 in {records} (runs 1.." in missing.stderr
+
+
+def test_a_run_the_records_lack_is_a_usage_error_naming_the_file(idle: Rig) -> None:
+    """Issue 37's bites: `export --run 999` said `refused: [-32602 INVALID_PARAMS] history: no run
+    999` (exit 1) where the same from a file is a usage error; now both say which records lack it."""
+    records = idle.state_dir / "records.sqlite"
+    for argv in (
+        ["export", "--csv", "-", "--run", "9999"],
+        ["stats", "--run", "9999"],
+        ["history", "--run", "9999"],
+    ):
+        r = run(idle, *argv)
+        assert r.returncode == 2 and r.stdout == "", (argv, r.stdout, r.stderr)
+        assert r.stderr.startswith(f"usmswitchctl: {argv[0]}: no run 9999 in {records} (runs are 1.."), (
+            r.stderr
+        )
+        j = run(idle, "--json", *argv)
+        assert j.returncode == 2 and json.loads(j.stderr)["error"]["exit"] == 2
+    r = run(None, "export", "--csv", "-", "--state-dir", str(idle.state_dir), "--run", "9999")
+    assert r.returncode == 2 and f"export: no run 9999 in {records} (runs 1.." in r.stderr
 
 
 def test_refused_call_exits_1_and_stop(idle: Rig) -> None:
