@@ -15,6 +15,7 @@ calls and runs the handlers, one at a time.
 from __future__ import annotations
 
 import contextlib
+import errno
 import grp
 import logging
 import os
@@ -53,6 +54,8 @@ log = logging.getLogger("usmswitch.rpc")
 
 #: How long stop() lets the server process close its clients before it is killed. An idle one
 #: exits in ~5 ms; one starved of CPU by busy clients may take 100 ms and more.
+#: The longest path a Unix socket binds to on Linux (sun_path: 108 bytes with its NUL).
+MAX_UNIX_PATH = 107
 STOP_GRACE_S = 0.01
 
 
@@ -375,12 +378,21 @@ class RpcServer:
                 )
             finally:
                 probe.close()
+        size = len(os.fsencode(path))
+        if size > MAX_UNIX_PATH:
+            # bind() says only "AF_UNIX path too long", an OSError without errno or strerror.
+            raise OSError(
+                errno.ENAMETOOLONG,
+                f"cannot bind the RPC socket {path}: its path is {size} bytes, a Unix socket's at most"
+                f" {MAX_UNIX_PATH}; choose a shorter --socket (or runtime directory)",
+            )
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             sock.bind(str(path))
         except OSError as exc:
             sock.close()
-            raise OSError(exc.errno, f"cannot bind the RPC socket {path}: {exc.strerror}") from exc
+            why = exc.strerror or str(exc)
+            raise OSError(exc.errno, f"cannot bind the RPC socket {path}: {why}") from exc
         try:
             # Bound with the process umask; restricted before listen(), so no client connects earlier.
             os.chmod(path, self.mode)

@@ -88,6 +88,19 @@ def test_bad_config_key_refuses_to_start_naming_it(tmp_path: Path) -> None:
     assert proc.returncode == 2 and "windwo" in err.decode()
 
 
+def test_a_socket_path_too_long_to_bind_is_said_so(tmp_path: Path) -> None:
+    """A Unix socket's path is at most 107 bytes: bind() said "[Errno None] ...: None" (the estop
+    socket's path, 9 bytes longer than the socket's, was the first over under pytest-xdist)."""
+    sock = tmp_path / ("s" * (120 - len(str(tmp_path)))) / "d.sock"
+    sock.parent.mkdir()
+    proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, socket=sock))
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode != 0
+    text = err.decode()
+    assert f"its path is {len(str(sock))} bytes, a Unix socket's at most 107" in text, text[-2000:]
+    assert "Errno None" not in text
+
+
 def test_kill_9_loses_no_completed_stroke_and_restart_warm_starts(tmp_path: Path) -> None:
     proc = start(tmp_path)
     try:
