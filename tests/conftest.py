@@ -103,3 +103,18 @@ def pg(pg_server: object) -> Iterator[tuple[object, str, str]]:
     finally:
         if not pg_server.started:  # type: ignore[attr-defined]
             pg_server.start()  # type: ignore[attr-defined]
+
+
+@pytest.fixture
+def short_tmp() -> Iterator[Path]:
+    """A fresh directory with a short path (/tmp/usm-XXXXXXXX), for trees of Unix sockets: a
+    socket's path is at most 107 bytes, and tmp_path's (longer under pytest-xdist's per-worker
+    directories) left too few for a unit's runtime directory and its sockets."""
+    import shutil
+    import tempfile
+
+    path = Path(tempfile.mkdtemp(prefix="usm-", dir="/tmp"))
+    try:
+        yield path
+    finally:
+        shutil.rmtree(path, ignore_errors=True)

@@ -61,7 +61,10 @@ def test_closed_loop_over_serial_records_every_stroke(tmp_path: Path) -> None:
     assert [r[0] for r in rows] == list(range(1, STROKES + 1))
     assert all(r[1] is not None for r in rows)  # every stroke arrived and was stamped
     assert stats["all"]["stalls"] == 0
-    errs = [r[1] for r in rows[100:]]
+    # The error of the strokes started on time: a start late (the emulator is a process of this
+    # host, descheduled on a busy one) is flagged LATE and counted below, not spread into the std
+    # (361 us with the suite beside it, where the on-time strokes read ~90 us).
+    errs = [r[1] for r in rows[100:] if not r[2] & 1]
     std = statistics.pstdev(errs)
     late = sum(1 for r in rows if r[2] & 1)
     print(f"\nserial e2e: {len(rows)} strokes, error std {std / 1e3:.1f} us, late {late}")

@@ -123,27 +123,27 @@ def _instance(template: Path, rig: str, root: Path) -> tuple[list[str], dict[str
     return [sys.executable, "-m", "usmswitch.daemon.cli", *argv[1:]], env, runtime / "usmswitchd.sock"
 
 
-def test_two_rigs_run_side_by_side_as_the_template_runs_them(template: Path, tmp_path: Path):
-    (tmp_path / "etc").mkdir()
+def test_two_rigs_run_side_by_side_as_the_template_runs_them(template: Path, short_tmp: Path):
+    (short_tmp / "etc").mkdir()
     procs = {}
     try:
         for rig in ("rigA", "rigB"):
-            (tmp_path / "etc" / f"{rig}.toml").write_text(
+            (short_tmp / "etc" / f"{rig}.toml").write_text(
                 '[driver]\nkind = "sim"\n[daemon]\nlog_format = "json"\n[cycle]\nautostart = false\n'
             )
-            argv, env, sock = _instance(template, rig, tmp_path)
+            argv, env, sock = _instance(template, rig, short_tmp)
             procs[rig] = (daemonproc.spawn(argv, env=env), sock, argv, env)
         for rig, (proc, sock, _, _) in procs.items():
             daemonproc.wait_serving(sock, proc)
             with Client(str(sock)) as c:
                 rec = c.switch("on")
             assert rec["rig"] == rig  # the instance name stamps the records
-            state = tmp_path / "lib" / "usmswitch" / rig / "sim"
+            state = short_tmp / "lib" / "usmswitch" / rig / "sim"
             assert (state / "records.sqlite").exists() and (state / "usmswitchd.lock").exists()
         # A second daemon for rigA (its state directory is locked) refuses to start: exit 3.
         _, _, argv, env = procs["rigA"]
         second = subprocess.run(
-            [*argv, "--socket", str(tmp_path / "other.sock")],
+            [*argv, "--socket", str(short_tmp / "other.sock")],
             env=env,
             capture_output=True,
             text=True,

@@ -55,10 +55,11 @@ def test_a_device_clock_rate_far_off_is_refused_naming_it(tmp_path: Path) -> Non
             ev = daq.recv(500 * MS)
         assert ev is not None
         # The rate is measured over a few heartbeat round trips, each with the host's scheduling
-        # jitter in it (CI read +9.856 % for the true +10 %): the message must name a rate near it.
+        # jitter in it (CI read +9.856 % for the true +10 %, a host at load 6 +14.2 %): the message
+        # must name a rate fast by about that much, far past the 0.5 % allowed.
         said = re.search(r"the device clock runs at (\d\.\d+) us per us \(\+(\d+\.\d+) %\)", ev.detail)
         assert said is not None, ev.detail
-        assert 1.08 < float(said.group(1)) < 1.12 and 8.0 < float(said.group(2)) < 12.0, ev.detail
+        assert 1.05 < float(said.group(1)) < 1.2 and 5.0 < float(said.group(2)) < 20.0, ev.detail
         assert wait_for(lambda: daq.link_stats()["handshake_failures"] >= 1, 3.0)
         assert not daq.connected
         with pytest.raises(DaqError):

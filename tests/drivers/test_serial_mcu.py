@@ -33,9 +33,11 @@ def _check_stroke(seen, direction: Direction, delay_ns: int, emu_stroke) -> None
     arr = seen.edge(direction.dest, 1)
     assert start.direction is direction
     assert seen.t_cmd_ns < start.t_ns < dep.t_ns < arr.t_ns
-    # The device fired the start exactly `delay` after the command, on its own clock (1 us ticks;
-    # the instant goes to the device's microseconds and the start's stamp comes back: two roundings).
-    assert abs(start.t_ns - seen.t_cmd_ns - delay_ns) <= 2_000
+    # The device fired the start `delay` after the command, on its own clock (1 us ticks; the
+    # instant goes to the device's microseconds and the start's stamp comes back: two roundings),
+    # or as late as it said (the emulator is a thread of this process: a busy host deschedules it;
+    # the driver counts a claim off the stamp as a start mismatch: test_strokes_across_the_clock_wrap).
+    assert abs(start.t_ns - seen.t_cmd_ns - delay_ns - start.lateness_ns) <= 2_000
     # The operating time equals the rig model's, to the device clock's resolution and drift.
     true_op = emu_stroke.t_arrive_ns - emu_stroke.t_start_ns
     assert abs((arr.t_ns - start.t_ns) - true_op) <= 2_000
@@ -57,6 +59,7 @@ def test_strokes_across_the_clock_wrap(rig) -> None:
     stats = daq.link_stats()
     assert stats["wraps"] == 1, "the device clock wrapped during the run"
     assert stats["lost_frames"] == 0 and stats["crc_errors"] == 0 and stats["reconnects"] == 0
+    assert stats["start_mismatches"] == 0, "a START's stamp is not where the device said it started"
     # now_ns() is the device clock mapped to the host: within a fraction of a millisecond.
     dev_now = emu.device_us()
     drv_now_us = daq.timeline.to_raw_us(daq.now_ns())
