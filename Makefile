@@ -18,8 +18,9 @@ WEB ?= 8790
 run: $(STAMP)
 	$(VENV)/bin/usmswitchd --sim --web $(WEB) $(if $(STATE_DIR),--state-dir $(STATE_DIR)) $(if $(SOCKET),--socket $(SOCKET))
 
+# Two processes, a test file each at a time (module fixtures made once); `pytest FILE` runs one alone.
 test: $(STAMP)
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2 --dist loadfile
 
 # BENCH=predictor runs benchmarks/bench_predictor.py only.
 bench: $(STAMP)

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import pytest
 import realsystemd
+from checkout import building_from
 
 CI = os.environ.get("CI") == "true"
 
@@ -56,19 +57,16 @@ def system_venv(repo_root: Path) -> Iterator[Path]:
     if os.geteuid() != 0:
         _skip_or_fail("the real-systemd test needs root")
     venv = Path("/opt") / f"usmswitch-test-{uuid.uuid4().hex[:8]}"
-    build_dir = repo_root / "build"
-    had_build = build_dir.exists()
     try:
         subprocess.run([str(DEBIAN_PYTHON), "-m", "venv", str(venv)], check=True, capture_output=True)
-        pip = subprocess.run(
-            [str(venv / "bin" / "pip"), "install", "--quiet", str(repo_root)],
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
+        with building_from(repo_root):
+            pip = subprocess.run(
+                [str(venv / "bin" / "pip"), "install", "--quiet", str(repo_root)],
+                capture_output=True,
+                text=True,
+                timeout=600,
+            )
         assert pip.returncode == 0, pip.stderr[-3000:]
-        if not had_build:  # setuptools builds in the checkout; leave it as found
-            shutil.rmtree(build_dir, ignore_errors=True)
         yield venv
     finally:
         shutil.rmtree(venv, ignore_errors=True)

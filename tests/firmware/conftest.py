@@ -6,6 +6,7 @@ CI=true, where a missing toolchain is a failure (CI installs the packages, see .
 
 from __future__ import annotations
 
+import fcntl
 import os
 import shutil
 import subprocess
@@ -40,10 +41,14 @@ def require(tools: list[str], headers: list[str], packages: str) -> None:
 
 
 def make(*targets: str) -> None:
-    """Build firmware targets (one job: the machine is shared)."""
-    proc = subprocess.run(
-        ["make", "-j1", "-C", str(FIRMWARE), *targets], capture_output=True, text=True, check=False
-    )
+    """Build firmware targets (one job: the machine is shared), one build at a time: make test's
+    two processes (pytest-xdist) would otherwise write the same objects at once."""
+    BUILD.mkdir(exist_ok=True)
+    with open(BUILD / ".lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        proc = subprocess.run(
+            ["make", "-j1", "-C", str(FIRMWARE), *targets], capture_output=True, text=True, check=False
+        )
     if proc.returncode != 0:
         pytest.fail(f"make {' '.join(targets)} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
     warnings = [ln for ln in proc.stderr.splitlines() if "warning:" in ln]
