@@ -6,8 +6,9 @@ keeps the machine untouched:
 
 * /tmp is a private tmpfs: at boot systemd-tmpfiles empties /tmp, which would otherwise be the
   machine's own (every other process there would lose its files);
-* /etc, /usr and /var are overlays whose upper layers live on a tmpfs: the units, the sysusers
-  user and group, the config and the state directory written by the test vanish with the namespace;
+* /etc, /opt, /usr and /var are overlays whose upper layers live on a tmpfs: the units, the
+  sysusers user and group, the config, a venv the docs install under /opt and the state directory
+  written by the test vanish with the namespace;
   the host's own usmswitch config, state and logs are hidden in them (a machine where the service
   was installed), so a test sees only what it made.
 
@@ -30,7 +31,7 @@ from pathlib import Path
 SYSTEMD = Path("/lib/systemd/systemd")
 #: Where the overlays' upper layers live (a tmpfs mounted there inside the namespace only).
 SCRATCH = "/mnt"
-OVERLAID = ("/etc", "/usr", "/var")
+OVERLAID = ("/etc", "/opt", "/usr", "/var")
 
 
 class BootError(RuntimeError):
