@@ -34,7 +34,7 @@ from .api import Duration, find_socket
 from .connection import Client, ConnectionClosed, ReplyTimeout, Subscription, UntrustedSocketError
 from .notifier import Listener, Notifier
 from .records import RecordsFile, RecordsFileError, RecordsSource
-from .run import Run, RunLost
+from .run import QueuedRun, QueuedRunNotStarted, Run, RunLost
 from .sources import open_records
 from .types import (
     CycleRecord,
@@ -49,6 +49,7 @@ from .types import (
 
 __all__ = [
     "AsyncClient",
+    "AsyncQueuedRun",
     "AsyncRun",
     "Busy",
     "CallTimeout",
@@ -68,6 +69,8 @@ __all__ = [
     "Notifier",
     "ParseError",
     "PostgresRecords",
+    "QueuedRun",
+    "QueuedRunNotStarted",
     "RecordsFile",
     "RecordsFileError",
     "RecordsSource",
@@ -93,7 +96,12 @@ __all__ = [
 ]
 
 # Imported on first use: asyncio and psycopg cost `usmswitchctl` ~0.3 s of start-up it rarely needs.
-_LAZY = {"AsyncClient": ".aio", "AsyncRun": ".aio", "PostgresRecords": ".pgrecords"}
+_LAZY = {
+    "AsyncClient": ".aio",
+    "AsyncQueuedRun": ".aio",
+    "AsyncRun": ".aio",
+    "PostgresRecords": ".pgrecords",
+}
 
 
 def __getattr__(name: str) -> Any:

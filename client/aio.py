@@ -23,7 +23,7 @@ import asyncio
 import contextlib
 import os
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterable
 from typing import Any
 
 import msgpack
@@ -42,7 +42,7 @@ from .connection import (
     result_of,
     sort_message,
 )
-from .run import RunHandle
+from .run import QueueWatch, RunHandle
 from .types import CycleRecord, Notification, RunInfo, Stats
 
 
@@ -66,6 +66,7 @@ class AsyncClient(Api):
         self.token = token or url_token or env_token
         self.max_reply_bytes = max_reply_bytes
         self.topics: set[str] = set()
+        self._run_holds: dict[str, int] = {}  # topic -> run objects holding it (hold_topics)
         #: Notifications lost on this side because nobody read them.
         self.local_dropped = 0
         self._writer: asyncio.StreamWriter | None = None
@@ -174,6 +175,29 @@ class AsyncClient(Api):
         self.topics = set((await self.call("subscribe", wanted))["topics"])
         return AsyncSubscription(self, wanted, check_timeout("timeout", timeout))
 
+    async def hold_topics(self, topics: Iterable[str]) -> list[str]:
+        """Subscribe `topics` for a run object, counted (as `Client.hold_topics`)."""
+        holds = self._run_holds
+        held = [t for t in topics if t in holds or t not in self.topics]
+        new = [t for t in held if t not in holds]
+        if new:
+            self.topics = set((await self.call("subscribe", new))["topics"])
+        for t in held:
+            holds[t] = holds.get(t, 0) + 1
+        return held
+
+    async def release_topics(self, topics: Iterable[str]) -> None:
+        """A run object is done with `topics`: unsubscribed when no other holds them."""
+        holds = self._run_holds
+        gone = []
+        for t in topics:
+            holds[t] -= 1
+            if not holds[t]:
+                del holds[t]
+                gone.append(t)
+        if gone and self.connected:
+            await self.unsubscribe(*gone)
+
     async def unsubscribe(self, *topics: str) -> list[str]:
         """Stop notifications of `topics` (all when none given); returns the topics still subscribed."""
         reply = await (self.call("unsubscribe", list(topics)) if topics else self.call("unsubscribe"))
@@ -193,9 +217,7 @@ class AsyncClient(Api):
         notes: str | None = None,
     ) -> AsyncRun:
         """Start a run; `async for` over the result yields its strokes and ends with the run."""
-        added = [t for t in ("stroke", "run") if t not in self.topics]
-        if added:
-            self.topics = set((await self.call("subscribe", added))["topics"])
+        added = await self.hold_topics(("stroke", "run"))
         try:
             started = await self.start_cycling(
                 period,
@@ -207,10 +229,40 @@ class AsyncClient(Api):
                 notes=notes,
             )
         except BaseException:
-            if added and self.connected:
-                await self.unsubscribe(*added)
+            await self.release_topics(added)
             raise
         return AsyncRun(self, started, added, check_timeout("timeout", timeout))
+
+    async def submit(  # type: ignore[override]
+        self,
+        count: int = 0,
+        period: Duration = "50ms",
+        target: Duration | None = None,
+        *,
+        allow_late: bool = False,
+        label: str | None = None,
+        notes: str | None = None,
+        priority: int = 0,
+        take_over: bool = False,
+        timeout: float | None = None,
+    ) -> AsyncQueuedRun:
+        """Queue a run; `async for` over the result waits for its turn, then yields its strokes."""
+        added = await self.hold_topics(("stroke", "run", "queue"))
+        try:
+            entry = await self.submit_entry(
+                period,
+                count,
+                target=target,
+                allow_late=allow_late,
+                label=label,
+                notes=notes,
+                priority=priority,
+                take_over=take_over,
+            )
+        except BaseException:
+            await self.release_topics(added)
+            raise
+        return AsyncQueuedRun(self, entry, added, check_timeout("timeout", timeout))
 
     # -- the reader task ---------------------------------------------------------------------------
     async def _read_loop(self, reader: asyncio.StreamReader) -> None:
@@ -283,6 +335,7 @@ class AsyncRun(RunHandle):
 
     async def _strokes(self) -> AsyncIterator[CycleRecord]:
         tracker = self._tracker
+        assert tracker is not None
         while not tracker.ended:
             rec, missing = tracker.accept(await self.client.next_notification(self.timeout))
             history = (
@@ -290,16 +343,17 @@ class AsyncRun(RunHandle):
             )
             for r in tracker.deliver(rec, missing, history):
                 yield r
-        if self._added_topics and self.client.connected:
-            await self.client.unsubscribe(*self._added_topics)
+        if self._added_topics:
+            await self.client.release_topics(self._added_topics)
             self._added_topics = []
 
     async def wait(self) -> RunInfo:
         """Wait for the run to end; returns its record."""
         async for _ in self:
             pass
-        assert self._tracker.info is not None
-        return self._tracker.info
+        info = self.info
+        assert info is not None
+        return info
 
     async def stats(self) -> Stats:
         """This run's statistics, in the shape of `stats()`."""
@@ -308,3 +362,46 @@ class AsyncRun(RunHandle):
     async def stop(self) -> dict[str, Any]:
         """Stop the run after the stroke in progress."""
         return await self.client.stop_cycling()
+
+
+class AsyncQueuedRun(AsyncRun):
+    """A run submitted to the queue (`AsyncClient.submit`): `async for` waits for its turn, then
+    yields its strokes; `entry` is its queue entry as last heard of."""
+
+    def __init__(
+        self, client: Any, entry: dict[str, Any], added_topics: list[str], timeout: float | None
+    ) -> None:
+        super().__init__(client, None, added_topics, timeout)
+        self._watch = QueueWatch(entry)
+
+    @property
+    def entry(self) -> dict[str, Any]:
+        return self._watch.entry
+
+    async def _strokes(self) -> AsyncIterator[CycleRecord]:
+        client = self.client
+        if self._tracker is None:
+            queue = (await client.status())["queue"]
+            started, ended = self._watch.locate(queue, await client.runs(1000))
+            if started is not None:
+                self._begin(started)
+            if ended is not None:  # over already: its end as its notification would have said it
+                tracker = self._tracker
+                assert tracker is not None
+                rec, missing = tracker.accept(Notification("run", ended))
+                history = (
+                    await client.history(tracker.history_wanted(missing), self.run_id) if missing else []
+                )
+                for r in tracker.deliver(rec, missing, history):
+                    yield r
+        while self._tracker is None:
+            started = self._watch.accept(await client.next_notification(self.timeout))
+            if started is not None:
+                self._begin(started)
+        async for rec in super()._strokes():
+            yield rec
+
+    async def cancel(self, *, operator: bool = False) -> dict[str, Any]:
+        """Take it out of the queue before its turn (its submitter, or an operator)."""
+        self._watch.entry = await self.client.queue_cancel(self._watch.entry_id, operator=operator)
+        return self._watch.entry

@@ -180,6 +180,47 @@ class Api(ABC):
         who = run_owner() if owner is None else owner
         return self.call("annotate_run", run, notes, label, who, operator)
 
+    def submit_entry(
+        self,
+        period: Duration,
+        count: int = 0,
+        *,
+        target: Duration | None = None,
+        allow_late: bool = False,
+        label: str | None = None,
+        notes: str | None = None,
+        priority: int = 0,
+        take_over: bool = False,
+        owner: str | None = None,
+    ) -> dict[str, Any]:
+        """Put a run in the daemon's queue (`submit`): it starts when its turn comes (highest
+        `priority` first, then in order), after the run going ends; `take_over` starts it at once,
+        ending the run going. Returns its queue entry (`entry`, `position`, `state`); `submit` (on
+        Client and AsyncClient) returns a run object that follows it to its start and end."""
+        period_ns = duration_ns("period", period)
+        target_ns = None if target is None else duration_ns("target", target)
+        if label:
+            check_label(label)
+        if notes is not None:
+            check_notes(notes)
+        who = run_owner() if owner is None else owner
+        return self.call(
+            "submit", period_ns, count, target_ns, allow_late, label, notes, priority, take_over, who
+        )
+
+    def queue_cancel(self, entry: int, *, operator: bool = False, owner: str | None = None) -> dict[str, Any]:
+        """Take a queued run out of the queue: its submitter's (the same `user@host`), or any with
+        `operator`. Returns the entry, cancelled."""
+        return self.call("queue_cancel", entry, run_owner() if owner is None else owner, operator)
+
+    def queue_pause(self, *, operator: bool = False) -> dict[str, Any]:
+        """No queued run starts until resumed (the run going goes on); an operator's to do."""
+        return self.call("queue_pause", operator)
+
+    def queue_resume(self, *, operator: bool = False) -> dict[str, Any]:
+        """The queue goes on (after a restart it waits paused until this); an operator's to do."""
+        return self.call("queue_resume", operator)
+
     def stop_cycling(self) -> dict[str, Any]:
         """Stop cycling after the stroke in progress; the reply carries the ended run."""
         return self.call("stop_cycling")

@@ -38,7 +38,7 @@ from usmswitch.protocol.wire import (
 )
 
 from .api import Api, Duration, find_socket
-from .run import Run
+from .run import QueuedRun, Run
 from .types import Notification
 
 __all__ = [
@@ -193,6 +193,7 @@ class Client(Api):
         self._notes: deque[Notification] = deque()
         #: The topics this connection is subscribed to (as the server last said).
         self.topics: set[str] = set()
+        self._run_holds: dict[str, int] = {}  # topic -> run objects holding it (hold_topics)
         self._pending_out: list[bytes] = []
         self._abandoned: set[int] = set()  # timed-out calls whose late replies are discarded
         self._sent: dict[int, tuple[str, int]] = {}  # msgid -> (method, monotonic ns sent): for timeouts
@@ -219,6 +220,7 @@ class Client(Api):
         self._unpacker = msgpack.Unpacker(raw=False, max_buffer_size=self.max_reply_bytes)
         self._replies.clear()
         self.topics = set()
+        self._run_holds = {}
         if self.family == "tcp":
             if not self.token:
                 self.close()
@@ -403,6 +405,31 @@ class Client(Api):
         result = self.call("unsubscribe", list(topics)) if topics else self.call("unsubscribe")
         return sorted(self._subscribed(result))
 
+    def hold_topics(self, topics: Iterable[str]) -> list[str]:
+        """Subscribe `topics` for a run object, counted: several runs on one connection (queued
+        ones) share them, and the last to end unsubscribes. Topics subscribed by hand are left be.
+        Returns those held, for `release_topics`."""
+        holds = self._run_holds
+        held = [t for t in topics if t in holds or t not in self.topics]
+        new = [t for t in held if t not in holds]
+        if new:
+            self._subscribed(self.call("subscribe", new))
+        for t in held:
+            holds[t] = holds.get(t, 0) + 1
+        return held
+
+    def release_topics(self, topics: Iterable[str]) -> None:
+        """A run object is done with `topics` (`hold_topics`): unsubscribed when no other holds them."""
+        holds = self._run_holds
+        gone = []
+        for t in topics:
+            holds[t] -= 1
+            if not holds[t]:
+                del holds[t]
+                gone.append(t)
+        if gone and self.connected:
+            self.unsubscribe(*gone)
+
     def _subscribed(self, reply: dict[str, Any]) -> set[str]:
         self.topics = set(reply["topics"])
         return self.topics
@@ -423,9 +450,7 @@ class Client(Api):
         the subscription is made before the start) and ends when the run ends. `timeout`: seconds
         to wait for each stroke (None: forever). `label` and `notes` say what the run is for
         (`start_cycling`)."""
-        added = [t for t in ("stroke", "run") if t not in self.topics]
-        if added:
-            self._subscribed(self.call("subscribe", added))
+        added = self.hold_topics(("stroke", "run"))
         try:
             started = self.start_cycling(
                 period,
@@ -437,10 +462,44 @@ class Client(Api):
                 notes=notes,
             )
         except BaseException:
-            if added and self.connected:
-                self.unsubscribe(*added)
+            self.release_topics(added)
             raise
         return Run(self, started, added, check_timeout("timeout", timeout))
+
+    def submit(
+        self,
+        count: int = 0,
+        period: Duration = "50ms",
+        target: Duration | None = None,
+        *,
+        allow_late: bool = False,
+        label: str | None = None,
+        notes: str | None = None,
+        priority: int = 0,
+        take_over: bool = False,
+        timeout: float | None = None,
+    ) -> QueuedRun:
+        """Put a run in the daemon's queue and return it: iterating the `QueuedRun` waits for its
+        turn, then yields its strokes and ends with it, as `run`'s does (the subscriptions are made
+        before the submit, so no stroke is missed). Two scripts submitting at once both get their
+        run, one after the other: none is refused, none ended. `timeout`: seconds to wait for each
+        notification (None: forever; its turn may be long in coming)."""
+        added = self.hold_topics(("stroke", "run", "queue"))
+        try:
+            entry = self.submit_entry(
+                period,
+                count,
+                target=target,
+                allow_late=allow_late,
+                label=label,
+                notes=notes,
+                priority=priority,
+                take_over=take_over,
+            )
+        except BaseException:
+            self.release_topics(added)
+            raise
+        return QueuedRun(self, entry, added, check_timeout("timeout", timeout))
 
     # -- methods with a transport of their own ----------------------------------------------------
     def estop(self, by: str = "") -> dict[str, Any]:

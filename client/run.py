@@ -25,6 +25,10 @@ class Client(Protocol):
 
     def next_notification(self, timeout: float | None = None) -> Notification: ...
 
+    def status(self) -> Any: ...
+
+    def runs(self, n: int = 20, label: str | None = None) -> list[RunInfo]: ...
+
     def history(self, n: int = 20, run: int | None = None) -> list[CycleRecord]: ...
 
     def stats(self, run: int | None = None, *, cycles: tuple[int, int] | None = None) -> Stats: ...
@@ -32,6 +36,10 @@ class Client(Protocol):
     def stop_cycling(self) -> dict[str, Any]: ...
 
     def unsubscribe(self, *topics: str) -> list[str]: ...
+
+    def queue_cancel(self, entry: int, *, operator: bool = False) -> dict[str, Any]: ...
+
+    def release_topics(self, topics: list[str]) -> None: ...
 
 
 class RunLost(RuntimeError):
@@ -101,26 +109,94 @@ class RunTracker:
         return want
 
 
-class RunHandle:
-    """What `Run` and `aio.AsyncRun` share: the run's start reply, its tracker and its end."""
+class QueuedRunNotStarted(RuntimeError):
+    """A queued run left the queue without running: cancelled, or refused when its turn came."""
 
-    def __init__(self, client: Any, started: Cycling, added_topics: list[str], timeout: float | None) -> None:
+
+class QueueWatch:
+    """What the notifications mean for a queued run until it starts (`Client.submit`): its run's id
+    and first cycle, from the run's opening (its settings name the entry) or the queue's word."""
+
+    def __init__(self, entry: dict[str, Any]) -> None:
+        #: The entry as last heard of: its state, its place, its run once started.
+        self.entry = entry
+        self.entry_id: int = entry["entry"]
+
+    def accept(self, note: Notification) -> Cycling | None:
+        """The run's start (run_id, first_cycle) when `note` tells it; QueuedRunNotStarted when the
+        entry was cancelled or refused."""
+        payload = note.payload
+        if type(payload) is not dict:
+            return None
+        if note.topic == "run" and (payload.get("settings") or {}).get("queue_entry") == self.entry_id:
+            return {"run_id": payload["run_id"], "first_cycle": payload["first_cycle"]}  # type: ignore[typeddict-item]
+        entry = payload.get("entry")
+        if note.topic != "queue" or type(entry) is not dict or entry.get("entry") != self.entry_id:
+            return None
+        self.entry = entry
+        if entry["state"] == "started":
+            return {"run_id": entry["run_id"], "first_cycle": entry["first_cycle"]}  # type: ignore[typeddict-item]
+        self._not_started()
+        return None
+
+    def _not_started(self) -> None:
+        if self.entry["state"] in ("cancelled", "refused"):
+            raise QueuedRunNotStarted(
+                f"queued run {self.entry_id} was {self.entry['state']}: {self.entry['reason']}"
+            )
+
+    def locate(self, queue: dict[str, Any], runs: list[RunInfo]) -> tuple[Cycling | None, RunInfo | None]:
+        """Where the entry is now, from `status()["queue"]` and `runs()` (its notifications may have
+        been read by another run object on the same connection): (its run's start, None while it
+        waits; that run's record once it has ended). QueuedRunNotStarted when it left the queue
+        without running."""
+        self._not_started()
+        for entry in (queue.get("current"), *queue.get("queued", ())):
+            if entry and entry["entry"] == self.entry_id:
+                self.entry = entry
+                if entry["state"] != "started":
+                    return None, None
+                return {"run_id": entry["run_id"], "first_cycle": entry["first_cycle"]}, None  # type: ignore[typeddict-item]
+        for run in runs:
+            if (run.get("settings") or {}).get("queue_entry") == self.entry_id:
+                started = {"run_id": run["run_id"], "first_cycle": run["first_cycle"]}
+                return started, (run if run["end_reason"] is not None else None)  # type: ignore[return-value]
+        raise QueuedRunNotStarted(
+            f"queued run {self.entry_id} left the queue without running (cancelled or refused)"
+        )
+
+
+class RunHandle:
+    """What `Run` and `aio.AsyncRun` share: the run's start reply, its tracker and its end (a queued
+    run's start is known once its turn comes: `started` None until then)."""
+
+    def __init__(
+        self, client: Any, started: Cycling | None, added_topics: list[str], timeout: float | None
+    ) -> None:
         self.client = client
-        #: start_cycling's reply: run_id, first_cycle, period_ns, count, targets, warnings.
+        #: start_cycling's reply: run_id, first_cycle, period_ns, count, targets, warnings (a queued
+        #: run's: run_id and first_cycle, once it started).
+        self.started = started
+        self.run_id: int | None = None
+        self.timeout = timeout
+        self._tracker: RunTracker | None = None
+        self._added_topics = added_topics  # the topics subscribed for the run, dropped at its end
+        if started is not None:
+            self._begin(started)
+
+    def _begin(self, started: Cycling) -> None:
         self.started = started
         self.run_id = started["run_id"]
-        self.timeout = timeout
         self._tracker = RunTracker(started)
-        self._added_topics = added_topics  # the topics subscribed for the run, dropped at its end
 
     @property
     def info(self) -> RunInfo | None:
         """The run's record once it has ended (first and last cycle, end reason), else None."""
-        return self._tracker.info
+        return None if self._tracker is None else self._tracker.info
 
     @property
     def ended(self) -> bool:
-        return self._tracker.ended
+        return self._tracker is not None and self._tracker.ended
 
 
 class Run(RunHandle):
@@ -130,6 +206,7 @@ class Run(RunHandle):
 
     def __iter__(self) -> Iterator[CycleRecord]:
         tracker = self._tracker
+        assert tracker is not None
         client = self.client
         while not tracker.ended:
             rec, missing = tracker.accept(client.next_notification(self.timeout))
@@ -141,8 +218,9 @@ class Run(RunHandle):
         """Wait for the run to end (reading and dropping its strokes); returns its record."""
         for _ in self:
             pass
-        assert self._tracker.info is not None
-        return self._tracker.info
+        info = self.info
+        assert info is not None
+        return info
 
     def stats(self) -> Stats:
         """This run's statistics, in the shape of `Client.stats()`."""
@@ -161,6 +239,54 @@ class Run(RunHandle):
             self.stop()
 
     def _unsubscribe(self) -> None:
-        if self._added_topics and self.client.connected:
-            self.client.unsubscribe(*self._added_topics)
+        if self._added_topics:
+            self.client.release_topics(self._added_topics)
             self._added_topics = []
+
+
+class QueuedRun(Run):
+    """A run submitted to the queue (`Client.submit`): iterating it waits for its turn, then yields
+    its strokes as `Run` does; `entry` is its queue entry as last heard of (state, place)."""
+
+    def __init__(
+        self, client: Any, entry: dict[str, Any], added_topics: list[str], timeout: float | None
+    ) -> None:
+        super().__init__(client, None, added_topics, timeout)
+        self._watch = QueueWatch(entry)
+
+    @property
+    def entry(self) -> dict[str, Any]:
+        return self._watch.entry
+
+    def __iter__(self) -> Iterator[CycleRecord]:
+        client = self.client
+        if self._tracker is None:
+            started, ended = self._watch.locate(client.status()["queue"], client.runs(1000))
+            if started is not None:
+                self._begin(started)
+            if ended is not None:  # over already: its end as its notification would have said it
+                yield from self._take(Notification("run", ended))
+        while self._tracker is None:
+            started = self._watch.accept(client.next_notification(self.timeout))
+            if started is not None:
+                self._begin(started)
+        yield from super().__iter__()
+
+    def _take(self, note: Notification) -> list[CycleRecord]:
+        tracker = self._tracker
+        assert tracker is not None
+        rec, missing = tracker.accept(note)
+        history = self.client.history(tracker.history_wanted(missing), self.run_id) if missing else []
+        return tracker.deliver(rec, missing, history)
+
+    def cancel(self, *, operator: bool = False) -> dict[str, Any]:
+        """Take it out of the queue before its turn (its submitter, or an operator)."""
+        self._watch.entry = self.client.queue_cancel(self._watch.entry_id, operator=operator)
+        return self._watch.entry
+
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        # Left by an error before its turn: it leaves the queue (a run going is stopped, as Run's).
+        if exc_type is not None and self._tracker is None and self.client.connected:
+            self.cancel()
+            return
+        super().__exit__(exc_type, *exc)

@@ -35,6 +35,8 @@ class Status(TypedDict):
     order: int | str  # [control] order: 1..8 or "auto"
     scheduling: str  # the loop thread's: "SCHED_FIFO 50", "SCHED_OTHER (... not permitted: ...)"
     ready: bool  # every part runs (the socket answers a moment before, while the rest starts)
+    run: RunInfo | None  # the run going (None: none)
+    queue: dict[str, Any]  # the queue of runs: "paused", "current" (the entry running), "queued"
 
 
 class DirectionStats(TypedDict, total=False):

@@ -33,6 +33,7 @@ from .config_values import parse_host_port, parse_listen
 from .loop import AUTOSTART_OWNER, ControlLoop, LoopError, Mode, State
 from .reach import TargetUnreachableError
 from .records import RecordStore
+from .run_queue import PARAMS, Entry, RunQueue
 from .web_token import TokenFile
 
 log = structlog.get_logger("usmswitch.daemon")
@@ -73,6 +74,8 @@ class Methods:
         self.store = daemon.store
         self.daq = daemon.daq
         self.server: RpcServer | None = None
+        #: The queue of runs (daemon/run_queue.py): started by `start_rpc`, loaded from the file.
+        self.queue = RunQueue(self.store.write, self._queue_start, self._publish_queue, self.loop.wait_turn)
         self._targets_from_cycle = self.loop.cycle
         self._last_state: tuple[Any, ...] = ()
         # set_target calls waiting for the loop: folded into one change (bridge and loop threads).
@@ -99,6 +102,10 @@ class Methods:
             "reset_fault": self.reset_fault,
             "set_drive": self.set_drive,
             "annotate_run": self.annotate_run,
+            "submit": self.submit,
+            "queue_cancel": self.queue_cancel,
+            "queue_pause": lambda params: self.queue.set_paused(True, params[0]),
+            "queue_resume": lambda params: self.queue.set_paused(False, params[0]),
         }
 
     def urgent(self) -> dict[str, Callable[[list[Any]], object]]:
@@ -138,7 +145,13 @@ class Methods:
             "noise": loop.noise_by_sensor(),
             "idle_edges": loop.idle_edges,
             "ready": self.daemon.ready,
+            "run": self._running_run(),
+            "queue": self.queue.snapshot(),
         }
+
+    def _running_run(self) -> dict[str, Any] | None:
+        run = self.loop.latest_run
+        return run.to_dict() if run is not None and run.running else None
 
     def _metrics_url(self) -> str | None:
         address = None if self.server is None else self.server.metrics_address
@@ -269,48 +282,120 @@ class Methods:
         what `make run` starts) gives way to a client's run with a log line; a run a client or an
         experiment started is taken over only when asked (`take_over`), else refused naming it.
         """
-        period_ns, count, target_ns, allow_late, take_over, owner, label, notes = params
+        return self._on_loop(lambda: self.start_run(*params))
 
-        def run() -> dict[str, Any]:
-            loop = self.loop
-            targets = list(loop.targets) if target_ns is None else [target_ns, target_ns]
+    def start_run(
+        self,
+        period_ns: int,
+        count: int,
+        target_ns: int | None,
+        allow_late: bool,
+        take_over: bool,
+        owner: str,
+        label: str | None,
+        notes: str | None,
+        extra: dict[str, Any] | None = None,
+    ) -> dict[str, Any]:
+        """Open a run (loop thread): `start_cycling`'s work, and the queue's (`extra` settings: the
+        queue entry it is). Returns the Cycling reply."""
+        loop = self.loop
+        targets = list(loop.targets) if target_ns is None else [target_ns, target_ns]
+        if not allow_late:
+            loop.check_reach(targets)
+        loop.check_period(period_ns, targets)
+        taken = self._give_way(take_over, owner) if loop.state is State.CYCLING else None
+        old = list(loop.targets)
+        warnings = loop.set_targets(targets) if target_ns is not None else []
+        settings: dict[str, Any] = {"allow_late": allow_late, "owner": owner, **(extra or {})}
+        if taken is not None:
+            settings["took_over_run"] = taken.run_id
+        try:
+            run = loop.start_cycling(
+                period_ns, count, settings=settings, label=label or None, notes=notes or None
+            )
+        except Exception:
+            loop.set_targets(old)  # a refused run changes nothing
+            raise
+        if target_ns is not None and targets != old:
+            self._targets_from_cycle = loop.cycle
+            self.store.record_event(
+                "target",
+                target_on_ns=targets[0],
+                target_off_ns=targets[1],
+                calls=1,
+                from_cycle=loop.cycle,
+            )
+        self.store.record_event("cycle", period_ns=period_ns, count=count, first_cycle=loop.cycle)
+        self.daemon.refresh_snapshot()
+        return {
+            "run_id": run.run_id,
+            "period_ns": period_ns,
+            "count": count,
+            "first_cycle": run.first_cycle,
+            "target_on_ns": loop.targets[0],
+            "target_off_ns": loop.targets[1],
+            "warnings": warnings,
+            "took_over": None if taken is None else taken.run_id,
+        }
+
+    # -- the queue of runs (daemon/run_queue.py) ---------------------------------------------------
+    def submit(self, params: list[Any]) -> Future[Any]:
+        """A run into the queue: checked now as `start_cycling` checks it (period, reach), kept in
+        the records file, started when its turn comes; answered with its entry and place."""
+        period_ns, count, target_ns, allow_late, label, notes, priority, take_over, owner = params
+
+        def check() -> None:
+            targets = list(self.loop.targets) if target_ns is None else [target_ns, target_ns]
             if not allow_late:
-                loop.check_reach(targets)
-            loop.check_period(period_ns, targets)
-            taken = self._give_way(take_over, owner) if loop.state is State.CYCLING else None
-            old = list(loop.targets)
-            warnings = loop.set_targets(targets) if target_ns is not None else []
-            settings: dict[str, Any] = {"allow_late": allow_late, "owner": owner}
-            if taken is not None:
-                settings["took_over_run"] = taken.run_id
-            try:
-                run = loop.start_cycling(period_ns, count, settings=settings, label=label, notes=notes)
-            except Exception:
-                loop.set_targets(old)  # a refused run changes nothing
-                raise
-            if target_ns is not None and targets != old:
-                self._targets_from_cycle = loop.cycle
-                self.store.record_event(
-                    "target",
-                    target_on_ns=targets[0],
-                    target_off_ns=targets[1],
-                    calls=1,
-                    from_cycle=loop.cycle,
+                self.loop.check_reach(targets)
+            self.loop.check_period(period_ns, targets)
+
+        run = dict(
+            zip(PARAMS, (period_ns, count, target_ns, allow_late, take_over, label, notes), strict=True)
+        )
+        done: Future[Any] = Future()
+
+        def checked(fut: Future[Any]) -> None:
+            exc = fut.exception()
+            if exc is not None:
+                done.set_exception(exc)
+                return
+            self.queue.submit(run, owner, priority).add_done_callback(
+                lambda kept: (
+                    done.set_exception(kept.exception())  # type: ignore[arg-type]
+                    if kept.exception() is not None
+                    else done.set_result(kept.result())
                 )
-            self.store.record_event("cycle", period_ns=period_ns, count=count, first_cycle=loop.cycle)
-            self.daemon.refresh_snapshot()
-            return {
-                "run_id": run.run_id,
-                "period_ns": period_ns,
-                "count": count,
-                "first_cycle": run.first_cycle,
-                "target_on_ns": loop.targets[0],
-                "target_off_ns": loop.targets[1],
-                "warnings": warnings,
-                "took_over": None if taken is None else taken.run_id,
-            }
+            )
+
+        self._on_loop(check).add_done_callback(checked)
+        return done
+
+    def queue_cancel(self, params: list[Any]) -> dict[str, Any]:
+        entry, owner, operator = params
+        return self.queue.cancel(entry, owner, operator)
+
+    def _queue_start(self, entry: Entry) -> Future[Any]:
+        """The queue's head started in the loop's slack, unless it must wait: None while FAULT is
+        latched or another's run goes (the daemon's start-up run gives way; `take_over` ends any)."""
+
+        def run() -> dict[str, Any] | None:
+            loop = self.loop
+            p = entry.params
+            if loop.state is State.FAULT:
+                return None
+            going = loop.latest_run if loop.state is State.CYCLING else None
+            if going is not None and going.settings.get("owner") != AUTOSTART_OWNER and not p["take_over"]:
+                return None
+            extra = {"queue_entry": entry.entry, "priority": entry.priority}
+            args = (p["period_ns"], p["count"], p["target_ns"], p["allow_late"], p["take_over"])
+            return self.start_run(*args, entry.owner, p["label"], p["notes"], extra)
 
         return self._on_loop(run)
+
+    def _publish_queue(self, payload: dict[str, Any]) -> None:
+        if self.server is not None:
+            self.server.publish("queue", payload)
 
     def _give_way(self, take_over: bool, owner: str) -> RunRecord:
         """End the run going so that a new one can start, or refuse (LoopError) naming it."""
@@ -397,7 +482,10 @@ class Methods:
             self.store.record_event("reset", fault=was)
             return {"fault": was}
 
-        return self._on_loop(run)
+        done = self._on_loop(run)
+        # A person reset the fault: the queue's next run may start (a fault never starts it).
+        done.add_done_callback(lambda fut: fut.exception() is None and self.queue.next())
+        return done
 
     def estop(self, params: list[Any]) -> dict[str, Any]:
         """An estop by the urgent channel: its source as its caller names it (`panel`,
@@ -450,6 +538,7 @@ class Methods:
         after every stroke of the run has been published."""
         if self.server is not None:
             self.server.publish("run", run.to_dict())
+        self.queue.on_run(run)
 
     def on_commit(self, records: list[CycleRecord]) -> None:
         """Notify subscribers of strokes now in the file, never before: a subscriber's log and the
@@ -558,7 +647,7 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         urgent_path=estop_socket_path(cfg.path),
         records_path=daemon.store.path,
         records_reader="usmswitch.daemon.records:open_reader",
-        topics=("stroke", "state", "run"),
+        topics=("stroke", "state", "run", "queue"),
         snapshot_methods=("stats",),
         snapshot_finishers={"stats": "usmswitch.protocol.stats:finish_snapshot"},
         feeds=FEEDS if daemon.config.metrics.listen else (),
@@ -590,6 +679,9 @@ def start_rpc(daemon: Daemon) -> RpcServer:
         assert server.web_address is not None
         _announce_panel(web_url(server.web_address), token)
     methods.server = server
+    methods.queue.start()
+    methods.queue.load()  # what waited before a restart: paused until an operator resumes it
+    server.companions.append(methods.queue)
     assert server.urgent_listener is not None
     estop = EstopSocket(
         server.urgent_listener, methods.urgent_estop_socket(), server.limits, gate=daemon.loop.wait_turn

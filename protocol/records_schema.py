@@ -108,7 +108,24 @@ MIGRATIONS = {
 #: rows). The last columns of their table, so that `INSERT ... SELECT *` between two files agrees.
 ADDED_COLUMNS: dict[str, tuple[tuple[str, str], ...]] = {"runs": (("label", "TEXT"), ("notes", "TEXT"))}
 #: Additions to schema 3 that need the added columns (run after them), one statement each.
-ADDITIONS = ("CREATE INDEX IF NOT EXISTS runs_label ON runs (label, run_id)",)
+ADDITIONS = (
+    "CREATE INDEX IF NOT EXISTS runs_label ON runs (label, run_id)",
+    # The queue of runs (daemon/run_queue.py): every entry submitted, kept after it leaves the queue
+    # (started: the run it became; cancelled or refused: why), so a restart finds what waits.
+    """CREATE TABLE IF NOT EXISTS run_queue (
+        entry INTEGER PRIMARY KEY CHECK (entry >= 1),
+        submitted_wall_ns INTEGER NOT NULL,
+        owner TEXT NOT NULL,
+        priority INTEGER NOT NULL,
+        params TEXT NOT NULL,
+        state TEXT NOT NULL CHECK (state IN ('queued', 'started', 'cancelled', 'refused')),
+        run_id INTEGER,
+        first_cycle INTEGER,
+        reason TEXT,
+        changed_wall_ns INTEGER
+    )""",
+    "CREATE INDEX IF NOT EXISTS run_queue_state ON run_queue (state, entry)",
+)
 
 
 class _Connection(Protocol):

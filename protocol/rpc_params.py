@@ -20,6 +20,8 @@ _MAX_COUNT = 1_000_000_000
 _MAX_ID = 2**62
 #: runs' upper bound on n.
 MAX_RUNS = 1_000
+#: A queued run's priority is in -MAX_PRIORITY..MAX_PRIORITY (higher first; 0 by default).
+MAX_PRIORITY = 1000
 #: Strokes an `export` call returns at most: a chunk of CSV text (~2.5 MB); the client asks again after it.
 MAX_EXPORT_STROKES = 10_000
 
@@ -207,6 +209,24 @@ PARAMS: dict[str, _Spec] = {
         ("owner", _text("owner", 200), ""),
         ("operator", _boolean("operator"), False),
     ),
+    "submit": (
+        ("period_ns", _integer("period_ns", 1, _MAX_PERIOD_NS), _REQUIRED),
+        ("count", _integer("count", 0, _MAX_COUNT), 0),
+        ("target_ns", _optional(_integer("target_ns", 1, _MAX_TARGET_NS)), None),
+        ("allow_late", _boolean("allow_late"), False),
+        ("label", _optional(_label), None),
+        ("notes", _optional(_notes), None),
+        ("priority", _integer("priority", -MAX_PRIORITY, MAX_PRIORITY), 0),
+        ("take_over", _boolean("take_over"), False),
+        ("owner", _text("owner", 200), ""),
+    ),
+    "queue_cancel": (
+        ("entry", _integer("entry", 1, _MAX_ID), _REQUIRED),
+        ("owner", _text("owner", 200), ""),
+        ("operator", _boolean("operator"), False),
+    ),
+    "queue_pause": (("operator", _boolean("operator"), False),),
+    "queue_resume": (("operator", _boolean("operator"), False),),
     "stop_cycling": (),
     "set_mode": (
         ("mode", _choice("mode", ("open", "closed")), _REQUIRED),

@@ -36,6 +36,10 @@ METHODS = (
     "estop",
     "set_drive",
     "annotate_run",
+    "submit",
+    "queue_cancel",
+    "queue_pause",
+    "queue_resume",
 )
 
 
@@ -106,6 +110,10 @@ def test_every_typed_method_sends_the_documented_params(server: RpcServer, rec: 
         c.start_cycling("20ms", 5, label="sweep-1", notes="why")
         c.annotate_run(3, "seen")
         c.annotate_run(3, label="x", operator=True)
+        c.submit_entry("20ms", 3, label="q", priority=2)
+        c.queue_cancel(4)
+        c.queue_pause(operator=True)
+        c.queue_resume()
         c.stop_cycling()
         c.set_mode("open")
         c.set_mode("open", "2ms")
@@ -123,13 +131,17 @@ def test_every_typed_method_sends_the_documented_params(server: RpcServer, rec: 
         ("set_target", [10_500_000, "both", True]),
         ("history", [20, None]),
         ("history", [5, 3]),
-        ("runs", [20]),
+        ("runs", [20, None]),
         ("switch", ["on"]),
         ("start_cycling", [50_000_000, 1000, None, False, False, run_owner(), None, None]),
         ("start_cycling", [20_000_000, 0, 12_000_000, False, False, run_owner(), None, None]),
         ("start_cycling", [20_000_000, 5, None, False, False, run_owner(), "sweep-1", "why"]),
         ("annotate_run", [3, "seen", None, run_owner(), False]),
         ("annotate_run", [3, None, "x", run_owner(), True]),
+        ("submit", [20_000_000, 3, None, False, "q", None, 2, False, run_owner()]),
+        ("queue_cancel", [4, run_owner(), False]),
+        ("queue_pause", [True]),
+        ("queue_resume", [False]),
         ("stop_cycling", []),
         ("set_mode", ["open", None]),
         ("set_mode", ["open", 2_000_000]),
