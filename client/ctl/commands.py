@@ -164,7 +164,10 @@ def cmd_switch(client: Client, args: argparse.Namespace) -> int:
 
 
 def cmd_cycle(client: Client, args: argparse.Namespace) -> int:
-    """Start a run of on/off strokes; with --wait, follow it to its end and report how it ended."""
+    """Start a run of on/off strokes (or queue it); with --wait, follow it to its end and report how
+    it ended."""
+    if args.queue:
+        return _queue_run(client, args)
     if not args.wait:
         result = client.start_cycling(
             args.period,
@@ -201,6 +204,87 @@ def cmd_cycle(client: Client, args: argparse.Namespace) -> int:
     if not args.json:
         print(f"run {info['run_id']} ended: {info['end_reason']}, {run_strokes(info)} strokes")
     return EXIT_FAULT if info["end_reason"].startswith("fault") else EXIT_OK
+
+
+def _queue_run(client: Client, args: argparse.Namespace) -> int:
+    """`cycle --queue`: the run into the queue; with --wait, followed to its start and its end."""
+    options = {
+        "target": args.target,
+        "allow_late": args.allow_late,
+        "label": args.label,
+        "notes": args.notes,
+        "priority": args.priority,
+        "take_over": args.take_over,
+    }
+    if not args.wait:
+        entry = client.submit_entry(args.period, args.count, **options)
+        if args.json:
+            print_json(entry)
+        else:
+            print(f"queued as entry {entry['entry']}, {_place(entry)}")
+        return EXIT_OK
+    run = client.submit(args.count, args.period, **options)
+    if not args.json:
+        print(f"queued as entry {run.entry['entry']}, {_place(run.entry)}", flush=True)
+    try:
+        for _ in run:
+            pass
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; entry {run.entry['entry']} stays queued or running", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    info = run.info
+    assert info is not None
+    if args.json:
+        print_json(info)
+    else:
+        print(f"run {info['run_id']} ended: {info['end_reason']}, {run_strokes(info)} strokes")
+    return EXIT_FAULT if info["end_reason"].startswith("fault") else EXIT_OK
+
+
+def _place(entry: dict[str, Any]) -> str:
+    if entry.get("position") is None:
+        return str(entry["state"])
+    return f"position {entry['position']}" + (" (the queue is paused)" if entry.get("paused") else "")
+
+
+def cmd_queue(client: Client, args: argparse.Namespace) -> int:
+    """The queue of runs: listed, an entry cancelled, paused or resumed."""
+    if args.action == "cancel":
+        entry = client.queue_cancel(args.entry, operator=args.operator)
+        if args.json:
+            print_json(entry)
+        else:
+            print(f"entry {entry['entry']} {entry['reason']}")
+        return EXIT_OK
+    if args.action == "pause":
+        queue = client.queue_pause(operator=args.operator)
+    elif args.action == "resume":
+        queue = client.queue_resume(operator=args.operator)
+    else:
+        queue = client.status()["queue"]
+    if args.json:
+        print_json(queue)
+        return EXIT_OK
+    current = queue["current"]
+    print("paused" if queue["paused"] else "going on", end="")
+    print(f"; running: entry {current['entry']}, run {current['run_id']}" if current else "; none running")
+    rows = [
+        [
+            str(e["position"]),
+            str(e["entry"]),
+            e["owner"],
+            e["label"] or "-",
+            str(e["priority"]),
+            show_ns(e["period_ns"]),
+            str(e["count"] or "until stopped"),
+        ]
+        for e in queue["queued"]
+    ]
+    if rows:
+        print(table(rows, ("#", "entry", "owner", "label", "priority", "period", "strokes"), right_from=4))
+    else:
+        print("nothing queued (`cycle --queue` queues a run)")
+    return EXIT_OK
 
 
 def _print_cycling(result: dict[str, Any], args: argparse.Namespace) -> None:
@@ -383,6 +467,7 @@ COMMANDS: dict[str, Callable[[Client, argparse.Namespace], int]] = {
     "switch": cmd_switch,
     "cycle": cmd_cycle,
     "notes": cmd_notes,
+    "queue": cmd_queue,
     "stop": cmd_stop,
     "mode": cmd_mode,
     "history": cmd_history,

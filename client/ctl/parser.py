@@ -172,6 +172,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("--label", help="what the run is for, a short word (e.g. sweep-12ms): `runs --label`")
     c.add_argument("--notes", help="free text about the run (`notes RUN TEXT` edits it later)")
+    c.add_argument(
+        "--queue", action="store_true", help="into the daemon's queue: starts when the runs before it end"
+    )
+    c.add_argument(
+        "--priority", type=int, default=0, help="with --queue: higher first (-1000..1000, default 0)"
+    )
+    c = command("queue", "the queue of runs: what waits, in order; cancel an entry, pause or resume it")
+    c.add_argument("action", nargs="?", choices=("list", "cancel", "pause", "resume"), default="list")
+    c.add_argument("entry", nargs="?", type=int, help="the entry to cancel (see `queue`)")
+    c.add_argument(
+        "--operator",
+        action="store_true",
+        help="cancel another's entry, pause or resume (an operator's to do)",
+    )
     c = command("notes", "show or edit a run's notes and label, during or after it")
     c.add_argument("run", type=int, help="the run (see `runs`)")
     c.add_argument("text", nargs="?", help='its notes ("" clears them); none: show them')
@@ -274,6 +288,10 @@ def check_args(args: argparse.Namespace) -> None:
             raise UsageError(f"{args.command}: {exc}") from None
     if args.command == "runs" and not 1 <= args.n <= 1000:
         raise UsageError(f"runs: -n must be in 1..1000, got {args.n}")
+    if args.command == "queue" and (args.action == "cancel") != (args.entry is not None):
+        raise UsageError("queue: `queue cancel ENTRY` takes an entry; list, pause and resume none")
+    if args.command == "cycle" and args.priority and not args.queue:
+        raise UsageError("cycle: --priority orders the queue: give it with --queue")
     if args.command == "cycle" and args.count < 0:
         raise UsageError(f"cycle: --count must be >= 0, got {args.count}")
     if args.command == "watch" and args.count is not None and args.count < 0:

@@ -229,3 +229,31 @@ def test_asyncclient_submits_and_follows_queued_runs(rig: Rig) -> None:
     assert (first["label"], second["label"]) == ("async-1", "async-2")
     assert first["end_reason"] == second["end_reason"] == "done"
     assert first["last_cycle"] < second["first_cycle"]
+
+
+def test_usmswitchctl_queues_lists_cancels_and_resumes(rig: Rig) -> None:
+    with rig.client() as lab:
+        going = lab.submit(count=0, period=PERIOD)
+        _until(lab, _queue_note("started", going.entry["entry"]))
+        queued = rig.ctl(
+            "cycle", "--queue", "--count", "3", "--period", PERIOD, "--label", "cli-q", "--priority", "2"
+        )
+        assert queued.returncode == 0 and queued.stdout.startswith("queued as entry"), queued.stderr
+        entry = int(queued.stdout.split()[3].rstrip(","))
+        listed = rig.ctl("queue")
+        assert listed.returncode == 0 and "going on; running: entry" in listed.stdout, listed.stderr
+        assert "cli-q" in listed.stdout
+        assert rig.ctl("queue", "pause").returncode == 1  # refused without --operator
+        assert rig.ctl("queue", "pause", "--operator").stdout.startswith("paused")
+        cancelled = rig.ctl("queue", "cancel", str(entry))
+        assert cancelled.returncode == 0 and f"entry {entry} cancelled by" in cancelled.stdout
+        assert rig.ctl("queue", "resume", "--operator").stdout.startswith("going on")
+        cmd = [sys.executable, "-m", "usmswitch.client.ctl", "--socket", str(rig.sock), "--json"]
+        cmd += ["cycle", "--queue", "--count", "3", "--period", PERIOD, "--wait"]
+        waiting = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        _until(lab, lambda n: _queue_note("submitted")(n) and n.payload["entry"]["entry"] > entry)
+        lab.stop_cycling()  # the run going ends: the queued one runs, and the CLI follows it
+        assert going.wait()["end_reason"] == "stopped"
+        out, err = waiting.communicate(timeout=60)
+    assert waiting.returncode == 0, err
+    assert json.loads(out)["end_reason"] == "done"
