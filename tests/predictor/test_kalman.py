@@ -112,6 +112,27 @@ def test_state_round_trips_through_msgpack_cold_and_warm_and_a_bad_one_is_named(
         KalmanPredictor(nominal_ns=8_000_000).update(0)
 
 
+def test_the_fitted_filter_reports_its_phi_and_round_trips_through_the_state() -> None:
+    # A stationary friction at phi 0.6 seen without stroke noise: the filter predicting is the fitted
+    # one (K = 1, phi its least-squares estimate), and a predictor rebuilt from the state predicts as
+    # the original, its fitted phi included.
+    t = [round(8e6 * s) for s in series(1500, seed=6, phi=0.6, friction=0.015, white=0.0)]
+    k = KalmanPredictor(nominal_ns=8_000_000)
+    for v in t[:1000]:
+        k.update(v)
+    phi, gain = k.coefficients
+    assert gain == 1.0 and 0.45 < phi < 0.75 and (phi, gain) not in GRID
+    q = KalmanPredictor.from_state(msgpack.unpackb(msgpack.packb(k.state())))
+    for v in t[1000:]:
+        assert q.predict() == k.predict() and q.coefficients == k.coefficients
+        q.update(v)
+        k.update(v)
+    with pytest.raises(ValueError, match="fit"):
+        KalmanPredictor.from_state({**k.state(), "fit": [0.1, -1.0]})
+    with pytest.raises(ValueError, match="fit"):
+        KalmanPredictor.from_state({**k.state(), "fit": [0.1]})
+
+
 def test_the_two_directions_learn_the_drive_together() -> None:
     # The drive steps 40 -> 40.5 kHz once; "on" meets it first. Told by make_predictors, "off" then
     # predicts its own first stroke after the step; on its own it cannot (the step is ~5 %, ~420 us).
@@ -141,21 +162,24 @@ def test_the_two_directions_learn_the_drive_together() -> None:
 
 
 def test_the_written_out_grid_step_is_the_grid() -> None:
-    # _grid_step spells GRID's numbers out for speed: it must be the loop over GRID, bit for bit.
-    from usmswitch.predictor.kalman import FORGET, _grid_step
+    # _grid_step spells GRID's numbers out for speed: it must be the loop over GRID and the fitted
+    # filter (phi given, K = 1), bit for bit.
+    from usmswitch.predictor.kalman import FORGET, _grid_step, _members
 
     rng = random.Random(4)
     for _ in range(200):
-        levels = [16.0 + rng.gauss(0, 0.05) for _ in GRID]
-        scores = [abs(rng.gauss(0, 1e-3)) for _ in GRID]
+        phi_fit = rng.uniform(0.0, 1.0)
+        members = _members(phi_fit)
+        levels = [16.0 + rng.gauss(0, 0.05) for _ in members]
+        scores = [abs(rng.gauss(0, 1e-3)) for _ in members]
         z, mu, moved = 16.0 + rng.gauss(0, 0.05), 16.0 + rng.gauss(0, 0.05), rng.gauss(0, 0.02)
         want_levels, want_scores = [], []
-        for (phi, k), v, sc in zip(GRID, levels, scores, strict=True):
+        for (phi, k), v, sc in zip(members, levels, scores, strict=True):
             pr = phi * v + (1.0 - phi) * mu + moved
             e = z - pr
             want_levels.append(pr + k * e)
             want_scores.append(FORGET * sc + e * e)
-        got_levels, got_scores = _grid_step(levels, scores, z, mu, moved)
+        got_levels, got_scores = _grid_step(levels, scores, z, mu, moved, phi_fit)
         assert got_levels == pytest.approx(want_levels, rel=1e-15, abs=0)
         assert got_scores == pytest.approx(want_scores, rel=1e-12, abs=1e-18)
 

@@ -9,6 +9,7 @@ the state with a suspect pending.
 from __future__ import annotations
 
 import math
+import random
 
 import msgpack
 import pytest
@@ -56,6 +57,45 @@ def test_the_default_is_near_the_floor_and_never_worse_than_the_paper(name: str)
         assert ours <= 1.045
         ours = _ratio(DEFAULT_MODEL, runs, sensitivities=COMMISSIONED)
     assert ours <= 1.03
+
+
+def _stationary(n: int, seed: int, phi: float, std: float = 0.015) -> tuple[list[int], list[float]]:
+    """A stationary AR(1) in ln t around 8.5 ms (phi, stationary std `std`) with no stroke noise: the
+    strokes, and each stroke's best prediction from the past (mean and phi known)."""
+    rng = random.Random(seed)
+    q = std * math.sqrt(1.0 - phi * phi)
+    f = rng.gauss(0.0, std)
+    strokes, best = [], []
+    for _ in range(n):
+        best.append(8.5e6 * math.exp(phi * f))
+        f = phi * f + rng.gauss(0.0, q)
+        strokes.append(round(8.5e6 * math.exp(f)))
+    return strokes, best
+
+
+@pytest.mark.parametrize("phi", [0.3, 0.6, 0.9])
+def test_a_stationary_friction_without_stroke_noise_is_predicted_at_its_floor(phi: float) -> None:
+    # Issue 37: at phi 0.6 with no stroke noise the grid's nearest filters, (0.6, 0.65) and (0.8, 1),
+    # are 2-3 % off the floor, and picking between them read 1.03-1.035x on the quality bench's
+    # seeds (here 1.029 pooled, a seed 1.037; 1.026 at phi 0.9). The fitted filter (phi by least
+    # squares, K = 1) is the floor's own predictor whatever phi is (1.004-1.007 here). The floor is
+    # each stroke's innovation as drawn (the error of the best prediction, mean and phi known), so a
+    # seed's luck is not counted; 10 seeds x 4000 strokes, none of them seen while tuning.
+    seeds = range(501, 511)
+    se = sf = 0.0
+    for seed in seeds:
+        strokes, best = _stationary(4000, seed, phi)
+        p = KalmanPredictor(nominal_ns=NOMINAL)
+        e2 = f2 = 0.0
+        for k, (t, b) in enumerate(zip(strokes, best, strict=True)):
+            if k >= SKIP:
+                e2 += (t - p.predict()) ** 2
+                f2 += (t - b) ** 2
+            p.update(t)
+        assert math.sqrt(e2 / f2) <= 1.03, (seed, math.sqrt(e2 / f2))
+        se += e2
+        sf += f2
+    assert math.sqrt(se / sf) <= 1.015
 
 
 def test_level_shifts_are_followed_and_the_stroke_after_one_is_what_costs() -> None:
