@@ -45,7 +45,15 @@ from usmswitch.experiments.rig import SimulatedRig
 from usmswitch.predictor import AR_MODELS, DEFAULT_MODEL, MODELS, ARPredictor, make_predictors
 from usmswitch.sim.model import UsmSwitchModel
 from usmswitch.sim.params import RigParams
-from usmswitch.sim.scenarios import SCENARIOS, ScenarioRun, run_scenario, with_outlier
+from usmswitch.sim.scenarios import (
+    SCENARIOS,
+    Process,
+    Scenario,
+    ScenarioRun,
+    _run_process,
+    run_scenario,
+    with_outlier,
+)
 
 SEEDS = (1, 2, 3, 4, 5)
 CYCLES = 4000
@@ -68,6 +76,12 @@ TARGET_RESELECT_US = 50.0
 COMMISSION_SEED = 1001
 COMMISSIONED = " + commissioned"
 ORACLE = "oracle: the rig's physics + exact Kalman"
+#: Issue 37's held-out check: a class the scenarios do not hold, a stationary friction seen without
+#: stroke noise (AR(1) in ln t around 8.5 ms, std 1.5 %, these phis), on SEEDS and on seeds no model
+#: choice was tuned on. The default was 1.035x the floor at phi 0.6 here (its grid's nearest filters
+#: are 2-3 % off there).
+CLEAN_PHIS = (0.3, 0.6, 0.9)
+HELD_OUT_SEEDS = tuple(range(21, 31))
 #: The step metric is also taken this many cycles before the step, where nothing stepped: the worst of
 #: six strokes' errors is ~1.7 innovation sds (~150 us on the default rig) with no step at all.
 QUIET = 1000
@@ -131,6 +145,22 @@ class Oracle:
         f, var = self.phi * self.f, self.phi**2 * self.var + self.q
         gain = var / (var + self.r)
         self.f, self.var = f + gain * (y - f), (1.0 - gain) * var
+
+
+class ProcessOracle:
+    """A bare stationary process's own one-step predictor, its mean and phi known: mean exp(phi ln(t /
+    mean)) of the last stroke. Over a seed it reads the floor as that seed drew it (its luck)."""
+
+    def __init__(self, process: Process) -> None:
+        self.mean = process.mean_ns
+        self.phi = process.phi
+        self.last: float | None = None
+
+    def predict(self, conditions: Any = None) -> float:
+        return self.mean if self.last is None else self.mean * (self.last / self.mean) ** self.phi
+
+    def update(self, t_ns: int, conditions: Any = None) -> None:
+        self.last = float(t_ns)
 
 
 def commission() -> DriveSensitivity:
@@ -245,6 +275,53 @@ def _score(
     return se, sf, step, idle, quiet
 
 
+def _known(run: ScenarioRun) -> list[Any]:
+    """Each direction's `ProcessOracle` of a bare process's run."""
+    process = run.scenario.process
+    assert process is not None
+    return [ProcessOracle(process), ProcessOracle(process)]
+
+
+def _clean(makers: dict[str, Callable[[ScenarioRun], list[Any]]], default: str, paper: str) -> list[str]:
+    """The held-out table: each stationary class without stroke noise on SEEDS and HELD_OUT_SEEDS, the
+    default, the process's own predictor and the paper's AR(1) over the floor (pooled, and the worst
+    seed); returns the targets missed."""
+    rows, missed = [], []
+    for phi in CLEAN_PHIS:
+        # Not one of SCENARIOS (the suite is sim's): the same bare-process runner, its own name and seeds.
+        what = f"AR(1) phi {phi} std 1.5 %, no stroke noise"
+        sc = Scenario(f"ar-{phi}-clean", what, process=Process(phi, 0.015, 0.0))
+        for seeds in (SEEDS, HELD_OUT_SEEDS):
+            runs = [_run_process(sc, seed, CYCLES, 50_000_000) for seed in seeds]
+            where = f"{sc.name} seeds {seeds[0]}-{seeds[-1]}"
+            cells = [sc.name, f"{seeds[0]}-{seeds[-1]}"]
+            got = []
+            for make in (makers[default], _known, makers[paper]):
+                scored = [_score(make, run)[:2] for run in runs]
+                got.append(math.sqrt(sum(a for a, _ in scored) / sum(b for _, b in scored)))
+                cells += [f"{got[-1]:.3f}", f"{max(math.sqrt(a / b) for a, b in scored):.3f}"]
+            d, pp = got[0], got[2]
+            rows.append([*cells[:-1], f"{d / pp:.3f}"])  # the paper's worst seed: not shown
+            if d > TARGET_RATIO:
+                missed.append(f"{where}: {default} {d:.3f}x the floor > {TARGET_RATIO}")
+            if d > TARGET_VS_PAPER * pp:
+                missed.append(f"{where}: {default} {d:.3f} worse than the paper's {pp:.3f}")
+    print()
+    held = f"{HELD_OUT_SEEDS[0]}-{HELD_OUT_SEEDS[-1]}"
+    print_table(
+        ["class", "seeds", "default", "worst seed", "phi and mean known", "worst seed", "paper AR(1)",
+         "default / paper"],
+        rows,
+        title=(
+            "held-out check: a stationary friction seen without stroke noise (AR(1) in ln t, std 1.5 %), "
+            f"not one of the scenarios, on the scenarios' seeds and on seeds {held} (RMS one-step error / "
+            f"innovation floor, {CYCLES} strokes a seed, from cycle {SKIP}); phi and mean known: the "
+            "process's own one-step predictor, the floor as each seed drew it"
+        ),
+    )  # fmt: skip
+    return missed
+
+
 def _cost(model: str, runs: list[ScenarioRun]) -> np.ndarray:
     """update + predict per stroke (us, timer pair included) on the default scenario."""
     out = []
@@ -344,6 +421,7 @@ def main() -> int:
             "them; rig scenarios only)"
         ),
     )
+    clean_missed = _clean(makers, default, paper)
     rule = {label: _outlier_rule(makers[label], [r for n in OUTLIER_SCENARIOS for r in runs[n]])
             for label in makers if label != ORACLE}  # fmt: skip
     after_jump = {
@@ -375,7 +453,7 @@ def main() -> int:
             "each direction's stroke right after a jump of the mean"
         ),
     )  # fmt: skip
-    missed = []
+    missed = list(clean_missed)
     for label in (default, commissioned):
         for n in SCENARIOS:
             r, rp = ratio[label][n], ratio[paper][n]
