@@ -14,7 +14,7 @@ from pathlib import Path
 import daemonproc
 
 from usmswitch.client import Client
-from usmswitch.protocol.record import UNUSABLE
+from usmswitch.protocol.record import UNUSABLE, Flag
 
 MS = 1_000_000
 # The flag bits by value (docs/records.md), so these helpers read a records file of any version.
@@ -65,6 +65,11 @@ class Row:
     @property
     def clean(self) -> bool:
         return not self.flags & NOT_CLEAN
+
+
+def not_clean(got: list[Row]) -> list[str]:
+    """The rows that are not clean, each as its cycle and its flags by name: what a failure says."""
+    return [f"cycle {r.cycle}: {Flag(r.flags)!r}" for r in got if not r.clean]
 
 
 def rows(tmp_path: Path) -> list[Row]:

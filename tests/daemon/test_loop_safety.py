@@ -69,7 +69,13 @@ def test_estop_abandons_a_start_waiting_for_its_instant() -> None:
     loop, recs = _loop(daq, mode=Mode.OPEN, open_delay_ns=5_000 * MS)
     run = Running(loop)
     try:
+        armed = threading.Event()
+        arm = daq.arm
+        daq.arm = lambda direction, delay_ns: (arm(direction, delay_ns), armed.set())
         stroke = loop.call(lambda: loop.switch(Direction.ON))
+        # The stroke armed and waiting for its instant (the loop thread, descheduled on a busy
+        # host, took it up past a fixed 50 ms and met the estop's FAULT first), then 50 ms in.
+        assert armed.wait(10.0)
         time.sleep(0.05)
         loop.estop("test estop")
         assert daq.halted and daq.strokes == 0

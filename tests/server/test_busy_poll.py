@@ -106,6 +106,19 @@ def _sleeps_and_cpu(pid: int) -> tuple[int, float]:
     return sleeps, ticks / os.sysconf("SC_CLK_TCK")
 
 
+def _cpu_times() -> tuple[int, int]:
+    """(idle, total) jiffies of the whole machine (/proc/stat)."""
+    with open("/proc/stat") as f:
+        fields = [int(x) for x in f.readline().split()[1:]]
+    return fields[3] + fields[4], sum(fields)
+
+
+def _idle_cores(before: tuple[int, int], after: tuple[int, int]) -> float:
+    """How many cores were idle, on average, between two `_cpu_times()`."""
+    total = after[1] - before[1]
+    return 0.0 if total <= 0 else (after[0] - before[0]) / total * (os.cpu_count() or 1)
+
+
 def _sleeps_per_call(srv: RpcServer, calls: int = 400) -> float:
     pid = srv.server_pid
     assert pid is not None
@@ -135,14 +148,25 @@ def test_a_lone_scripts_calls_find_the_server_awake_only_with_busy_polling(sockd
         srv.start()
         servers[window_ns] = srv
     try:
-        sleeps = {window_ns: _sleeps_per_call(srv) for window_ns, srv in servers.items()}
+        sleeps, idle = {}, {}
+        for window_ns, srv in servers.items():
+            before = _cpu_times()
+            sleeps[window_ns] = _sleeps_per_call(srv)
+            idle[window_ns] = _idle_cores(before, _cpu_times())
     finally:
         for srv in servers.values():
             srv.stop()
     # Without it the server sleeps in epoll between a script's calls (once a call on an idle
     # machine; less where the machine's load delays it past the next request). With it, it is
     # awake when the next call comes, but where this machine held the client back past the window.
-    assert sleeps[200_000] < min(0.25, sleeps[0] / 4), f"sleeps per call, by window: {sleeps}"
+    ok = sleeps[200_000] < min(0.25, sleeps[0] / 4)
+    if not ok and idle[200_000] < 0.5:
+        # The claim is for a core to spare: with none, the poller is preempted and sleeps anyway.
+        pytest.xfail(
+            f"{idle[200_000]:.2f} of {os.cpu_count()} cores idle during the polled calls (sleeps per"
+            f" call {sleeps}): the machine is too busy now to judge busy polling"
+        )
+    assert ok, f"sleeps per call, by window: {sleeps}; cores idle: {idle}"
 
 
 def test_an_idle_server_sleeps_after_the_window(sockdir: Path):
