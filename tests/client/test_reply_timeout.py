@@ -53,9 +53,12 @@ def test_a_slow_call_is_named_and_the_daemon_said_to_be_up(big_daemon: tuple) ->
     assert "Traceback" not in done.stderr
 
 
-def test_a_server_that_answers_nothing_is_said_so(big_daemon: tuple) -> None:
+def test_a_server_that_answers_nothing_is_said_so(big_daemon: tuple, monkeypatch: pytest.MonkeyPatch) -> None:
     proc, sock = big_daemon
     server = child_pid(proc, "usmswitch.server.rpc_process")
+    probes = []
+    probe = Client._ping_ms
+    monkeypatch.setattr(Client, "_ping_ms", lambda self: probes.append(1) or probe(self))
     with Client(str(sock), timeout=0.3) as c:
         os.kill(server, signal.SIGSTOP)
         try:
@@ -66,3 +69,5 @@ def test_a_server_that_answers_nothing_is_said_so(big_daemon: tuple) -> None:
     exc = caught.value
     assert exc.method == "ping" and exc.ping_ms is None
     assert "a ping on a new connection got no answer either" in str(exc)
+    # One probe: the probe's own ping, timed out, probed again, 100 deep (31 s for a 0.3 s timeout).
+    assert len(probes) == 1, f"{len(probes)} probes"
