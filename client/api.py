@@ -213,6 +213,14 @@ class Api(ABC):
         `operator`. Returns the entry, cancelled."""
         return self.call("queue_cancel", entry, run_owner() if owner is None else owner, operator)
 
+    def queue_priority(
+        self, entry: int, priority: int, *, operator: bool = False, owner: str | None = None
+    ) -> dict[str, Any]:
+        """A queued run's priority changed (-1000..1000, higher first), which moves it in the queue:
+        its submitter's (the same `user@host`), or any with `operator`. Returns the entry and its
+        new `position`."""
+        return self.call("queue_priority", entry, priority, run_owner() if owner is None else owner, operator)
+
     def queue_pause(self, *, operator: bool = False) -> dict[str, Any]:
         """No queued run starts until resumed (the run going goes on); an operator's to do."""
         return self.call("queue_pause", operator)

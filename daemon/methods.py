@@ -104,6 +104,7 @@ class Methods:
             "annotate_run": self.annotate_run,
             "submit": self.submit,
             "queue_cancel": self.queue_cancel,
+            "queue_priority": lambda params: self.queue.set_priority(*params),
             "queue_pause": lambda params: self.queue.set_paused(True, params[0]),
             "queue_resume": lambda params: self.queue.set_paused(False, params[0]),
         }

@@ -5,7 +5,8 @@ The queue starts its head when nothing else runs: at once when the rig is idle (
 daemon's own start-up run, which gives way), else when the run going ends `done`, `stopped` or
 taken over, or, after a FAULT, once a person resets it (`reset_fault`): a fault never starts the next
 run by itself. A submission with `take_over` starts at once, ending the run going, as `start_cycling`'s
-`take_over` does; without it no run is ever ended to make room.
+`take_over` does; without it no run is ever ended to make room. A waiting entry's priority may be
+changed (`queue_priority`: its submitter's or an operator's), which moves it in the queue.
 
 Every entry is kept in the records file (`run_queue`), so a restart finds what waited: the queue is
 then paused until an operator resumes it. An entry becomes its run exactly once: the run's settings
@@ -99,6 +100,13 @@ def _update(entry: Entry) -> Callable[[sqlite3.Connection], None]:
         )
 
     return update
+
+
+def _reorder(entry_id: int, priority: int) -> Callable[[sqlite3.Connection], None]:
+    def reorder(conn: sqlite3.Connection) -> None:
+        conn.execute("UPDATE run_queue SET priority = ? WHERE entry = ?", (priority, entry_id))
+
+    return reorder
 
 
 def _load(conn: sqlite3.Connection) -> list[Entry]:
@@ -231,6 +239,40 @@ class RunQueue:
             del self._queued[entry_id]
         self._leave(entry, CANCELLED, f"cancelled by {owner or 'a client'}")
         return entry.to_dict()
+
+    def set_priority(
+        self, entry_id: int, priority: int, owner: str, operator: bool
+    ) -> Future[dict[str, Any]]:
+        """A queued entry's priority changed, and with it its place: its submitter's (the same
+        `user@host`), or any with `operator`. Answered with the entry and its new place once the
+        change is in the file."""
+        with self._lock:
+            entry = self._queued.get(entry_id)
+            if entry is None:
+                raise RpcError(ErrorCode.INVALID_PARAMS, f"queue_priority: entry {entry_id} is not queued")
+            if not operator and owner_person(entry.owner) != owner_person(owner):
+                raise RpcError(
+                    ErrorCode.STATE,
+                    f"queue_priority: entry {entry_id} is {owner_person(entry.owner)}'s: its submitter"
+                    " reorders it, or an operator (operator=True)",
+                )
+            if self._starting == entry_id:
+                raise RpcError(ErrorCode.STATE, f"queue_priority: entry {entry_id} is starting now")
+            entry.priority = priority
+            view = self._view(entry)
+        log.info("queued run reordered", entry=entry_id, priority=priority, position=view["position"])
+        self._changed("reordered", entry)
+        done: Future[dict[str, Any]] = Future()
+
+        def kept(fut: Future[None]) -> None:
+            exc = fut.exception()
+            if exc is not None:
+                done.set_exception(exc)
+            else:
+                done.set_result(view)
+
+        self._write(_reorder(entry_id, priority)).add_done_callback(kept)
+        return done
 
     def set_paused(self, paused: bool, operator: bool) -> dict[str, Any]:
         """Pause (no next run starts; the one going goes on) or resume; an operator's to do."""

@@ -225,6 +225,12 @@ PARAMS: dict[str, _Spec] = {
         ("owner", _text("owner", 200), ""),
         ("operator", _boolean("operator"), False),
     ),
+    "queue_priority": (
+        ("entry", _integer("entry", 1, _MAX_ID), _REQUIRED),
+        ("priority", _integer("priority", -MAX_PRIORITY, MAX_PRIORITY), _REQUIRED),
+        ("owner", _text("owner", 200), ""),
+        ("operator", _boolean("operator"), False),
+    ),
     "queue_pause": (("operator", _boolean("operator"), False),),
     "queue_resume": (("operator", _boolean("operator"), False),),
     "stop_cycling": (),

@@ -38,6 +38,7 @@ METHODS = (
     "annotate_run",
     "submit",
     "queue_cancel",
+    "queue_priority",
     "queue_pause",
     "queue_resume",
 )
@@ -112,6 +113,8 @@ def test_every_typed_method_sends_the_documented_params(server: RpcServer, rec: 
         c.annotate_run(3, label="x", operator=True)
         c.submit_entry("20ms", 3, label="q", priority=2)
         c.queue_cancel(4)
+        c.queue_priority(4, -3)
+        c.queue_priority(5, 7, operator=True)
         c.queue_pause(operator=True)
         c.queue_resume()
         c.stop_cycling()
@@ -140,6 +143,8 @@ def test_every_typed_method_sends_the_documented_params(server: RpcServer, rec: 
         ("annotate_run", [3, None, "x", run_owner(), True]),
         ("submit", [20_000_000, 3, None, False, "q", None, 2, False, run_owner()]),
         ("queue_cancel", [4, run_owner(), False]),
+        ("queue_priority", [4, -3, run_owner(), False]),
+        ("queue_priority", [5, 7, run_owner(), True]),
         ("queue_pause", [True]),
         ("queue_resume", [False]),
         ("stop_cycling", []),

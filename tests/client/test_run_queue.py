@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 
-from usmswitch.client import Client, Notification, QueuedRunNotStarted, WrongState
+from usmswitch.client import Client, InvalidParams, Notification, QueuedRunNotStarted, WrongState
 
 sys.path.insert(0, str(Path(__file__).parent))
 import daemonproc
@@ -160,6 +160,44 @@ def test_a_submitter_cancels_its_own_an_operator_anyones(rig: Rig) -> None:
             lab.queue_resume()
         lab.stop_cycling()
         assert going.wait()["end_reason"] == "stopped"
+
+
+def test_a_queued_entrys_priority_moves_it_its_submitters_or_an_operators(rig: Rig) -> None:
+    """queue_priority (the panel's reorder): the entry moves at once, the change is in the records
+    file when answered (a restart keeps it), another's entry only with operator, and the queue then
+    runs in the new order."""
+    import sqlite3
+
+    with rig.client() as lab:
+        going = lab.submit(count=0, period=PERIOD)
+        _until(lab, _queue_note("started", going.entry["entry"]))
+        first = lab.submit(count=3, period=PERIOD, label="first")
+        second = lab.submit(count=3, period=PERIOD, label="second")
+        bobs = lab.call("submit", 25_000_000, 3, None, False, "bobs", None, 0, False, BOB)["entry"]
+        ids = [first.entry["entry"], second.entry["entry"]]
+        moved = lab.queue_priority(ids[1], 5)
+        assert (moved["entry"], moved["priority"], moved["position"]) == (ids[1], 5, 1)
+        note = _until(lab, _queue_note("reordered", ids[1]))
+        assert [e["entry"] for e in note.payload["queued"]] == [ids[1], ids[0], bobs]
+        db = sqlite3.connect(f"file:{rig.tmp / 'state' / 'records.sqlite'}?mode=ro", uri=True)
+        try:
+            kept = dict(db.execute("SELECT entry, priority FROM run_queue WHERE entry = ?", (ids[1],)))
+        finally:
+            db.close()
+        assert kept == {ids[1]: 5}
+        with pytest.raises(WrongState, match="bob@elsewhere's: its submitter reorders it, or an operator"):
+            lab.queue_priority(bobs, 9)
+        assert lab.queue_priority(bobs, 9, operator=True)["position"] == 1
+        queued = lab.status()["queue"]["queued"]
+        assert [(e["entry"], e["priority"]) for e in queued] == [(bobs, 9), (ids[1], 5), (ids[0], 0)]
+        lab.queue_cancel(bobs, operator=True)
+        with pytest.raises(InvalidParams, match=f"entry {bobs} is not queued"):
+            lab.queue_priority(bobs, 1, operator=True)
+        lab.stop_cycling()
+        infos = [second.wait(), first.wait()]
+        assert [i["label"] for i in infos] == ["second", "first"]
+        assert infos[0]["last_cycle"] < infos[1]["first_cycle"]
+        assert infos[0]["settings"]["priority"] == 5
 
 
 def test_a_queued_run_after_a_fault_waits_for_a_reset(rig: Rig) -> None:
