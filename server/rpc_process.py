@@ -179,7 +179,7 @@ async def _serve(
         snapshot = lambda: (dict(hub.snaps), dict(hub.counts))  # noqa: E731  (copies: another thread)
         doors = await serve_http(http, panel, snapshot, cfg, _loop_factory(), lambda: _workers(2, "rpc-http"))
         if panel is not None:
-            await panel.call("subscribe", [["stroke", "state", "run"]])
+            await panel.call("subscribe", [["stroke", "state", "run", "queue"]])
     assert hub.channel is not None
     # What start-up made is never garbage: a full collection scanned it all (43.7 ms on the loop).
     gc.freeze()

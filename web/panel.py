@@ -3,11 +3,13 @@
 The panel is a client of the server process like any socket client: its reads and controls are
 socket methods dispatched by the same code (`Backend.call`: the same parameter checks, calls
 forwarded to the daemon over the channel, estop over the urgent channel, history and runs read from
-the records file), and its live feed is one subscription to the `stroke`, `state` and `run`
+the records file), and its live feed is one subscription to the `stroke`, `state`, `run` and `queue`
 notifications, shared by every open panel. The loop's process never sees a browser.
 
-What a browser may do: read without a token (the page, the live feed, the runs and their CSV);
-act (start, stop, targets, mode, reset, estop) with the token the daemon writes beside its socket,
+What a browser may do: read without a token (the page, the live feed, the queue of runs, the runs,
+their notes and CSV); act (start, stop, targets, mode, reset, estop; submit to the queue, reorder,
+cancel, pause and resume it; a run's notes: web/panel_controls.py) with the token the daemon writes
+beside its socket,
 mode 0640 and the socket's group (docs/panel.md). A control without it is refused with 403 and a
 message the page shows; a bad control is refused with 400 and what was wrong.
 
@@ -36,6 +38,7 @@ from aiohttp import WSMsgType, web
 from usmswitch.protocol.wire import ErrorCode, RpcError
 from usmswitch.web.budgets import PANEL_CONNECTIONS, PANEL_HEAD_S, PANEL_IDLE_S
 from usmswitch.web.door import Door, QuietLog
+from usmswitch.web.panel_controls import CONTROLS, control_params
 
 log = logging.getLogger("usmswitch.web")
 
@@ -71,15 +74,6 @@ BEHIND_BYTES = 256 * 1024
 RUNS_SHOWN = 12
 MAX_BODY_BYTES = 4096
 
-#: Controls: name -> (socket method, the JSON fields it takes in order -> its params).
-CONTROLS: dict[str, tuple[str, tuple[str, ...]]] = {
-    "start": ("start_cycling", ("period_ns", "count", "target_ns", "allow_late", "take_over")),
-    "stop": ("stop_cycling", ()),
-    "target": ("set_target", ("target_ns", "direction")),
-    "mode": ("set_mode", ("mode", "open_delay_ns")),
-    "reset": ("reset_fault", ()),
-    "estop": ("estop", ()),
-}
 #: The HTTP answer to a refused call, by the protocol's error code.
 _HTTP_OF_CODE = {
     ErrorCode.INVALID_PARAMS: 400,
@@ -102,7 +96,7 @@ class Backend(Protocol):
         ...
 
     def listen(self, listener: Callable[[str, Any], None]) -> None:
-        """Call `listener(topic, payload)` for every stroke, state and run notification."""
+        """Call `listener(topic, payload)` for every stroke, state, run and queue notification."""
         ...
 
     def export_csv(self, run_id: int, write: Callable[[bytes], Awaitable[None]]) -> Awaitable[int]:
@@ -140,6 +134,7 @@ class _Viewer:
         self.sending: asyncio.Task[None] | None = None
         self.stats_sent: object = None
         self.status_sent: object = None
+        self.queue_sent: object = None
 
     def busy(self) -> bool:
         if self.sending is not None and not self.sending.done():
@@ -172,6 +167,9 @@ class Panel:
         self.figures = 0  # bumped whenever `status` or `stats` changes (the hello's cache)
         self._hello: tuple[Any, ...] | None = None  # hello_text's: (figures, when, JSON, as of)
         self.stats: dict[str, Any] | None = None
+        #: The queue as the page shows it: the daemon's Queue (paused, current, queued) and the run
+        #: going ("run"), kept from `status` and the `queue` and `run` notifications.
+        self.queue: dict[str, Any] | None = None
         self.runs_version = 0
         self.dropped = 0
         self.run_stats: dict[int, Any] = {}  # ended runs' statistics: they never change
@@ -192,6 +190,16 @@ class Panel:
             self.status_stale = True
         elif topic == "run":
             self.runs_version += 1
+            if isinstance(payload, dict) and self.queue is not None:
+                going = self.queue.get("run")
+                if payload.get("end_reason") is None:
+                    self.set_queue(self.queue, payload)  # opened, or its notes edited
+                elif going is not None and going.get("run_id") == payload.get("run_id"):
+                    self.set_queue(self.queue, None)
+        elif topic == "queue":
+            if isinstance(payload, dict):
+                going = None if self.queue is None else self.queue.get("run")
+                self.set_queue(payload, going)
         elif topic == "dropped":
             self.dropped += int(payload.get("count", 0)) if isinstance(payload, dict) else 0
 
@@ -227,6 +235,16 @@ class Panel:
         self.status = {k: status.get(k) for k in _STATUS_KEYS}
         self.figures += 1
         self.status_at = time.monotonic()
+        if isinstance(status.get("queue"), dict):  # a daemon from before the queue has none
+            self.set_queue(status["queue"], status.get("run"))
+
+    def set_queue(self, queue: dict[str, Any], run: dict[str, Any] | None) -> None:
+        """The queue shown: a new object only when it changed (the ticker sends it when it is new)."""
+        new = {"paused": queue.get("paused"), "current": queue.get("current"), "queued": queue.get("queued")}
+        new["run"] = run
+        if new != self.queue:
+            self.queue = new
+            self.figures += 1
 
     async def refresh_stats(self) -> None:
         """The current (or last) run's statistics, from the snapshot the server process keeps."""
@@ -243,11 +261,12 @@ class Panel:
             return [row for _, row in self.strokes], seq > 0
         return [row for s, row in self.strokes if s > seq], False
 
-    def hello_text(self) -> tuple[str, int, Any, Any]:
+    def hello_text(self) -> tuple[str, int, Any, Any, Any]:
         """`hello()` as the JSON a feed is sent, with the stroke, statistics and state it is as of
         (the feed's cursor: the ticker sends what came after). Made at most every TICK_S and when
         the figures change, not for each feed: a burst of 200 feeds encoded the ~1,000 strokes
-        once apiece, milliseconds each on the HTTP doors' loop, ahead of the panel's own estop."""
+        once apiece, milliseconds each on the HTTP doors' loop, ahead of the panel's own estop.
+        Returns (JSON, stroke, statistics, state, queue)."""
         now = time.monotonic()
         made = self._hello
         if made is None or made[0] != (self.figures, self.runs_version) or now - made[1] > TICK_S:
@@ -259,8 +278,9 @@ class Panel:
                 self.seq,
                 self.stats,
                 self.status,
+                self.queue,
             )
-        return made[2], made[3], made[4], made[5]
+        return made[2], made[3], made[4], made[5], made[6]
 
     def hello(self) -> dict[str, Any]:
         """What a panel gets when it opens: the state, the statistics, the strokes of the last seconds."""
@@ -268,6 +288,7 @@ class Panel:
             "type": "hello",
             "status": self.status,
             "stats": self.stats,
+            "queue": self.queue,
             "strokes": [row for _, row in self.strokes],
             "runs_version": self.runs_version,
             "history_strokes": HISTORY_STROKES,
@@ -289,16 +310,17 @@ class Panel:
             if now - stats_at > 0.5:
                 stats_at = now
                 await self.refresh_stats()
-            encoded: dict[tuple[int, bool, bool, int], str] = {}
+            encoded: dict[tuple[int, bool, bool, bool, int], str] = {}
             for viewer in list(self.viewers):
                 if viewer.busy():
                     continue
                 rows, gap = self.strokes_after(viewer.seq)
                 send_stats = viewer.stats_sent is not self.stats
                 send_status = viewer.status_sent is not self.status or send_stats
-                if not rows and not send_stats and not send_status:
+                send_queue = viewer.queue_sent is not self.queue
+                if not rows and not send_stats and not send_status and not send_queue:
                     continue
-                key = (viewer.seq, send_stats, send_status, self.runs_version)
+                key = (viewer.seq, send_stats, send_status, send_queue, self.runs_version)
                 text = encoded.get(key)
                 if text is None:
                     msg: dict[str, Any] = {"type": "tick", "strokes": rows, "gap": gap}
@@ -307,10 +329,13 @@ class Panel:
                         msg["stats"] = self.stats
                     if send_status:
                         msg["status"] = self.status
+                    if send_queue:
+                        msg["queue"] = self.queue
                     text = encoded[key] = json.dumps(msg, separators=(",", ":"))
                 viewer.seq = self.seq
                 viewer.stats_sent = self.stats
                 viewer.status_sent = self.status
+                viewer.queue_sent = self.queue
                 viewer.sending = asyncio.create_task(_send(viewer, text))
 
     # -- controls ------------------------------------------------------------------------------------
@@ -406,35 +431,6 @@ async def _no_icon() -> web.Response:
     return web.Response(status=204)
 
 
-def _control_params(name: str, body: Any) -> tuple[str, list[Any]]:
-    """A control's JSON body -> (socket method, params); RpcError(INVALID_PARAMS) when malformed."""
-    method, names = CONTROLS[name]
-    if not isinstance(body, dict):
-        raise RpcError(
-            ErrorCode.INVALID_PARAMS, f"{name}: the body must be a JSON object, got {type(body).__name__}"
-        )
-    unknown = sorted(set(body) - set(names))
-    if unknown:
-        known = ", ".join(names) or "none"
-        raise RpcError(ErrorCode.INVALID_PARAMS, f"{name}: unknown field {unknown[0]!r} (known: {known})")
-    params: list[Any] = [body.get(k) for k in names]
-    while params and params[-1] is None:  # absent fields take the method's defaults
-        params.pop()
-    if method == "set_target":
-        params += [False]  # allow_late: never from the panel's target box
-        if len(params) == 2:
-            params[1:1] = ["both"]
-    if method == "start_cycling":
-        params += [None] * (5 - len(params))
-        params = [
-            p if p is not None else d for p, d in zip(params, (None, 0, None, False, False), strict=True)
-        ]
-        params.append("panel")  # the run's owner
-    if method == "estop":
-        params = ["panel"]  # the fault names the path that pressed it
-    return method, params
-
-
 def make_app(panel: Panel, door: Door | None = None) -> web.Application:
     """The panel's routes: the page and its assets, the live feed, the runs, the controls."""
     app = web.Application(client_max_size=MAX_BODY_BYTES)
@@ -505,7 +501,7 @@ def make_app(panel: Panel, door: Door | None = None) -> web.Application:
             if panel.stats is None:
                 await panel.refresh_stats()
             viewer = _Viewer(ws, request.transport, operator)  # type: ignore[arg-type]
-            hello, viewer.seq, viewer.stats_sent, viewer.status_sent = panel.hello_text()
+            hello, viewer.seq, viewer.stats_sent, viewer.status_sent, viewer.queue_sent = panel.hello_text()
             await ws.send_str(hello)
             panel.viewers.add(viewer)
             try:
@@ -586,7 +582,7 @@ def make_app(panel: Panel, door: Door | None = None) -> web.Application:
         except (ValueError, UnicodeDecodeError, RecursionError) as exc:
             return _error(400, f"{name}: the body is not JSON: {exc}")
         try:
-            method, params = _control_params(name, body)
+            method, params = control_params(name, body)
             result = await panel.backend.call(method, params)
         except RpcError as exc:
             return _error(_HTTP_OF_CODE.get(exc.code, 500), exc.message, exc.code)

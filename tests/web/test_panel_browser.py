@@ -1,7 +1,9 @@
 """The panel in a real browser: Debian's chromium, headless, driven through chromedriver by Selenium,
 against a real daemon on the simulated rig. It loads, strokes arrive, a run started from the page
-ends, the estop pressed with the token latches FAULT in the daemon within 100 ms, and the page
-without the token is refused. The screenshots it takes are docs/panel.md's: written to docs/img/
+ends, runs queued from the page wait for the run going (reordered, another's cancelled as an
+operator), a run's notes edited on the page are what `usmswitchctl runs` shows, the estop pressed
+with the token latches FAULT in the daemon, and the page without the token is refused and shows no
+control of the queue or the notes. The screenshots it takes are docs/panel.md's: written to docs/img/
 when USMSWITCH_SCREENSHOTS=1 (to refresh the docs' images), else beside the test's own files, so
 that `make test` leaves the tree as it found it."""
 
@@ -10,6 +12,8 @@ from __future__ import annotations
 import datetime
 import os
 import shutil
+import subprocess
+import sys
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -77,14 +81,14 @@ def browser(rig: dict[str, Any]) -> Iterator[Any]:
 
 
 def wait_for(what: str, check: Callable[[], Any], timeout_s: float = 10.0) -> Any:
-    from selenium.common.exceptions import StaleElementReferenceException
+    from selenium.common.exceptions import NoSuchElementException, StaleElementReferenceException
 
     end = time.monotonic() + timeout_s
     while True:
         try:
             got = check()
-        except StaleElementReferenceException:  # the page redrew the element meanwhile: look again
-            got = None
+        except (StaleElementReferenceException, NoSuchElementException):
+            got = None  # the page redrew the element meanwhile, or has yet to draw it: look again
         if got:
             return got
         if time.monotonic() > end:
@@ -114,7 +118,7 @@ def test_the_panel_loads_and_strokes_arrive(rig: dict[str, Any], browser: Any) -
     assert not errors, errors
 
 
-def test_a_run_started_from_the_page_ends(rig: dict[str, Any], browser: Any, shots: Path) -> None:
+def test_a_run_started_from_the_page_ends(rig: dict[str, Any], browser: Any) -> None:
     for element_id, value in (("run-count", "40"), ("run-period", "15"), ("run-target", "12.5")):
         box = browser.find_element("id", element_id)
         box.clear()
@@ -129,16 +133,13 @@ def test_a_run_started_from_the_page_ends(rig: dict[str, Any], browser: Any, sho
     wait_for("the ended run listed", lambda: "done" in browser.find_element("css selector", row).text)
     assert "run-" in browser.find_element("css selector", f"{row} a").text
     wait_for("the targets shown", lambda: text(browser, "targets") == "12.500 ms / 12.500 ms")
-    # The next run, endless, for the screenshot and the estop.
+    # The next run, endless, for the tests after.
     browser.find_element("id", "run-count").clear()
     browser.find_element("id", "run-count").send_keys("0")
     browser.find_element("id", "run-target").clear()
     browser.find_element("id", "start").click()
     with Client(str(rig["sock"])) as c:
         wait_for("cycling again", lambda: c.status()["state"] == "cycling")
-    start = int(body(browser, "strokes"))
-    wait_for("a screenful of strokes", lambda: int(body(browser, "strokes")) >= start + 250, 15)
-    browser.save_screenshot(str(shots / "panel-live.png"))
 
 
 def test_a_clients_run_is_taken_over_only_when_confirmed(rig: dict[str, Any], browser: Any) -> None:
@@ -171,6 +172,148 @@ def test_a_clients_run_is_taken_over_only_when_confirmed(rig: dict[str, Any], br
         (ended,) = [r for r in c.runs(3) if r["run_id"] == theirs]
         assert ended["end_reason"] == "taken over by panel"
         assert c.status()["state"] == "cycling"  # the page's endless run, for the tests after
+
+
+BOB = "bob@elsewhere pid 1 (bob.py)"
+
+
+def fill(driver: Any, **values: str) -> None:
+    """The run form's boxes set (run_label= is #run-label)."""
+    for name, value in values.items():
+        box = driver.find_element("id", name.replace("_", "-"))
+        box.clear()
+        if value:
+            box.send_keys(value)
+
+
+def queue_rows(driver: Any) -> list[int]:
+    """The entries the page shows waiting, in its order."""
+    rows = driver.find_elements("css selector", "#queue tr.waiting")
+    return [int(str(r.get_attribute("data-entry"))) for r in rows]
+
+
+def queued_runs(c: Client, *entries: int) -> list[dict[str, Any]]:
+    """The runs the queue started for `entries`, in the order they ran."""
+    runs = [r for r in c.runs(100) if (r["settings"] or {}).get("queue_entry") in entries]
+    return sorted(runs, key=lambda r: r["run_id"])
+
+
+def test_runs_queued_from_the_page_wait_for_the_run_going(
+    rig: dict[str, Any], browser: Any, shots: Path
+) -> None:
+    """Issue 38: the page submits to the queue (label, notes, priority); the run going is never
+    ended for it; the page shows the queue as it changes, reorders an entry by its priority, asks
+    before cancelling another's as an operator, pauses and resumes it; the queued runs then run
+    after the run going, in the page's order."""
+    browser.get(f"{rig['url']}?token={rig['token']}")
+    wait_for("the control badge", lambda: body(browser, "control") == "yes")
+    question = browser.find_element("id", "confirm")
+    with Client(str(rig["sock"])) as c:
+        theirs = c.start_cycling("15ms", 0, take_over=True, owner="lab script", label="overnight")["run_id"]
+        wait_for("their run shown going", lambda: f"running: run {theirs}" in text(browser, "queue"))
+        fill(browser, run_count="30", run_period="15", run_target="", run_priority="0")
+        fill(browser, run_label="page-q", run_notes="queued from the page")
+        browser.find_element("id", "submit").click()
+        first = int(
+            wait_for("the entry said", lambda: (m := text(browser, "notice")).startswith("queued") and m)
+            .split()[3]
+            .rstrip(",")
+        )
+        fill(browser, run_label="page-q2", run_notes="")
+        browser.find_element("id", "submit").click()
+        wait_for("two waiting", lambda: len(queue_rows(browser)) == 2)
+        second = queue_rows(browser)[1]
+        bobs = c.call("submit", 15_000_000, 3, None, False, "bobs", None, 0, False, BOB)["entry"]
+        wait_for("bob's entry shown", lambda: queue_rows(browser) == [first, second, bobs])
+        going = c.status()
+        assert going["run"]["run_id"] == theirs and going["run"]["end_reason"] is None  # not ended
+        row = browser.find_element("css selector", f'#queue tr[data-entry="{first}"]').text
+        assert "page-q" in row and "panel" in row and "15.000 ms" in row and "30" in row, row
+        assert "lab script" in text(browser, "queue") and "overnight" in text(browser, "queue")
+
+        box = browser.find_element("css selector", f'#queue input.prio[data-entry="{second}"]')
+        box.clear()
+        box.send_keys("5")
+        browser.find_element("css selector", f'#queue button.prio-set[data-entry="{second}"]').click()
+        wait_for("reordered", lambda: queue_rows(browser) == [second, first, bobs])
+        assert [e["entry"] for e in c.status()["queue"]["queued"]] == [second, first, bobs]
+
+        browser.find_element("css selector", f'#queue button.cancel-entry[data-entry="{bobs}"]').click()
+        wait_for("the page asking", question.is_displayed)
+        asked = text(browser, "confirm-text")
+        assert f"entry {bobs} is bob@elsewhere's" in asked and "as an operator?" in asked, asked
+        browser.find_element("id", "confirm-yes").click()
+        wait_for("bob's entry gone", lambda: queue_rows(browser) == [second, first])
+        assert [e["entry"] for e in c.status()["queue"]["queued"]] == [second, first]
+
+        browser.find_element("id", "queue-pause").click()
+        wait_for("paused shown", lambda: body(browser, "queue-paused") == "yes")
+        assert c.status()["queue"]["paused"] is True and "paused" in text(browser, "queue-state")
+        browser.find_element("id", "queue-resume").click()
+        wait_for("going on shown", lambda: body(browser, "queue-paused") == "no")
+        assert c.status()["queue"]["paused"] is False
+
+        browser.execute_script("document.getElementById('notice').hidden = true; window.scrollTo(0, 0)")
+        start = int(body(browser, "strokes"))
+        wait_for("a screenful of strokes", lambda: int(body(browser, "strokes")) >= start + 250, 15)
+        browser.save_screenshot(str(shots / "panel-live.png"))
+
+        c.stop_cycling()  # their run ends by their hand: the queue goes on, in the page's order
+        wait_for(
+            "both ran", lambda: [r["end_reason"] for r in queued_runs(c, first, second)] == ["done"] * 2, 60
+        )
+        ran = queued_runs(c, first, second)
+        (ended,) = [r for r in c.runs(10) if r["run_id"] == theirs]
+    assert ended["end_reason"] == "stopped"
+    assert [r["settings"]["queue_entry"] for r in ran] == [second, first]
+    assert [r["label"] for r in ran] == ["page-q2", "page-q"] and ran[1]["notes"] == "queued from the page"
+    assert all(r["settings"]["owner"] == "panel" for r in ran) and ran[0]["first_cycle"] > ended["last_cycle"]
+    wait_for("the queue emptied", lambda: "nothing going, nothing queued" in text(browser, "queue"))
+    notes = f'#runs tr[data-run="{ran[1]["run_id"]}"] td.notes span'
+    wait_for(
+        "the notes listed", lambda: browser.find_element("css selector", notes).text == "queued from the page"
+    )
+
+
+def test_notes_edited_on_the_page_show_in_usmswitchctl_runs(rig: dict[str, Any], browser: Any) -> None:
+    """Issue 38: a run's notes edited on the page (the panel's own run at once; another's after the
+    page asks to act as an operator) are the records', as `usmswitchctl runs` reads them."""
+    browser.get(f"{rig['url']}?token={rig['token']}")
+    wait_for("the control badge", lambda: body(browser, "control") == "yes")
+    with Client(str(rig["sock"])) as c:
+        runs = c.runs(10)
+    mine = [r for r in runs if r["settings"].get("owner") == "panel"][-1]["run_id"]
+    theirs = [r for r in runs if r["settings"].get("owner") == "lab script"][-1]["run_id"]
+    question = browser.find_element("id", "confirm")
+
+    def edit(run_id: int, notes: str) -> None:
+        button = f'#runs tr[data-run="{run_id}"] button.edit-notes'
+        wait_for(f"run {run_id} listed", lambda: browser.find_elements("css selector", button))
+        browser.find_element("css selector", button).click()
+        wait_for("the notes form", browser.find_element("id", "notes-form").is_displayed)
+        assert text(browser, "notes-run") == f"run {run_id}"
+        fill(browser, notes_text=notes)
+        browser.find_element("id", "notes-save").click()
+
+    edit(mine, "edited on the page")
+    cell = f'#runs tr[data-run="{mine}"] td.notes span'
+    wait_for(
+        "the notes shown", lambda: browser.find_element("css selector", cell).text == "edited on the page"
+    )
+    assert not question.is_displayed()
+    edit(theirs, "seen from the panel")
+    wait_for("the page asking", question.is_displayed)
+    assert f"run {theirs} is lab script's" in text(browser, "confirm-text")
+    browser.find_element("id", "confirm-yes").click()
+    cell = f'#runs tr[data-run="{theirs}"] td.notes span'
+    wait_for(
+        "their notes shown", lambda: browser.find_element("css selector", cell).text == "seen from the panel"
+    )
+    cmd = [sys.executable, "-m", "usmswitch.client.ctl", "--socket", str(rig["sock"]), "runs", "-n", "10"]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=60, check=True).stdout
+    assert (
+        f"run {mine} notes: edited on the page" in out and f"run {theirs} notes: seen from the panel" in out
+    ), out
 
 
 def test_the_runs_dates_are_iso_as_the_cli_writes_them(rig: dict[str, Any], browser: Any) -> None:
@@ -208,12 +351,21 @@ def test_the_urls_token_becomes_an_httponly_cookie_and_leaves_every_url(
 
 
 def test_without_the_token_the_page_is_refused(rig: dict[str, Any], browser: Any, shots: Path) -> None:
+    with Client(str(rig["sock"])) as c:  # a run going and two waiting: the queue shown, read-only
+        c.start_cycling("15ms", 0, take_over=True, owner="lab script", label="overnight")
+        waiting = [c.submit_entry("15ms", 200, label=name)["entry"] for name in ("sweep-12ms", "sweep-13ms")]
     browser.delete_all_cookies()  # the token's cookie from the tests before
     browser.get(rig["url"])
     wait_for("the read-only badge", lambda: body(browser, "control") == "no")
     assert text(browser, "access") == "read-only"
     wait_for("strokes", lambda: int(body(browser, "strokes")) > 10)
-    for button in ("stop", "estop"):
+    wait_for("the queue shown", lambda: queue_rows(browser) == waiting)
+    # The queue's and the notes' controls are absent; its forms' buttons are refused as the others.
+    for css in ("#queue input.prio", "#queue button", "#runs button.edit-notes"):
+        shown = [e for e in browser.find_elements("css selector", css) if e.is_displayed()]
+        assert not shown, css
+    assert not browser.find_element("id", "queue-pause").is_displayed()
+    for button in ("stop", "submit", "estop"):
         browser.find_element("id", button).click()
         wait_for("the refusal shown", lambda: "read-only" in text(browser, "notice"))
         assert "usmswitchctl web-url" in text(browser, "notice")
@@ -222,7 +374,10 @@ def test_without_the_token_the_page_is_refused(rig: dict[str, Any], browser: Any
     wait_for("the refusal shown", lambda: "read-only" in text(browser, "notice"))
     with Client(str(rig["sock"])) as c:
         assert c.status()["state"] == "cycling"
-    browser.save_screenshot(str(shots / "panel-readonly.png"))
+        assert [e["entry"] for e in c.status()["queue"]["queued"]] == waiting  # nothing queued from here
+        browser.save_screenshot(str(shots / "panel-readonly.png"))
+        for entry in waiting:  # the estop's test after this one resets a fault: nothing to start then
+            c.queue_cancel(entry, operator=True)
 
 
 def test_the_estop_with_the_token_latches_fault(rig: dict[str, Any], browser: Any) -> None:

@@ -1,6 +1,7 @@
 // The usmswitch panel: a plain client of the daemon's server process (web/panel.py).
-// Reads: the live feed (/api/live, a WebSocket), the runs (/api/runs). Controls: POST /api/control/NAME
-// with the token's cookie (the URL `usmswitchctl web-url` prints sets it); without it, read-only.
+// Reads: the live feed (/api/live, a WebSocket: strokes, state, statistics, the queue of runs), the runs
+// (/api/runs). Controls: POST /api/control/NAME with the token's cookie (the URL `usmswitchctl web-url`
+// prints sets it); without it, read-only (the controls of the queue's entries and a run's notes absent).
 "use strict";
 
 const MAX_POINTS = 3000; // strokes kept on the plots (30 s at 100 strokes a second)
@@ -163,7 +164,7 @@ function wall(ns) {
     `${pad2(d.getHours())}:${pad2(d.getMinutes())}:${pad2(d.getSeconds())}`;
 }
 function esc(s) { return String(s).replace(/[&<>"]/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;" })[c]); }
-let runsVersion = -1, runsBusy = false;
+let runsVersion = -1, runsBusy = false, runsById = new Map();
 async function loadRuns(version) {
   if (runsBusy || version === runsVersion) return;
   runsBusy = true;
@@ -172,6 +173,7 @@ async function loadRuns(version) {
     const data = await resp.json();
     if (!resp.ok) throw new Error(data.error);
     runsVersion = version;
+    runsById = new Map(data.runs.map((r) => [r.run_id, r]));
     const body = $("runs").tBodies[0];
     body.innerHTML = data.runs.slice().reverse().map((r) => {
       const s = r.settings || {}, st = r.stats || {}, on = st.on || {}, off = st.off || {};
@@ -181,12 +183,68 @@ async function loadRuns(version) {
         `<td>${wall(r.started_wall_ns)}</td><td>${fmtNs(s.period_ns)}</td><td>${fmtNs(s.target_on_ns)}</td>` +
         `<td>${fmtNs(s.target_off_ns)}</td><td>${fmtNs(on.error_std_ns)} / ${fmtNs(off.error_std_ns)}</td>` +
         `<td>${fmtNs(on.error_max_abs_ns)} / ${fmtNs(off.error_max_abs_ns)}</td>` +
-        `<td>${esc(r.end_reason ?? "-")}</td><td><a href="/api/runs/${r.run_id}.csv" download>run-${r.run_id}.csv</a></td></tr>`;
+        `<td>${esc(r.end_reason ?? "-")}</td><td class="label">${esc(r.label ?? "")}</td>` +
+        `<td class="notes"><span>${esc(r.notes ?? "")}</span>` +
+        ` <button type="button" class="op edit-notes" data-run="${r.run_id}">edit</button></td>` +
+        `<td><a href="/api/runs/${r.run_id}.csv" download>run-${r.run_id}.csv</a></td></tr>`;
     }).join("");
   } catch (e) {
     notice("runs: " + e.message, true);
   } finally {
     runsBusy = false;
+  }
+}
+
+// -- the queue of runs ------------------------------------------------------------------------------
+// The run going, then what waits in the order it will start (the daemon's `status` and its `queue`
+// notifications, kept by the server process). With the token: each entry's priority and cancel.
+const who = (owner) => String(owner || "-").split(" pid ")[0];
+// Today's times as the time alone (the whole date in the cell's title): the queue fits its column.
+function when(ns) {
+  const full = wall(ns);
+  return `<td title="${full}">${full.slice(0, 10) === wall(Date.now() * 1e6).slice(0, 10) ? full.slice(11) : full}</td>`;
+}
+function queueRow(e, state, run) {
+  const s = (run && run.settings) || {};
+  const count = e ? e.count : s.count;
+  const period = e ? e.period_ns : s.period_ns;
+  const target = e ? e.target_ns : s.target_on_ns;
+  const owner = e ? e.owner : s.owner;
+  const label = e ? e.label : run.label;
+  const prio = e ? e.priority : "-";
+  const entry = e ? e.entry : "-";
+  const waiting = !run; // the run going has its run; a waiting entry none yet
+  const prioCell = waiting
+    ? `<span class="ro">${prio}</span><input class="op prio" type="number" min="-1000" max="1000" step="1" ` +
+      `value="${prio}" data-entry="${entry}"> <button type="button" class="op prio-set" data-entry="${entry}">set</button>`
+    : `${prio}`;
+  const act = waiting ? `<button type="button" class="cancel-entry" data-entry="${entry}">cancel</button>` : "";
+  return `<tr data-entry="${entry}" class="${waiting ? "waiting" : "running"}"><td>${entry}</td><td>${esc(state)}</td>` +
+    `<td class="label">${esc(label ?? "")}</td><td class="owner" title="${esc(owner ?? "")}">${esc(who(owner))}</td>` +
+    `<td>${count ? count : "endless"}</td><td>${fmtNs(period)}</td><td>${target ? fmtNs(target) : "as set"}</td>` +
+    `<td>${prioCell}</td>${when(e ? e.submitted_wall_ns : run.started_wall_ns)}<td class="op">${act}</td></tr>`;
+}
+function showQueue(q) {
+  if (!q) return;
+  const paused = !!q.paused;
+  document.body.dataset.queuePaused = paused ? "yes" : "no";
+  text("queue-state", paused ? "(paused: nothing starts until it is resumed)" : "(going on)");
+  $("queue-resume").hidden = !paused;
+  $("queue-pause").hidden = paused;
+  const rows = [];
+  if (q.run) {
+    const cur = q.current && q.current.run_id === q.run.run_id ? q.current : null;
+    rows.push(queueRow(cur, `running: run ${q.run.run_id}`, q.run));
+  }
+  for (const e of q.queued || []) rows.push(queueRow(e, `queued #${e.position}`, null));
+  if (!rows.length) rows.push('<tr class="empty"><td colspan="10">nothing going, nothing queued</td></tr>');
+  // A priority being typed survives the redraw.
+  const typing = document.activeElement;
+  const kept = typing && typing.classList.contains("prio") ? [typing.dataset.entry, typing.value] : null;
+  $("queue").tBodies[0].innerHTML = rows.join("");
+  if (kept) {
+    const box = $("queue").querySelector(`input.prio[data-entry="${kept[0]}"]`);
+    if (box) { box.value = kept[1]; box.focus(); }
   }
 }
 
@@ -204,6 +262,7 @@ function connect() {
     if (msg.strokes && msg.strokes.length) addStrokes(msg.strokes);
     if (msg.status) showStatus(msg.status);
     if (msg.stats) showStats(msg.stats);
+    if (msg.queue) showQueue(msg.queue);
     if (msg.runs_version !== undefined) loadRuns(msg.runs_version);
   };
   ws.onclose = () => {
@@ -243,33 +302,105 @@ $("estop").addEventListener("click", () => control("estop"));
 // (in the page, never a blocking dialog: the live feed keeps drawing) before sending it again with
 // take_over, as `usmswitchctl cycle` asks for --take-over. The daemon's own start-up run gives way unasked.
 const RUN_GOING = /^already cycling: (run \d+ \(.*\) is going)/;
-let pendingStart = null;
-function ask(question, body) {
-  pendingStart = body;
+let pending = null; // [what yes does, what no does]
+function ask(question, yes, onYes, onNo) {
+  pending = [onYes, onNo];
   notice("");
   text("confirm-text", question);
+  text("confirm-yes", yes);
   $("confirm").hidden = false;
   $("confirm-yes").focus();
 }
-function answered() { $("confirm").hidden = true; const body = pendingStart; pendingStart = null; return body; }
-$("confirm-yes").addEventListener("click", () => {
-  const body = answered();
-  if (body) control("start", { ...body, take_over: true });
-});
-$("confirm-no").addEventListener("click", () => { if (answered()) notice("start cancelled: the run going goes on"); });
-$("run-form").addEventListener("submit", async (ev) => {
-  ev.preventDefault();
-  answered();
-  const body = {
+function answered() { $("confirm").hidden = true; const p = pending; pending = null; return p; }
+$("confirm-yes").addEventListener("click", () => { const p = answered(); if (p) p[0](); });
+$("confirm-no").addEventListener("click", () => { const p = answered(); if (p) p[1](); });
+const optional = (v) => (v === "" ? undefined : v);
+function runBody() {
+  return {
     count: Math.round(Number($("run-count").value || 0)),
     period_ns: msToNs($("run-period").value),
     target_ns: msToNs($("run-target").value),
+    label: optional($("run-label").value.trim()),
+    notes: optional($("run-notes").value),
   };
+}
+$("run-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  answered();
+  const body = runBody();
   await control("start", body, (err) => {
     const going = err.code === STATE_CODE && RUN_GOING.exec(err.error);
     if (!going) return false;
-    ask(`${going[1]}. Take it over? That ends it, and its record says "taken over by panel".`, body);
+    ask(`${going[1]}. Take it over? That ends it, and its record says "taken over by panel".`, "Take it over",
+      () => control("start", { ...body, take_over: true }),
+      () => notice("start cancelled: the run going goes on"));
     return true;
+  });
+});
+// Queued, the run waits its turn: it never ends the run going.
+$("submit").addEventListener("click", async () => {
+  answered();
+  const body = { ...runBody(), priority: Math.round(Number($("run-priority").value || 0)) };
+  const e = await control("submit", body);
+  if (e) notice(`queued as entry ${e.entry}, position ${e.position}` + (e.paused ? " (the queue is paused)" : ""));
+});
+// Another's entry or run: the daemon refuses naming whose it is; the page asks before acting as an
+// operator, as `usmswitchctl queue cancel N` wants --operator.
+const OTHERS = /^\w+: ((?:entry|run) \d+ is [^:]+): its (?:submitter|owner)/;
+async function asOperator(name, body, verb, done) {
+  const result = await control(name, body, (err) => {
+    const whose = err.code === STATE_CODE && OTHERS.exec(err.error);
+    if (!whose) return false;
+    ask(`${whose[1]}. ${verb} as an operator?`, verb,
+      async () => { const r = await control(name, { ...body, operator: true }); if (r && done) done(r); },
+      () => notice(`${name}: not done`));
+    return true;
+  });
+  if (result && done) done(result);
+}
+$("queue").addEventListener("click", (ev) => {
+  const button = ev.target.closest("button");
+  if (!button) return;
+  const entry = Number(button.dataset.entry);
+  if (button.classList.contains("cancel-entry")) {
+    asOperator("queue_cancel", { entry }, `Cancel entry ${entry}`, () => notice(`entry ${entry} cancelled`));
+  } else if (button.classList.contains("prio-set")) {
+    const box = $("queue").querySelector(`input.prio[data-entry="${entry}"]`);
+    const priority = Math.round(Number(box.value));
+    asOperator("queue_priority", { entry, priority }, `Give entry ${entry} priority ${priority}`,
+      (e) => notice(`entry ${entry}: priority ${e.priority}, position ${e.position}`));
+  }
+});
+$("queue-resume").addEventListener("click", () => control("queue_resume"));
+$("queue-pause").addEventListener("click", () => control("queue_pause"));
+// A run's notes (and label), edited in a form of its own: the runs list redraws under it.
+let editing = null;
+$("runs").addEventListener("click", (ev) => {
+  const button = ev.target.closest("button.edit-notes");
+  if (!button) return;
+  const run = runsById.get(Number(button.dataset.run));
+  if (!run) return;
+  editing = { run: run.run_id, label: run.label ?? "", notes: run.notes ?? "" };
+  text("notes-run", `run ${run.run_id}`);
+  $("notes-label").value = editing.label;
+  $("notes-text").value = editing.notes;
+  $("notes-form").hidden = false;
+  $("notes-text").focus();
+});
+$("notes-cancel").addEventListener("click", () => { $("notes-form").hidden = true; editing = null; });
+$("notes-form").addEventListener("submit", async (ev) => {
+  ev.preventDefault();
+  if (!editing) return;
+  const body = { run: editing.run };
+  const label = $("notes-label").value.trim(), notes = $("notes-text").value;
+  if (label !== editing.label) body.label = label; // "" clears it
+  if (notes !== editing.notes) body.notes = notes;
+  if (body.label === undefined && body.notes === undefined) { notice("notes: nothing changed"); return; }
+  const run = editing.run;
+  await asOperator("notes", body, `Edit run ${run}'s notes`, () => {
+    $("notes-form").hidden = true;
+    editing = null;
+    notice(`run ${run}: notes saved`);
   });
 });
 $("stop").addEventListener("click", () => control("stop"));
