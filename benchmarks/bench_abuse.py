@@ -16,6 +16,8 @@ It serves the browser panel too (`--web`): one load is 10 open panels, each read
 With PostgreSQL 15 installed (tests/pgserver.py), the daemon also ships to a database that is down
 until the last load, and its records file starts with a backlog of BENCH_ABUSE_BACKLOG synthetic
 strokes: the last load starts the server, and the window runs while the shipper catches up.
+
+The loads themselves, each the body of a process, are in benchmarks/abuse_loads.py.
 """
 
 from __future__ import annotations
@@ -37,6 +39,15 @@ from typing import Any
 
 import msgpack
 
+from benchmarks.abuse_loads import (
+    LOADS,
+    MS,
+    NEEDS,
+    connect_unix,
+    load_exports,
+    load_stats,
+    load_unread_history,
+)
 from benchmarks.bench_loop import PRIORITY, fifo_allowed, percentiles
 from benchmarks.table import print_table
 from usmswitch.client import Client, ConnectionClosed, RpcError
@@ -45,7 +56,6 @@ from usmswitch.protocol.wire import estop_socket_path
 from usmswitch.runtime.children import wait_exit
 
 ROOT = Path(__file__).resolve().parents[1]
-MS = 1_000_000
 PERIOD_MS = 15
 BACKLOG = int(os.environ.get("BENCH_ABUSE_BACKLOG", "200000"))
 # 20 s (~1,330 strokes) per load: with 8 s (~530) a window's p99 is its 6th-worst stroke, and two
@@ -55,362 +65,6 @@ ESTOPS = int(os.environ.get("BENCH_ABUSE_ESTOPS", "20"))
 PATH_ESTOPS = int(os.environ.get("BENCH_ABUSE_PATH_ESTOPS", "20"))
 # A comma-separated list of words: only the loads whose names contain one of them (and idle).
 ONLY = [w for w in os.environ.get("BENCH_ABUSE_ONLY", "").split(",") if w]
-
-
-# -- loads, each the body of a process that runs until `stop` is set ----------------------------------
-def _raw(path: str) -> socket.socket:
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    s.connect(path)
-    return s
-
-
-def _frames(method: str, params: list[Any], n: int) -> bytes:
-    return b"".join(msgpack.packb([0, i, method, params]) for i in range(n))
-
-
-def load_stats(path: str, stop: Any) -> None:
-    with Client(path) as c:
-        while not stop.is_set():
-            c.stats()
-
-
-def load_unread_history(path: str, stop: Any, conns: int = 1) -> None:
-    try:
-        socks = [_raw(path) for _ in range(conns)]
-    except OSError:
-        return  # the daemon is gone (the SIGTERM row: a loader started after its exit)
-    for s in socks:
-        s.sendall(_frames("history", [10_000], 32))
-    stop.wait()
-
-
-def load_exports(path: str, stop: Any) -> None:
-    try:
-        c = Client(path, timeout=60)
-    except OSError:
-        return  # the daemon is gone (the SIGTERM row: a loader started after its exit)
-    with c:
-        while not stop.is_set():
-            try:
-                c.history(10_000)
-            except ConnectionClosed:
-                return  # the daemon went (the SIGTERM row ends it under this load)
-            except (OSError, RpcError):
-                if stop.is_set():
-                    return  # the load ended mid-call
-                raise
-
-
-def load_set_target(path: str, stop: Any) -> None:
-    s = _raw(path)
-    unpacker = msgpack.Unpacker()
-    k = 0
-    while not stop.is_set():
-        k += 1
-        s.sendall(_frames("set_target", [12 * MS + 1000 * (k % 2)], 32))
-        got = 0
-        while got < 32:
-            unpacker.feed(s.recv(65_536))
-            got += sum(1 for _ in unpacker)
-
-
-def load_connection_flood(path: str, stop: Any) -> None:
-    held: list[socket.socket] = []
-    while not stop.is_set():
-        while len(held) < 600:
-            try:
-                held.append(_raw(path))
-            except OSError:
-                break
-        time.sleep(0.05)
-        alive = []
-        for s in held:  # refused ones were closed by the server: open them again
-            s.setblocking(False)
-            try:
-                closed = s.recv(1 << 16) == b""
-            except BlockingIOError:
-                closed = False
-            except OSError:
-                closed = True
-            if closed:
-                s.close()
-            else:
-                alive.append(s)
-        held = alive
-
-
-def load_one_byte(path: str, stop: Any) -> None:
-    """32 connections on each socket that send one byte of a request and then nothing, renewed."""
-    targets = (path, str(estop_socket_path(path)))
-    held: list[socket.socket] = []
-    while not stop.is_set():
-        for target in targets:
-            while sum(1 for s in held if s.getpeername() == target) < 32:
-                try:
-                    s = _raw(target)
-                    s.sendall(b"\x94")
-                    held.append(s)
-                except OSError:
-                    break
-        time.sleep(0.05)
-        alive = []
-        for s in held:
-            s.setblocking(False)
-            try:
-                closed = s.recv(1 << 16) == b""
-            except BlockingIOError:
-                closed = False
-            except OSError:
-                closed = True
-            if closed:
-                s.close()
-            else:
-                alive.append(s)
-        held = alive
-
-
-def _http_response(s: socket.socket, buf: bytes) -> bytes:
-    """Read one HTTP response (head and Content-Length body) from `s`; returns what follows it."""
-    while b"\r\n\r\n" not in buf:
-        buf += s.recv(65_536)
-    head, _, rest = buf.partition(b"\r\n\r\n")
-    length = int(head.lower().split(b"content-length:")[1].split(b"\r\n")[0])
-    while len(rest) < length:
-        rest += s.recv(65_536)
-    return rest[length:]
-
-
-def load_scrapes(path: str, stop: Any, url: str = "", keep_alive: bool = True) -> None:
-    """GET /metrics as fast as the page answers, reading every byte: over one kept-alive
-    connection, as Prometheus scrapes, or a new connection per scrape."""
-    host, _, port = url.split("/")[2].rpartition(":")
-    request = f"GET /metrics HTTP/1.1\r\nHost: {host}\r\nAccept: text/plain\r\n\r\n".encode()
-    s = None
-    buf = b""
-    while not stop.is_set():
-        if s is None:
-            s = socket.create_connection((host, int(port)), timeout=10)
-        s.sendall(request)
-        buf = _http_response(s, buf)
-        if not keep_alive:
-            s.close()
-            s, buf = None, b""
-
-
-def load_panel(path: str, stop: Any, web_url: str = "") -> None:
-    """One open browser panel: the page and its assets, the runs list, then the live feed read as
-    it comes (every message decoded, as the page does), the runs list again every 5 s."""
-    import asyncio
-    import json
-
-    import aiohttp
-
-    async def panel() -> None:
-        async with aiohttp.ClientSession() as http:
-            for part in ("", "static/panel.js", "static/uPlot.iife.min.js", "api/session", "api/runs"):
-                async with http.get(web_url + part) as resp:
-                    await resp.read()
-            async with http.ws_connect(web_url + "api/live") as ws:
-                next_runs = time.monotonic() + 5
-                while not stop.is_set():
-                    try:
-                        msg = await ws.receive(timeout=0.5)
-                    except TimeoutError:
-                        continue
-                    if msg.type != aiohttp.WSMsgType.TEXT:
-                        return
-                    json.loads(msg.data)
-                    if time.monotonic() > next_runs:
-                        next_runs += 5
-                        async with http.get(web_url + "api/runs") as resp:
-                            await resp.read()
-
-    asyncio.run(panel())
-
-
-# -- issue 35's loads: the doors held ------------------------------------------------------------------
-def _renew(held: list[socket.socket]) -> list[socket.socket]:
-    """The connections the server has not closed; the closed ones are closed here too."""
-    alive = []
-    for s in held:
-        s.setblocking(False)
-        try:
-            closed = s.recv(1 << 16) == b""
-        except BlockingIOError:
-            closed = False
-        except OSError:
-            closed = True
-        if closed:
-            s.close()
-        else:
-            alive.append(s)
-    return alive
-
-
-def load_hold_every_slot(path: str, stop: Any) -> None:
-    """64 subscribed Unix connections and 16 estop-socket holders (each answered a ping), renewed
-    when shed: issue 35's item 2."""
-    held: list[socket.socket] = []
-    urgent = str(estop_socket_path(path))
-    while not stop.is_set():
-        counts = {path: 0, urgent: 0}
-        for s in held:
-            counts[s.getpeername()] += 1
-        for target, want, method, params in (
-            (path, 64, "subscribe", [["stroke", "state"]]),
-            (urgent, 16, "ping", []),
-        ):
-            for _ in range(want - counts[target]):
-                try:
-                    s = _raw(target)
-                    s.sendall(msgpack.packb([0, 1, method, params]))
-                    s.recv(65_536)
-                    held.append(s)
-                except OSError:
-                    break
-        time.sleep(0.2)
-        held = _renew(held)
-    for s in held:
-        s.close()
-
-
-def load_half_open(path: str, stop: Any, web_url: str = "", n: int = 1100) -> None:
-    """1,100 connections to the panel's port that send nothing, renewed as they are shed: item 4."""
-    host, _, port = web_url.split("/")[2].rpartition(":")
-    held: list[socket.socket] = []
-    while not stop.is_set():
-        while len(held) < n and not stop.is_set():
-            try:
-                held.append(socket.create_connection((host, int(port)), timeout=5))
-            except OSError:
-                break
-        time.sleep(0.2)
-        held = _renew(held)
-    for s in held:
-        s.close()
-
-
-def load_slowloris(path: str, stop: Any, web_url: str = "", url: str = "") -> None:
-    """10 connections to the panel and 17 to /metrics dripping a byte of a request head every
-    second, renewed when closed: items 4 and 6."""
-    targets = []
-    for u, n in ((web_url, 10), (url, 17)):
-        host, _, port = u.split("/")[2].rpartition(":")
-        targets += [(host, int(port))] * n
-    conns: list[socket.socket | None] = [None] * len(targets)
-    while not stop.is_set():
-        for i, target in enumerate(targets):
-            s = conns[i]
-            try:
-                if s is None:
-                    s = conns[i] = socket.create_connection(target, timeout=5)
-                s.sendall(b"G")
-            except OSError:
-                if s is not None:
-                    s.close()
-                conns[i] = None
-        time.sleep(1.0)
-
-
-def load_bad_http(path: str, stop: Any, web_url: str = "", url: str = "") -> None:
-    """Malformed HTTP requests to both doors as fast as they are answered: item 9."""
-    bad = b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nno colon here\r\n\r\n"
-    addrs = []
-    for u in (web_url, url):
-        host, _, port = u.split("/")[2].rpartition(":")
-        addrs.append((host, int(port)))
-    k = 0
-    while not stop.is_set():
-        k += 1
-        with contextlib.suppress(OSError), socket.create_connection(addrs[k % 2], timeout=5) as s:
-            s.sendall(bad)
-            while s.recv(65_536):
-                pass
-
-
-def load_feed_bursts(path: str, stop: Any, web_url: str = "") -> None:
-    """Bursts of 200 live feeds opened at once, held 2 s, closed: item 5."""
-    import asyncio
-
-    import aiohttp
-
-    async def bursts() -> None:
-        async with aiohttp.ClientSession() as http:
-            while not stop.is_set():
-
-                async def one() -> Any:
-                    try:
-                        return await http.ws_connect(web_url.replace("http://", "ws://") + "api/live")
-                    except aiohttp.ClientError:
-                        return None
-
-                feeds = await asyncio.gather(*(one() for _ in range(200)))
-                await asyncio.sleep(2.0)
-                for ws in feeds:
-                    if ws is not None:
-                        await ws.close()
-
-    asyncio.run(bursts())
-
-
-def load_tcp_guessing(path: str, stop: Any, tcp: str = "") -> None:
-    """Wrong TCP tokens as fast as they are answered, and 8 silent connections renewed: items 8, 12.
-    From 127.0.0.2, another peer than the operator's 127.0.0.1: the back-off is per address, and a
-    client on the guesser's own address shares its wait (docs/protocol.md)."""
-    host, _, port = tcp.rpartition(":")
-    src = ("127.0.0.2", 0)
-    silent: list[socket.socket] = []
-    k = 0
-    while not stop.is_set():
-        while len(silent) < 8:
-            try:
-                silent.append(socket.create_connection((host, int(port)), timeout=5, source_address=src))
-            except OSError:
-                break
-        k += 1
-        with (
-            contextlib.suppress(OSError),
-            socket.create_connection((host, int(port)), timeout=5, source_address=src) as s,
-        ):
-            s.sendall(msgpack.packb([0, 1, "auth", [f"guess-{k:016d}"]]))
-            while s.recv(65_536):
-                pass
-        silent = _renew(silent)
-
-
-LOADS: list[tuple[str, Callable[..., None] | None, int, dict[str, Any]]] = [
-    ("idle", load_stats, 0, {}),
-    ("8 clients hammering stats", load_stats, 8, {}),
-    ("history 10000 x32 pipelined, unread", load_unread_history, 1, {}),
-    ("4 x 32 history 10000, unread", load_unread_history, 1, {"conns": 4}),
-    ("8 x 32 history 10000, unread", load_unread_history, 1, {"conns": 8}),
-    ("10 export clients (history 10000)", load_exports, 10, {}),
-    ("32 set_target pipelined, repeated", load_set_target, 1, {}),
-    ("600 connections, renewed", load_connection_flood, 1, {}),
-    ("32 one-byte connections per socket", load_one_byte, 1, {}),
-    # The url is filled in at start.
-    ("4 Prometheus scrapers hammering /metrics", load_scrapes, 4, {}),
-    ("4 scrapers hammering /metrics, a connection each", load_scrapes, 4, {"keep_alive": False}),
-    # The web_url is filled in at start.
-    ("10 open panels (live feed, runs)", load_panel, 10, {}),
-    # Issue 35 (web_url, url and tcp filled in at start).
-    ("64 subscribed + 16 estop holders", load_hold_every_slot, 1, {}),
-    ("1,100 half-open panel connections", load_half_open, 1, {}),
-    ("slowloris: 10 on the panel, 17 on /metrics", load_slowloris, 1, {}),
-    ("bad HTTP requests to both doors", load_bad_http, 2, {}),
-    ("live feeds in bursts of 200", load_feed_bursts, 1, {}),
-    ("TCP: token guessing and 8 silent", load_tcp_guessing, 1, {}),
-]
-#: The loads whose bodies take each address the daemon serves (filled in at start).
-_NEEDS = {
-    load_scrapes: ("url",),
-    load_panel: ("web_url",),
-    load_half_open: ("web_url",),
-    load_slowloris: ("web_url", "url"),
-    load_bad_http: ("web_url", "url"),
-    load_feed_bursts: ("web_url",),
-    load_tcp_guessing: ("tcp",),
-}
 
 
 # -- the daemon and the measurements ---------------------------------------------------------------
@@ -462,7 +116,7 @@ class Estopper:
         self._open()
 
     def _open(self) -> None:
-        self.sock = _raw(str(estop_socket_path(self.path)))
+        self.sock = connect_unix(str(estop_socket_path(self.path)))
         self.unpacker = msgpack.Unpacker()
         self.sock.sendall(msgpack.packb([0, 0, "ping", []]))  # within the estop socket's first-frame bound
 
@@ -729,7 +383,7 @@ def main() -> int:
         status = control.status()
         url, web_url = status["metrics_url"], status["web_url"]
         where = {"url": url, "web_url": web_url, "tcp": tcp}
-        loads = [(n, b, k, {**kw, **{a: where[a] for a in _NEEDS.get(b, ())}}) for n, b, k, kw in LOADS]  # type: ignore[call-overload]
+        loads = [(n, b, k, {**kw, **{a: where[a] for a in NEEDS.get(b, ())}}) for n, b, k, kw in LOADS]  # type: ignore[call-overload]
         tcp_token = tcp_token_path(sock).read_text().strip()
         web_token = web_token_path(sock).read_text().strip()
         if pg is not None:
