@@ -3,6 +3,7 @@
     usmswitch-experiment all                        # every experiment on the simulated rig, then the report
     usmswitch-experiment closed-loop --seed 7
     usmswitch-experiment reliability --socket /run/usmswitch/usmswitchd.sock   # a real rig
+    usmswitch-experiment all --socket /run/usmswitch/usmswitchd.sock --queue   # its turn on a shared rig
     usmswitch-experiment closed-loop --from-records /var/lib/usmswitch/records.sqlite --run 12
 
 Each run writes to --out (default runs/<name>-<time>): records.sqlite, figures/*.png and .svg,
@@ -25,6 +26,7 @@ from typing import Any
 
 from usmswitch.client import RecordsFileError, open_records
 from usmswitch.client.plots import wall_text
+from usmswitch.protocol.rpc_params import MAX_PRIORITY
 from usmswitch.protocol.version import PACKAGE_VERSION
 
 from . import (
@@ -40,6 +42,7 @@ from . import (
 )
 from .context import Context, NeedsSimulatedRig, NeedsStrokes, no_progress
 from .data import Strokes
+from .queued_rig import QueuedLiveRig
 from .rig import LiveRig, Progress, SimulatedRig
 
 PROG = "usmswitch-experiment"
@@ -103,6 +106,15 @@ def _options(p: argparse.ArgumentParser) -> None:
         "--take-over",
         action="store_true",
         help="with --socket: end a run a client started (it is started again when the experiment ends)",
+    )
+    p.add_argument(
+        "--queue",
+        action="store_true",
+        help="with --socket: wait for the rig in the daemon's queue (never ending another's run), then"
+        " hold it for the experiment's runs",
+    )
+    p.add_argument(
+        "--priority", type=int, help="with --queue: the turn's place in the queue (-1000..1000, higher first)"
     )
     p.add_argument("--rig", help="with --from-records postgresql://...: the rig (when it holds several)")
     p.add_argument(
@@ -180,6 +192,18 @@ def main(argv: list[str] | None = None) -> int:
         if getattr(args, flag) is not None and args.from_records is None:
             print(f"{PROG}: --{flag} goes with --from-records", file=sys.stderr)
             return EXIT_USAGE
+    usage = None
+    if args.queue and args.socket is None:
+        usage = "--queue goes with --socket (the daemon's queue)"
+    elif args.queue and args.take_over:
+        usage = "--queue waits for the run going, --take-over ends it: give one"
+    elif args.priority is not None and not args.queue:
+        usage = "--priority goes with --queue"
+    elif args.priority is not None and not -MAX_PRIORITY <= args.priority <= MAX_PRIORITY:
+        usage = f"--priority must be in -{MAX_PRIORITY}..{MAX_PRIORITY}, got {args.priority}"
+    if usage is not None:
+        print(f"{PROG}: {usage}", file=sys.stderr)
+        return EXIT_USAGE
     if args.from_records is not None and args.experiment not in (*FROM_RECORDS, "all"):
         print(
             f"{PROG}: {args.experiment} needs a rig; from records: {', '.join(FROM_RECORDS)}", file=sys.stderr
@@ -199,6 +223,9 @@ def main(argv: list[str] | None = None) -> int:
             closed = args.experiment == "closed-loop"  # its run is a closed-loop one unless named
             ctx.recorded, where = recorded_run(args.from_records, args.run, args.rig, closed_loop=closed)
             names = [n for n in names if n in FROM_RECORDS]
+        elif args.socket is not None and args.queue:
+            ctx.rig = QueuedLiveRig(args.socket, args.priority or 0, _say)
+            where = f"the live rig at {args.socket}, its turn taken in the daemon's queue"
         elif args.socket is not None:
             ctx.rig, where = LiveRig(args.socket, args.take_over), f"the live rig at {args.socket}"
         else:
@@ -271,6 +298,10 @@ def main(argv: list[str] | None = None) -> int:
     (out / "report.md").write_text(report.render(summary))
     print(f"{PROG}: report in {out / 'report.md'}", file=sys.stderr)
     return status
+
+
+def _say(line: str) -> None:
+    print(f"{PROG}: {line}", file=sys.stderr, flush=True)
 
 
 def _plain(value: object) -> object:

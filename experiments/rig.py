@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from usmswitch.client import Client, RpcError
+from usmswitch.client import Client, RpcError, Run
 from usmswitch.daemon.loop import AUTOSTART_OWNER, ControlLoop, Mode
 from usmswitch.daemon.records import RecordStore
 from usmswitch.predictor import ARPredictor
@@ -156,17 +156,23 @@ class LiveRig:
             self.name = str(status.get("rig") or address or "the local daemon")
             if status["state"] == "fault":
                 raise RuntimeError(f"the rig is in FAULT ({status['fault']}): `usmswitchctl reset` first")
-            self.before = self._settings(status)
-            going = self.before["run"]
-            if going is not None and going["settings"].get("owner") != AUTOSTART_OWNER and not take_over:
-                raise RuntimeError(
-                    f"run {going['run_id']} ({going['settings'].get('owner') or 'a client'}) is going on the"
-                    " rig: stop it first (`usmswitchctl stop`), or pass --take-over to end it now and start"
-                    " it again when the experiment ends"
-                )
+            self.before = self._lend(status)
         except BaseException:
             self.client.close()
             raise
+
+    def _lend(self, status: dict[str, Any]) -> dict[str, Any]:
+        """The rig as it is lent (what `restore` puts back); refused while a client's run goes,
+        unless taken over."""
+        before = self._settings(status)
+        going = before["run"]
+        if going is not None and going["settings"].get("owner") != AUTOSTART_OWNER and not self.take_over:
+            raise RuntimeError(
+                f"run {going['run_id']} ({going['settings'].get('owner') or 'a client'}) is going on the"
+                " rig: stop it first (`usmswitchctl stop`), or pass --take-over to end it now and start"
+                " it again when the experiment ends (or --queue to wait for it in the daemon's queue)"
+            )
+        return before
 
     def _settings(self, status: dict[str, Any]) -> dict[str, Any]:
         """What an experiment may change, as it is now."""
@@ -188,12 +194,8 @@ class LiveRig:
         }
 
     def run(self, spec: RunSpec, progress: Progress | None = None) -> Strokes:
-        c = self.client
-        if spec.frequency_hz is not None or spec.voltage_vpp is not None:
-            # A drive board or the sim: else UNAVAILABLE.
-            c.set_drive(frequency_hz=spec.frequency_hz, voltage_vpp=spec.voltage_vpp)
-        c.set_mode(spec.mode, spec.open_delay_ns if spec.mode == "open" else None)
-        run = c.run(
+        self._apply(spec)
+        run = self.client.run(
             count=spec.count,
             period=spec.period_ns,
             target=spec.target_ns,
@@ -201,6 +203,18 @@ class LiveRig:
             take_over=self.take_over,
             timeout=10,
         )
+        return self._follow(run, progress)
+
+    def _apply(self, spec: RunSpec) -> None:
+        """The run's drive and mode set on the rig (its target goes with the run)."""
+        c = self.client
+        if spec.frequency_hz is not None or spec.voltage_vpp is not None:
+            # A drive board or the sim: else UNAVAILABLE.
+            c.set_drive(frequency_hz=spec.frequency_hz, voltage_vpp=spec.voltage_vpp)
+        c.set_mode(spec.mode, spec.open_delay_ns if spec.mode == "open" else None)
+
+    def _follow(self, run: Run, progress: Progress | None) -> Strokes:
+        """A run's strokes as they come, to its end."""
         records: list[dict[str, Any]] = []
         for rec in run:
             records.append(dict(rec))
@@ -210,12 +224,21 @@ class LiveRig:
 
     def restore(self) -> list[str]:
         """Put back what was changed; the lines say what, for the report. Safe to call twice."""
-        c, b = self.client, self.before
+        c = self.client
         now = c.status()
         done: list[str] = []
         if now["state"] == "cycling":  # an experiment's run cut short (Ctrl-C, a failure)
             c.stop_cycling()
             done.append("cycling: the experiment's run stopped")
+        done += self._put_back(now)
+        done += self._start_again()
+        self.restored += done
+        return done
+
+    def _put_back(self, now: dict[str, Any]) -> list[str]:
+        """The mode, targets and drive as they were lent (`now`: the status as it is)."""
+        c, b = self.client, self.before
+        done: list[str] = []
         if (now["mode"], now["open_delay_ns"]) != (b["mode"], b["open_delay_ns"]):
             c.set_mode(b["mode"], b["open_delay_ns"])
             done.append(
@@ -233,7 +256,12 @@ class LiveRig:
                 if b["drive"].get(key) is not None and drive.get(key) != b["drive"][key]:
                     c.set_drive(**{key: b["drive"][key]})
                     done.append(f"drive {key}: {drive.get(key):g} {unit} -> {b['drive'][key]:g} {unit}")
-        going = b["run"]
+        return done
+
+    def _start_again(self) -> list[str]:
+        """The run that was going when the rig was lent, started again (once)."""
+        c, going = self.client, self.before["run"]
+        done: list[str] = []
         if going is not None:
             s = going["settings"]
             count = s["count"] and max(1, s["count"] - self._made(going))
@@ -242,7 +270,6 @@ class LiveRig:
                 f"cycling: run {going['run_id']} ({s.get('owner') or 'a client'}) started again as run"
                 f" {run['run_id']}, every {format_ns(s['period_ns'])}"
             )
-        self.restored += done
         return done
 
     def _made(self, run: dict[str, Any]) -> int:

@@ -254,6 +254,10 @@ def test_bad_usage(tmp_path: Path) -> None:
     assert run("speed", "--from-records", str(tmp_path / "none.sqlite")) == 2
     assert run("aic", "--run", "3") == 2
     assert run("aic", "--scale", "2") == 2
+    assert run("aic", "--queue") == 2  # the daemon's queue: with --socket
+    assert run("aic", "--priority", "3") == 2  # with --queue
+    assert run("aic", "--socket", str(tmp_path / "d.sock"), "--queue", "--take-over") == 2
+    assert run("aic", "--socket", str(tmp_path / "d.sock"), "--queue", "--priority", "1001") == 2
     assert run("aic", "--from-records", str(tmp_path / "none.sqlite"), "--out", str(tmp_path / "o")) == 1
 
 

@@ -1,6 +1,8 @@
 """Experiments against a live daemon leave the rig as they found it (issue 25): every setting they
 change comes back when they end, fail or are interrupted, a run a client started is refused unless
-taken over, and the report lists what was put back. A real usmswitchd (the simulated rig in real
+taken over, and the report lists what was put back. With --queue (issue 38) an experiment waits for
+the run going in the daemon's queue, never ends it, and holds the rig for its runs once its turn
+comes. A real usmswitchd (the simulated rig in real
 time, cycling by itself as `make run` starts it) and the real `usmswitch-experiment` subprocess."""
 
 from __future__ import annotations
@@ -97,3 +99,50 @@ def test_a_run_a_client_started_is_refused_by_name_unless_taken_over(live: Path,
         again = c.runs(1)[-1]
     assert again["end_reason"] is None and again["settings"]["owner"] != "autostart"
     assert again["settings"]["period_ns"] == 30_000_000
+
+
+def test_with_queue_an_experiment_waits_behind_the_run_going_and_never_ends_it(
+    live: Path, tmp_path: Path
+) -> None:
+    with Client(str(live)) as c:
+        theirs = c.start_cycling("30ms", 0, target="13ms", take_over=True, owner="lab script")["run_id"]
+        before = settings(live)
+        proc = experiment(live, tmp_path / "x", "--queue", name="closed-loop")
+        deadline = time.monotonic() + 60  # its turn queued: it waits (a condition, not a time claim)
+        while not (queued := c.status()["queue"]["queued"]):
+            assert time.monotonic() < deadline and proc.poll() is None, proc.stderr
+            time.sleep(0.05)
+        (turn,) = queued
+        assert turn["label"] == "experiment-hold" and turn["owner"] != "lab script"
+        going = c.status()["run"]
+        assert going["run_id"] == theirs and going["end_reason"] is None  # not ended, not refused
+        assert proc.poll() is None
+        c.stop_cycling()  # their run ends by their hand: the experiment's turn comes
+        # Queued now, behind the experiment's turn: it runs once the experiment gives the rig back.
+        after = c.submit_entry("30ms", 5, target="13ms", label="after")["entry"]
+        _, err = proc.communicate(timeout=180)
+        assert proc.returncode == 0, err
+        assert "waiting for the rig" in err and "the rig is the experiment's" in err
+        deadline = time.monotonic() + 60
+        while not any(r["settings"].get("queue_entry") == after and r["end_reason"] for r in c.runs(50)):
+            assert time.monotonic() < deadline, c.status()["queue"]
+            time.sleep(0.05)
+        runs = c.runs(50)
+    by_id = {r["run_id"]: r for r in runs}
+    assert by_id[theirs]["end_reason"] == "stopped"  # never "taken over"
+    mine = [r for r in runs if r["label"] == "experiment"]
+    holds = [r for r in runs if r["label"] == "experiment-hold"]
+    (later,) = [r for r in runs if r["settings"].get("queue_entry") == after]
+    assert [r["notes"] for r in mine] == ["closed-loop 12 ms", "closed-loop 24 ms"]
+    assert all(r["end_reason"] == "done" for r in mine)
+    ours = sorted(mine + holds, key=lambda r: r["run_id"])
+    # One stretch of the experiment's runs, hold - run - hold - run - hold, nothing of another's
+    # between them; the run queued meanwhile after it, the one going before it.
+    assert [r["label"] for r in ours] == ["experiment-hold", "experiment"] * 2 + ["experiment-hold"]
+    assert [r["run_id"] for r in ours] == list(range(ours[0]["run_id"], ours[-1]["run_id"] + 1))
+    assert ours[0]["first_cycle"] > by_id[theirs]["last_cycle"]
+    assert later["first_cycle"] > ours[-1]["last_cycle"] and later["end_reason"] == "done"
+    now = settings(live)
+    assert {k: now[k] for k in now if k != "state"} == {k: before[k] for k in before if k != "state"}
+    restored = json.loads((tmp_path / "x" / "summary.json").read_text())["meta"]["restored"]
+    assert any("hold on the rig ended" in r for r in restored), restored
