@@ -3,12 +3,15 @@
 Each load is the body of a process, `body(path, stop, **kw)`, that hammers the daemon at the Unix
 socket `path` (or the doors beside it) until the multiprocessing Event `stop` is set. `LOADS` names
 them in the bench's order with their process counts; `NEEDS` says which addresses the daemon serves
-(`url`, `web_url`, `tcp`) a body takes, filled in by the bench once the daemon is up.
+(`url`, `web_url`, `tcp`) and which shared counter (`edits`) a body takes, filled in by the bench
+once the daemon is up.
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
+import random
 import socket
 import time
 from collections.abc import Callable
@@ -344,6 +347,73 @@ def load_tcp_guessing(path: str, stop: Any, tcp: str = "") -> None:
         silent = _renew(silent)
 
 
+# -- issue 38's load: the queue of runs edited ---------------------------------------------------------
+def load_queue_edits(path: str, stop: Any, edits: Any = None, share: int = 25) -> None:
+    """One of the clients that keep a queue of runs edited: `share` runs of its own queued (4 x 25:
+    100), then, as fast as the daemon answers, one of them re-prioritised, or cancelled and another
+    submitted in its place, or a run's label and notes edited (the run going, or an earlier one).
+    Each edit answered (submit, priority, cancel, notes) adds one to the shared counter `edits`; at
+    `stop` it cancels what it queued.
+
+    The bench keeps its own run going with `start_cycling [take_over]` after each of its estops'
+    `reset_fault` (Estopper.resume). A queued run never ends that run, but the reset lets the queue
+    start its head (a person's reset, docs/protocol.md), which the bench's take-over would then
+    end, one entry a reset. So the queue is **paused** first (`queue_pause [true]`, by each process
+    before its first submit): nothing queued starts, the window's run is the bench's all along, and
+    the queue is left paused and empty. The entries are submitted with `submit` (Client.submit_entry:
+    Client.submit is the same call with subscriptions to follow the run, which nothing here reads).
+    """
+    rng = random.Random(os.getpid())
+    k = 0  # calls answered
+
+    def done() -> None:
+        nonlocal k
+        k += 1
+        if edits is not None:
+            with edits.get_lock():
+                edits.value += 1
+
+    with Client(path, timeout=30) as c:
+        c.queue_pause(operator=True)
+        mine: list[int] = []
+
+        def submit() -> None:
+            entry = c.submit_entry(
+                period=f"{rng.choice((15, 20, 30))}ms",
+                count=rng.randint(10, 5000),
+                label=f"sweep-{rng.randrange(20)}",
+                notes=f"queued by pid {os.getpid()}, edit {k}: " + "x" * rng.randrange(400),
+                priority=rng.randint(-1000, 1000),
+            )
+            mine.append(entry["entry"])
+            done()
+
+        runs: list[int] = []
+        annotated = 0
+        while len(mine) < share and not stop.is_set():
+            submit()
+        while not stop.is_set():
+            op = rng.randrange(3)
+            if op == 0:
+                c.queue_priority(rng.choice(mine), rng.randint(-1000, 1000))
+                done()
+            elif op == 1:  # a re-submit: one cancelled, another in its place
+                c.queue_cancel(mine.pop(rng.randrange(len(mine))))
+                done()
+                submit()
+            else:
+                if annotated % 20 == 0:  # the bench's runs (one an estop); the daemon's own is not ours
+                    runs = [r["run_id"] for r in c.runs(50) if r["settings"].get("owner") != "autostart"]
+                annotated += 1
+                if runs:  # the latest (the run going, mostly) or an earlier one
+                    run = runs[-1] if rng.random() < 0.5 else rng.choice(runs)
+                    c.annotate_run(run, f"edit {k} by pid {os.getpid()}", label=f"abuse-{k % 7}")
+                    done()
+        for entry in mine:
+            with contextlib.suppress(RpcError):
+                c.queue_cancel(entry)
+
+
 LOADS: list[tuple[str, Callable[..., None] | None, int, dict[str, Any]]] = [
     ("idle", load_stats, 0, {}),
     ("8 clients hammering stats", load_stats, 8, {}),
@@ -366,8 +436,10 @@ LOADS: list[tuple[str, Callable[..., None] | None, int, dict[str, Any]]] = [
     ("bad HTTP requests to both doors", load_bad_http, 2, {}),
     ("live feeds in bursts of 200", load_feed_bursts, 1, {}),
     ("TCP: token guessing and 8 silent", load_tcp_guessing, 1, {}),
+    # Issue 38 (edits filled in at start).
+    ("a queue of 100 runs, edited by 4 clients", load_queue_edits, 4, {"share": 25}),
 ]
-#: The loads whose bodies take each address the daemon serves (filled in at start).
+#: The loads whose bodies take each address the daemon serves, or the shared counter (filled in at start).
 NEEDS = {
     load_scrapes: ("url",),
     load_panel: ("web_url",),
@@ -376,4 +448,5 @@ NEEDS = {
     load_bad_http: ("web_url", "url"),
     load_feed_bursts: ("web_url",),
     load_tcp_guessing: ("tcp",),
+    load_queue_edits: ("edits",),
 }

@@ -13,6 +13,9 @@ bounded under unread pipelined reads).
 
 The daemon serves its Prometheus page all along (`--metrics`): one load hammers it with scrapers.
 It serves the browser panel too (`--web`): one load is 10 open panels, each reading the live feed.
+One load keeps a queue of 100 runs edited (issue 38): its clients submit, re-prioritise, cancel
+and re-submit runs and edit runs' notes while the bench's own run cycles (the queue paused, so none
+of them starts: benchmarks/abuse_loads.py, load_queue_edits).
 With PostgreSQL 15 installed (tests/pgserver.py), the daemon also ships to a database that is down
 until the last load, and its records file starts with a backlog of BENCH_ABUSE_BACKLOG synthetic
 strokes: the last load starts the server, and the window runs while the shipper catches up.
@@ -382,7 +385,7 @@ def main() -> int:
         print(f"policy {policy}; window {WINDOW_S:g} s; {ESTOPS} estops per load")
         status = control.status()
         url, web_url = status["metrics_url"], status["web_url"]
-        where = {"url": url, "web_url": web_url, "tcp": tcp}
+        where = {"url": url, "web_url": web_url, "tcp": tcp, "edits": ctx.Value("q", 0)}
         loads = [(n, b, k, {**kw, **{a: where[a] for a in NEEDS.get(b, ())}}) for n, b, k, kw in LOADS]  # type: ignore[call-overload]
         tcp_token = tcp_token_path(sock).read_text().strip()
         web_token = web_token_path(sock).read_text().strip()
@@ -401,12 +404,17 @@ def main() -> int:
             if body is None and pg is not None:
                 name, shipped = shipper_catches_up(control, pg[0])
             time.sleep(1.0)  # the load builds up
+            edits = kw.get("edits")  # the queue load's count of answered calls
             first = control.status()["cycle"]
             before = shipped() if shipped else 0
+            edits_before = edits.value if edits is not None else 0
             time.sleep(WINDOW_S)
             last = control.status()["cycle"] - 1
             if shipped is not None:
                 name = f"{name} ({shipped() - before} shipped)"
+            if edits is not None:  # what the window's edits were, and that the queue held its 100
+                queued = len(control.status()["queue"]["queued"])
+                name = f"{name} ({edits.value - edits_before} edits, {queued} queued)"
             rss = (rss_mb(proc.pid), rss_mb(server_pid(proc.pid) or proc.pid))
             lat = lateness_between(db, first, last)
             # The estops are sent from a process above the loads (SCHED_FIFO below the loop, when
