@@ -189,11 +189,13 @@ class Daq(ABC):
         it is reported as `lateness_ns`, for the caller to count.
         """
         with self._lock:
+            # Halted first: an estop disarms, and its command then refused as unarmed latched
+            # "command failed: command without an armed stroke" as the run's end, not the estop.
+            self._check_not_halted("command")
             if self._armed is None:
                 raise DaqError("command without an armed stroke: call arm(direction, delay_ns) first")
             if not self.is_open:
                 raise DaqError(f"{self.name}: command on a closed driver")
-            self._check_not_halted("command")
             direction, delay_ns = self._armed
             self._armed = None
             if self.hardware_timed:

@@ -12,6 +12,7 @@ from usmswitch.drivers import (
     Conditions,
     DaqDisconnected,
     DaqError,
+    DaqHalted,
     Direction,
     Event,
     EventKind,
@@ -404,3 +405,16 @@ def test_clock_and_realtime_flag_must_agree():
     shared = VirtualClock(start_ns=123)
     d = SimDaq(clock=shared)
     assert d.now_ns() == 123
+
+
+def test_a_command_after_a_halt_is_refused_as_halted_naming_its_reason() -> None:
+    """An estop disarms: the loop's command then was refused as unarmed ("command without an armed
+    stroke"), and the run ended 'fault: command failed: ...' where the estop had ended it (about one
+    estop in 150-300 mid-cycle, `make bench BENCH=abuse`)."""
+    daq = SimDaq(seed=1)
+    daq.open()
+    daq.arm(ON, 1_000_000)
+    daq.halt("estop (estop socket)")
+    with pytest.raises(DaqHalted, match=r"halted \(estop \(estop socket\)\)"):
+        daq.command()
+    daq.close()
