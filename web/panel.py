@@ -170,6 +170,7 @@ class Panel:
         #: The queue as the page shows it: the daemon's Queue (paused, current, queued) and the run
         #: going ("run"), kept from `status` and the `queue` and `run` notifications.
         self.queue: dict[str, Any] | None = None
+        self.queue_heard = 0  # queue and run notifications heard
         self.runs_version = 0
         self.dropped = 0
         self.run_stats: dict[int, Any] = {}  # ended runs' statistics: they never change
@@ -190,6 +191,7 @@ class Panel:
             self.status_stale = True
         elif topic == "run":
             self.runs_version += 1
+            self.queue_heard += 1
             if isinstance(payload, dict) and self.queue is not None:
                 going = self.queue.get("run")
                 if payload.get("end_reason") is None:
@@ -197,6 +199,7 @@ class Panel:
                 elif going is not None and going.get("run_id") == payload.get("run_id"):
                     self.set_queue(self.queue, None)
         elif topic == "queue":
+            self.queue_heard += 1
             if isinstance(payload, dict):
                 going = None if self.queue is None else self.queue.get("run")
                 self.set_queue(payload, going)
@@ -227,6 +230,7 @@ class Panel:
 
     async def refresh_status(self) -> None:
         """The daemon's status, asked at most every STATUS_EVERY_S (at once after a state change)."""
+        heard = self.queue_heard
         try:
             status = await self.backend.call("status", [])
         except RpcError as exc:
@@ -235,7 +239,9 @@ class Panel:
         self.status = {k: status.get(k) for k in _STATUS_KEYS}
         self.figures += 1
         self.status_at = time.monotonic()
-        if isinstance(status.get("queue"), dict):  # a daemon from before the queue has none
+        # Not over a notification heard while it was asked (the status may be the older); a daemon
+        # from before the queue has none.
+        if isinstance(status.get("queue"), dict) and heard == self.queue_heard:
             self.set_queue(status["queue"], status.get("run"))
 
     def set_queue(self, queue: dict[str, Any], run: dict[str, Any] | None) -> None:
