@@ -70,9 +70,11 @@ def test_destination_chatter_mid_stroke_is_never_a_clean_record(tmp_path: Path) 
     assert not untrue_clean(got, emu.log), untrue_clean(got, emu.log)
     assert sum(st_noise for st_noise in st["noise"].values()) > 0, st["noise"]
     assert st["mismatched_strokes"] >= 1
-    # The strokes after it, both ways, are on time: nothing of the chatter was learned.
+    # The strokes after it, both ways, are on time: nothing of the chatter was learned. A start
+    # late by the host's scheduling (the LATE flag, its lateness: 2.87 ms of a 2.92 ms error beside
+    # make test and two CPU hogs) is the loop's, not the prediction's, and is taken out.
     for r in got[8:12]:
-        assert r.clean and abs(r.error_ns) <= T_NS // 20, (r, got[7])
+        assert r.clean and abs(r.error_ns - (r.lateness_ns or 0)) <= T_NS // 20, (r, got[7])
 
 
 def test_a_clock_jump_is_a_new_handshake_at_any_session_age(tmp_path: Path) -> None:
@@ -214,7 +216,9 @@ def test_a_devices_claim_about_its_start_is_checked(tmp_path: Path, name: str, r
     assert hit.lateness_ns is not None and abs(hit.lateness_ns - expected_late_ns) < 100_000, hit
     assert st["driver_counters"]["start_mismatches"] >= 1
     assert not untrue_clean(got, emu.log)
-    assert all(r.clean and abs(r.error_ns) <= T_NS // 20 for r in got[5:]), got
+    # The next strokes clean and on time (less a start late by the host's scheduling: its lateness).
+    off = [r for r in got[5:] if not (r.clean and abs(r.error_ns - (r.lateness_ns or 0)) <= T_NS // 20)]
+    assert not off, (not_clean(got), off)
 
 
 def test_a_host_pause_after_the_start_is_not_a_stall(tmp_path: Path) -> None:
