@@ -92,20 +92,7 @@ def load_connection_flood(path: str, stop: Any) -> None:
             except OSError:
                 break
         time.sleep(0.05)
-        alive = []
-        for s in held:  # refused ones were closed by the server: open them again
-            s.setblocking(False)
-            try:
-                closed = s.recv(1 << 16) == b""
-            except BlockingIOError:
-                closed = False
-            except OSError:
-                closed = True
-            if closed:
-                s.close()
-            else:
-                alive.append(s)
-        held = alive
+        held = _renew(held)  # refused ones were closed by the server: open them again
 
 
 def load_one_byte(path: str, stop: Any) -> None:
@@ -122,20 +109,7 @@ def load_one_byte(path: str, stop: Any) -> None:
                 except OSError:
                     break
         time.sleep(0.05)
-        alive = []
-        for s in held:
-            s.setblocking(False)
-            try:
-                closed = s.recv(1 << 16) == b""
-            except BlockingIOError:
-                closed = False
-            except OSError:
-                closed = True
-            if closed:
-                s.close()
-            else:
-                alive.append(s)
-        held = alive
+        held = _renew(held)
 
 
 def _http_response(s: socket.socket, buf: bytes) -> bytes:
