@@ -212,7 +212,7 @@ def _measure(n: int) -> tuple[list[str], list[str]]:
 
         def in_process() -> None:
             with open(out, "w", newline="") as fh:
-                _csv_chunks_from(db, 1, None, last["run_id"], None).write(fh, False)
+                _csv_chunks_from(db, 1, None, last["run_id"], None, None).write(fh, False)
 
         inproc_ms = _best_ms(in_process, 2)
         cols = ", ".join(f'"{f}"' for f in FIELDS)
