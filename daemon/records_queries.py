@@ -209,6 +209,12 @@ class RecordQueries:
                 self._readers.append(conn)
         return conn
 
+    def release(self) -> None:
+        """Close the read connections (the next read opens its own again): a process that reads
+        between requests (the socket's records readers) then holds no file open while idle, and
+        the writer's last close removes -wal and -shm (daemon/wal.py)."""
+        self._close_readers()
+
     def _close_readers(self) -> None:
         with self._readers_lock:
             readers, self._readers = self._readers, []

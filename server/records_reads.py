@@ -29,6 +29,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -153,7 +154,9 @@ def worker(sock: socket.socket, records_path: str, open_records: Callable[[str],
                 except OSError as exc:
                     sock.sendall(packb([job, [ErrorCode.UNAVAILABLE, f"{method}: {exc}"], b""]))
                     continue
-            sock.sendall(packb([job, *answer(store, method, params)]))
+            reply = packb([job, *answer(store, method, params)])
+            store.release()  # idle, no file open: the daemon's last close removes -wal and -shm
+            sock.sendall(reply)
 
 
 def _die_with_the_server(fd: int) -> None:
@@ -365,10 +368,22 @@ class RecordsReaders:
         (self.small if small else self.big).submit(_Job(method, params, future, gone))
         return future
 
-    def close(self) -> None:
+    def close(self, wait_s: float = 1.0) -> None:
+        """End the readers and wait for them (up to `wait_s` in all), so that the daemon's last
+        close of the records file is the last: a reader still holding it open kept its -wal and
+        -shm. Terminated (a read-only reader has nothing to save), since a transport's close takes
+        effect only at the event loop's next step, which the shutdown does not wait for."""
         self.closed = True
+        procs = [w.proc for lane in (self.small, self.big) for w in lane.workers]
         self.small.close()
         self.big.close()
+        for proc in procs:
+            with contextlib.suppress(OSError):
+                proc.terminate()
+        deadline = time.monotonic() + wait_s
+        for proc in procs:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(max(0.0, deadline - time.monotonic()))
 
 
 if __name__ == "__main__":
