@@ -127,6 +127,8 @@ def run_daemon(strokes: int, fifo: bool, clients: int) -> dict[str, float]:
     lates = [r[0] for r in con.execute("SELECT lateness_ns FROM cycles WHERE lateness_ns IS NOT NULL")]
     con.close()
     shutil.rmtree(tmp, ignore_errors=True)
+    if len(lates) <= 20:  # once, beside a soak: no start-up run recorded (an IndexError here then)
+        raise RuntimeError(f"usmswitchd recorded {len(lates)} strokes of {strokes}: {' '.join(cmd)}")
     p50, p99, p999, mx = percentiles(lates[20:])  # the first strokes include start-up
     return {
         "n": len(lates),
