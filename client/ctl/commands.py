@@ -248,7 +248,14 @@ def _place(entry: dict[str, Any]) -> str:
 
 
 def cmd_queue(client: Client, args: argparse.Namespace) -> int:
-    """The queue of runs: listed, an entry cancelled, paused or resumed."""
+    """The queue of runs: listed, an entry cancelled or reordered, paused or resumed."""
+    if args.action == "priority":
+        entry = client.queue_priority(args.entry, args.priority, operator=args.operator)
+        if args.json:
+            print_json(entry)
+        else:
+            print(f"entry {entry['entry']}: priority {entry['priority']}, position {entry['position']}")
+        return EXIT_OK
     if args.action == "cancel":
         entry = client.queue_cancel(args.entry, operator=args.operator)
         if args.json:

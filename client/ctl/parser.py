@@ -178,13 +178,18 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument(
         "--priority", type=int, default=0, help="with --queue: higher first (-1000..1000, default 0)"
     )
-    c = command("queue", "the queue of runs: what waits, in order; cancel an entry, pause or resume it")
-    c.add_argument("action", nargs="?", choices=("list", "cancel", "pause", "resume"), default="list")
-    c.add_argument("entry", nargs="?", type=int, help="the entry to cancel (see `queue`)")
+    c = command(
+        "queue", "the queue of runs: what waits, in order; cancel or reorder an entry, pause or resume it"
+    )
+    c.add_argument(
+        "action", nargs="?", choices=("list", "cancel", "priority", "pause", "resume"), default="list"
+    )
+    c.add_argument("entry", nargs="?", type=int, help="the entry to cancel or reorder (see `queue`)")
+    c.add_argument("priority", nargs="?", type=int, help="with priority: its new one (-1000..1000)")
     c.add_argument(
         "--operator",
         action="store_true",
-        help="cancel another's entry, pause or resume (an operator's to do)",
+        help="cancel or reorder another's entry, pause or resume (an operator's to do)",
     )
     c = command("notes", "show or edit a run's notes and label, during or after it")
     c.add_argument("run", type=int, help="the run (see `runs`)")
@@ -288,8 +293,14 @@ def check_args(args: argparse.Namespace) -> None:
             raise UsageError(f"{args.command}: {exc}") from None
     if args.command == "runs" and not 1 <= args.n <= 1000:
         raise UsageError(f"runs: -n must be in 1..1000, got {args.n}")
-    if args.command == "queue" and (args.action == "cancel") != (args.entry is not None):
-        raise UsageError("queue: `queue cancel ENTRY` takes an entry; list, pause and resume none")
+    if args.command == "queue":
+        wants = {"cancel": 1, "priority": 2}.get(args.action, 0)
+        given = (args.entry is not None) + (args.priority is not None)
+        if given != wants:
+            raise UsageError(
+                "queue: `queue cancel ENTRY` takes an entry, `queue priority ENTRY N` an entry and its"
+                " priority; list, pause and resume none"
+            )
     if args.command == "cycle" and args.priority and not args.queue:
         raise UsageError("cycle: --priority orders the queue: give it with --queue")
     if args.command == "cycle" and args.count < 0:

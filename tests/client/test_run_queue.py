@@ -283,6 +283,9 @@ def test_usmswitchctl_queues_lists_cancels_and_resumes(rig: Rig) -> None:
         assert "cli-q" in listed.stdout
         assert rig.ctl("queue", "pause").returncode == 1  # refused without --operator
         assert rig.ctl("queue", "pause", "--operator").stdout.startswith("paused")
+        moved = rig.ctl("queue", "priority", str(entry), "7")
+        assert moved.returncode == 0 and f"entry {entry}: priority 7, position 1" in moved.stdout, moved
+        assert rig.ctl("queue", "priority", str(entry)).returncode == 2  # no priority given
         cancelled = rig.ctl("queue", "cancel", str(entry))
         assert cancelled.returncode == 0 and f"entry {entry} cancelled by" in cancelled.stdout
         assert rig.ctl("queue", "resume", "--operator").stdout.startswith("going on")
