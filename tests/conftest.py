@@ -107,9 +107,9 @@ def pg(pg_server: object) -> Iterator[tuple[object, str, str]]:
 
 @pytest.fixture
 def short_tmp() -> Iterator[Path]:
-    """A fresh directory with a short path (/tmp/usm-XXXXXXXX), for trees of Unix sockets: a
-    socket's path is at most 107 bytes, and tmp_path's (longer under pytest-xdist's per-worker
-    directories) left too few for a unit's runtime directory and its sockets."""
+    """A fresh directory with a short path (/tmp/usm- and eight random characters), for trees of
+    Unix sockets: a socket's path is at most 107 bytes, and tmp_path's (longer under pytest-xdist's
+    per-worker directories) left too few for a unit's runtime directory and its sockets."""
     import shutil
     import tempfile
 
