@@ -567,12 +567,11 @@ class McuDaq(HandshakeMixin, Daq):
         try:
             self.transport.close()
             self.transport.open()
-            self._handshake()
+            self._handshake(reconnect=True)  # counts the reconnect
         except DaqError as exc:
             self.transport.close()
             log.debug("%s: reconnect to %s failed: %s", self.name, self.transport.describe(), exc)
             return False
-        self.stats.reconnects += 1
         log.warning("%s: reconnected to %s", self.name, self.transport.describe())
         arm = self._armed_msg
         if arm is not None:

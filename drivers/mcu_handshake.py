@@ -70,7 +70,7 @@ class HandshakeMixin:
         def _deliver(self, ev: Event) -> None: ...  # McuDaq's
         def _host_stamp(self) -> int: ...  # McuDaq's
 
-    def _handshake(self) -> None:
+    def _handshake(self, *, reconnect: bool = False) -> None:
         """HELLO until HELLO_ACK: version and capability check, sequence reset, clock anchor.
 
         A device that is ready answers the first HELLO at once. When the transport may have reset
@@ -79,6 +79,9 @@ class HandshakeMixin:
         while bytes keep coming, and starts the firmware about a second after the last one);
         HELLO is then retried every 4 reply timeouts for as long again as the retries take, or
         1 s, whichever is longer.
+
+        `reconnect`: the link was reopened for this handshake; it is counted as the session is
+        marked connected.
         """
         self._keep_decoder_totals()
         with self._wlock:
@@ -104,7 +107,7 @@ class HandshakeMixin:
                     if not isinstance(msg, HelloAck):
                         continue  # stale frames of the previous session
                     t_recv = time.monotonic_ns()
-                    self._accept_hello(seq, msg, t_send, t_recv)
+                    self._accept_hello(seq, msg, t_send, t_recv, reconnect=reconnect)
                     return
         self.stats.handshake_failures += 1
         raise TransportLost(
@@ -112,7 +115,9 @@ class HandshakeMixin:
             f"no HELLO_ACK to {tries} HELLO within {waited_ns // 1_000_000} ms"
         )
 
-    def _accept_hello(self, seq: int, msg: HelloAck, t_send: int, t_recv: int) -> None:
+    def _accept_hello(
+        self, seq: int, msg: HelloAck, t_send: int, t_recv: int, *, reconnect: bool = False
+    ) -> None:
         if msg.major != PROTOCOL_MAJOR:
             self.stats.handshake_failures += 1
             raise DaqError(
@@ -155,6 +160,9 @@ class HandshakeMixin:
             self._dev_errors_base = (self.stats.device_rx_errors, self.stats.device_rx_lost)
             self.strokes.levels = None  # until the first PONG of this session
             self._pings.clear()
+            # Counted with `connected` under one lock: a reader that sees the link back sees it counted.
+            if reconnect:
+                self.stats.reconnects += 1
             self._connected = True
         log.info(
             "%s: handshake with %s: protocol %d.%d, firmware 0x%04X, caps %s",
