@@ -38,7 +38,7 @@ from aiohttp import WSMsgType, web
 from usmswitch.protocol.wire import ErrorCode, RpcError
 from usmswitch.web.budgets import PANEL_CONNECTIONS, PANEL_HEAD_S, PANEL_IDLE_S
 from usmswitch.web.door import Door, QuietLog
-from usmswitch.web.panel_controls import CONTROLS, control_params
+from usmswitch.web.panel_controls import CONTROLS, OWNER, control_params
 
 log = logging.getLogger("usmswitch.web")
 
@@ -58,6 +58,9 @@ IDLE_TIMEOUT_S = PANEL_IDLE_S
 #: Live feeds kept for pages without the token: an operator's feed (the token's cookie) sheds the
 #: oldest of them when the feeds are full, so read-only holders never keep the operator out.
 MAX_READONLY_PANELS = 24
+#: The estop's source when a page pressed it on its live feed (the fault reads `estop (panel, live feed)`).
+FEED_OWNER = f"{OWNER}, live feed"
+FEED_TAKES = 'the live feed takes only {"estop": ID} (ID an integer or a string of at most 64 characters)'
 #: JSON nesting a control's body may have (a control takes a flat object).
 MAX_JSON_DEPTH = 8
 #: Strokes kept for a panel that opens (a few seconds of history) or falls behind: ~10 s at 100/s.
@@ -365,6 +368,31 @@ class Panel:
         """Whether the request's Host names this panel (loopback, or `[web] allowed_hosts`)."""
         return host_name(request.headers.get("Host", "")) in self.allowed_hosts
 
+    async def feed_request(self, viewer: _Viewer, text: str) -> str:
+        """The answer to a message a page sent on its live feed: `{"estop": ID}` only.
+
+        The page's estop button sends it on the feed it holds open (a POST is its fallback): no
+        connection to open, no request head to parse, and no place to wait at a full door. Only a
+        feed opened with the token may; the answer is `{"estop": {"id": ID, "result": ...}}` or
+        `{"estop": {"id": ID, "error": ..., "code": ...}}`.
+        """
+        try:
+            msg = json.loads(text) if json_depth_ok(text.encode()) else None
+        except ValueError:
+            msg = None
+        if not isinstance(msg, dict) or set(msg) != {"estop"} or not _small_id(msg["estop"]):
+            return json.dumps({"error": FEED_TAKES})
+        answer: dict[str, Any] = {"id": msg["estop"]}
+        if not viewer.operator:
+            answer.update(error=self.refusal(), code=None)
+            return json.dumps({"estop": answer})
+        try:
+            answer["result"] = await self.backend.call("estop", [FEED_OWNER])
+        except RpcError as exc:
+            answer.update(error=exc.message, code=exc.code)
+        self.status_stale = True
+        return json.dumps({"estop": answer})
+
     def refusal(self) -> str:
         where = f" (it is in {self.token_file}, readable by the socket's group)" if self.token_file else ""
         return (
@@ -377,6 +405,12 @@ _STATUS_KEYS = (
     "rig", "driver", "driver_ok", "state", "mode", "fault", "model", "order", "cycle",
     "target_on_ns", "target_off_ns", "open_delay_ns", "version", "uptime_ns", "scheduling",
 )  # fmt: skip
+
+
+def _small_id(value: object) -> bool:
+    return (isinstance(value, int) and not isinstance(value, bool) and abs(value) < 2**53) or (
+        isinstance(value, str) and len(value) <= 64
+    )
 
 
 async def _send(viewer: _Viewer, text: str) -> None:
@@ -511,9 +545,11 @@ def make_app(panel: Panel, door: Door | None = None) -> web.Application:
             await ws.send_str(hello)
             panel.viewers.add(viewer)
             try:
-                async for msg in ws:  # the page sends nothing; reading keeps pings answered
+                async for msg in ws:  # reading keeps pings answered; the page sends only its estop
                     if msg.type == WSMsgType.ERROR:
                         break
+                    if msg.type == WSMsgType.TEXT:
+                        await ws.send_str(await panel.feed_request(viewer, msg.data))
             finally:
                 panel.viewers.discard(viewer)
             return ws

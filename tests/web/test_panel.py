@@ -243,3 +243,34 @@ def test_usmswitchctl_web_url_prints_the_url_with_the_token(rig: dict[str, Any],
     with out.open("w") as fh, contextlib.redirect_stdout(fh):
         assert main(["--socket", str(rig["sock"]), "web-url"]) == 0
     assert out.read_text().strip() == f"{rig['url']}?token={rig['token']}"
+
+
+def test_a_page_presses_the_estop_on_its_live_feed(rig: dict[str, Any]) -> None:
+    """Issue 35: the page's estop goes on the feed it holds open (no connection to open, no request
+    head to parse, no wait at a full door). Only a feed opened with the token may press it; any
+    other message is answered with what the feed takes, and the feed goes on."""
+
+    async def send(message: str, token: str | None) -> dict[str, Any]:
+        headers = {TOKEN_HEADER: token} if token else {}
+        url = f"{rig['url']}api/live"
+        async with aiohttp.ClientSession() as http, http.ws_connect(url, headers=headers) as ws:
+            assert json.loads((await ws.receive(timeout=10)).data)["type"] == "hello"
+            await ws.send_str(message)
+            async with asyncio.timeout(10):  # the feed's own ticks come before and after the answer
+                while "strokes" in (answer := json.loads((await ws.receive()).data)):
+                    pass
+            return answer
+
+    for bad in ("estop", '{"estop": [1]}', '{"estop": 1, "x": 2}', "[" * 2000, '{"stop": 1}'):
+        assert "takes only" in asyncio.run(send(bad, rig["token"]))["error"], bad
+    readonly = asyncio.run(send('{"estop": 7}', None))["estop"]
+    assert readonly["id"] == 7 and "read-only" in readonly["error"]
+    with Client(str(rig["sock"])) as c:
+        if c.status()["state"] != "cycling":  # a test before ended its run
+            c.start_cycling(15 * MS, take_over=True)
+        pressed = asyncio.run(send('{"estop": "b1"}', rig["token"]))["estop"]
+        assert pressed["id"] == "b1" and "error" not in pressed
+        assert pressed["result"]["state"] == "fault"
+        assert c.status()["fault"] == "estop (panel, live feed)"
+        c.reset_fault()
+        c.start_cycling(15 * MS, take_over=True)

@@ -249,11 +249,13 @@ function showQueue(q) {
 }
 
 // -- the live feed -----------------------------------------------------------------------------------
+let feed = null; // the live feed while it is open: the estop goes on it
 function connect() {
   const ws = new WebSocket((location.protocol === "https:" ? "wss://" : "ws://") + location.host + "/api/live");
-  ws.onopen = () => { text("link", "live"); $("link").className = "badge ok"; };
+  ws.onopen = () => { feed = ws; text("link", "live"); $("link").className = "badge ok"; };
   ws.onmessage = (ev) => {
     const msg = JSON.parse(ev.data);
+    if (msg.estop) { estopAnswered(msg.estop); return; }
     if (msg.type === "hello") {
       for (const k in cols) cols[k].length = 0;
       runErrors = [];
@@ -266,6 +268,7 @@ function connect() {
     if (msg.runs_version !== undefined) loadRuns(msg.runs_version);
   };
   ws.onclose = () => {
+    if (feed === ws) feed = null;
     text("link", "disconnected: retrying"); $("link").className = "badge warn";
     setTimeout(connect, 1000);
   };
@@ -296,7 +299,25 @@ async function control(name, body, refused) {
 }
 const msToNs = (v) => (v === "" || v === null ? undefined : Math.round(Number(v) * 1e6));
 
-$("estop").addEventListener("click", () => control("estop"));
+// The estop goes on the live feed the page holds open (no connection to open, no request to parse,
+// no wait at a full door); by POST when the feed is down, or when the feed has not answered in 1 s.
+let estops = 0;
+const estopWaiting = new Map(); // id -> its fallback timer
+function estop() {
+  const id = ++estops;
+  if (feed && feed.readyState === WebSocket.OPEN) {
+    estopWaiting.set(id, setTimeout(() => { estopWaiting.delete(id); control("estop"); }, 1000));
+    feed.send(JSON.stringify({ estop: id }));
+  } else {
+    control("estop");
+  }
+}
+function estopAnswered(answer) {
+  clearTimeout(estopWaiting.get(answer.id));
+  estopWaiting.delete(answer.id);
+  notice(answer.error ? `estop: ${answer.error}` : "", Boolean(answer.error));
+}
+$("estop").addEventListener("click", estop);
 // A run going that a client or an experiment started is never ended silently: the start goes without
 // take_over, and when the daemon refuses it naming the run, the page says whose run it is and asks
 // (in the page, never a blocking dialog: the live feed keeps drawing) before sending it again with
