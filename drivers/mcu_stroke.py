@@ -50,6 +50,9 @@ class StrokeCtx:
     reported: bool = False
     #: Why a START for this stroke was rejected (another stroke's id, its stamp), "" if none was.
     start_rejected: str = ""
+    #: That first rejected START was this stroke's own, stamped off the device clock (a clock that
+    #: jumped): a stroke it leaves without a start is the link's (WIRE), not the order's (SEQUENCE).
+    start_off_clock: bool = False
     #: What the host's checks found wrong with the device's account of this stroke.
     doubts: list[str] = field(default_factory=list)
     gap: bool = False
@@ -171,10 +174,12 @@ class StrokeAssembler:
         elif direction is not ctx.direction:
             why = f"a START of stroke {msg.stroke} going {direction.name}, armed {ctx.direction.name}"
         t = None
+        off_clock = False
         if not why:
             t = self.timeline.stamp(msg.t_us, f"START of stroke {msg.stroke}")
             if t is None:
                 why = f"its START stamped {self.timeline.off_text(msg.t_us)}"
+                off_clock = True
         else:
             self.stats.foreign_starts += 1
             log.warning("%s: %s rejected", self.name, why)
@@ -182,7 +187,9 @@ class StrokeAssembler:
             # Not this stroke's start. Its own may still come, or its STROKE report rebuild it: the
             # stroke's events are held till then, delivered in order; else it ends with a SEQUENCE fault.
             if ctx is not None and not ctx.started and not ctx.reported:
-                ctx.start_rejected = ctx.start_rejected or why
+                if not ctx.start_rejected:
+                    ctx.start_rejected = why
+                    ctx.start_off_clock = off_clock
                 self.hold(ctx)
             return
         assert ctx is not None
@@ -317,7 +324,8 @@ class StrokeAssembler:
 
     # -- endings ------------------------------------------------------------------------------
     def no_start(self, ctx: StrokeCtx, why: str) -> None:
-        """A stroke whose START was rejected and never came good: a SEQUENCE fault ends it."""
+        """A stroke whose START was rejected and never came good: a fault ends it, WIRE when its own
+        START was stamped off the device clock (the clock jumped), else SEQUENCE (a foreign START)."""
         if ctx.started or not ctx.start_rejected:
             return
         ctx.started = True  # said once
@@ -325,7 +333,7 @@ class StrokeAssembler:
         self._deliver(
             Event.fault_event(
                 self._host_stamp(),
-                FaultCode.SEQUENCE,
+                FaultCode.WIRE if ctx.start_off_clock else FaultCode.SEQUENCE,
                 f"stroke {ctx.stroke} has no START of its own ({ctx.start_rejected} was rejected), {why}",
             )
         )

@@ -29,6 +29,7 @@ from mcudaemon import (
     untrue_clean,
 )
 
+from usmswitch.client import Client
 from usmswitch.drivers.mcu_protocol import U32_MOD, Ack, Message, MsgType, Start, Stroke
 
 pytestmark = pytest.mark.realtime
@@ -41,6 +42,14 @@ def _on_start(k: int, action: object) -> faultmcu.Tamper:
     return faultmcu.start_of_stroke(
         k, lambda s: (threading.Thread(target=action, args=(s,), daemon=True).start(), [s])[1]
     )
+
+
+def _wait_resynced(c: Client, timeout_s: float = 20.0) -> None:
+    """Until the driver has handshaken a jumped clock away (a new handshake on the open link)."""
+    end = time.monotonic() + timeout_s
+    while (counters := c.status()["driver_counters"])["resyncs"] < 1:
+        assert time.monotonic() < end, f"the jump was never handshaken away: {counters}"
+        time.sleep(0.05)
 
 
 def test_destination_chatter_mid_stroke_is_never_a_clean_record(tmp_path: Path) -> None:
@@ -103,16 +112,51 @@ def test_a_clock_jump_mid_stroke_is_named_the_links_not_a_stall(tmp_path: Path) 
     arrived. Its stamps cannot be believed: the stroke ends with FAULT WIRE, never STALL, and after
     reset_fault the strokes are clean again."""
     with faultmcu.plugged(tmp_path, seed=23) as (emu, port), daemon(tmp_path, port) as (c, _):
-        emu.tamper = _on_start(3, lambda s: emu.jump_clock(70_000))
+
+        def jump_after(s: Start) -> list[Message]:
+            # In the firmware's thread as its START goes out, so its edges are stamped after the
+            # jump whatever the load (a thread of its own, descheduled, once jumped after the stroke).
+            emu.jump_clock(70_000)
+            return [s]
+
+        emu.tamper = faultmcu.start_of_stroke(3, jump_after)
         st = run(c, 100 * MS, 6)
         emu.tamper = None
-        time.sleep(1.0)  # the jump is handshaken away
+        _wait_resynced(c)
         c.reset_fault()
         after = run(c, 100 * MS, 4)
     got = rows(tmp_path)
     assert st["state"] == "fault" and st["fault"].startswith("wire"), st["fault"]
     hit = got[2]
     assert hit.flags & FAULT and not hit.flags & STALL, hit
+    assert after["state"] == "idle", after["fault"]
+    assert all(r.clean for r in got[3:]) and len(got) == 7, got
+    assert not untrue_clean(got, emu.log)
+
+
+def test_a_clock_jump_just_before_a_start_is_named_the_links_not_the_edge_order(tmp_path: Path) -> None:
+    """Issue 37: a device clock that jumped between two strokes (after one's report, before the
+    next one's START) made that START's stamp unbelievable, and its STROKE report's too: the stroke
+    ended 'edge order: stroke N has no START of its own', as if the device had sent a START of
+    another stroke. The order was right; the clock was not: FAULT WIRE, never STALL, and after
+    reset_fault the strokes are clean again."""
+    with faultmcu.plugged(tmp_path, seed=23) as (emu, port), daemon(tmp_path, port) as (c, _):
+
+        def jump_before(s: Start) -> list[Message]:
+            emu.jump_clock(70_000)  # as the firmware fires: the START is stamped on the new clock
+            return [dataclasses.replace(s, t_us=(s.t_us + 70_000) % U32_MOD)]
+
+        emu.tamper = faultmcu.start_of_stroke(3, jump_before)
+        st = run(c, 100 * MS, 6)
+        emu.tamper = None
+        _wait_resynced(c)
+        c.reset_fault()
+        after = run(c, 100 * MS, 4)
+    got = rows(tmp_path)
+    assert st["state"] == "fault" and st["fault"].startswith("wire"), st["fault"]
+    assert "has no START of its own" in st["fault"] and "ahead of the device clock" in st["fault"]
+    hit = got[2]
+    assert hit.flags & FAULT and not hit.flags & STALL and hit.t_start_ns is None, hit
     assert after["state"] == "idle", after["fault"]
     assert all(r.clean for r in got[3:]) and len(got) == 7, got
     assert not untrue_clean(got, emu.log)
