@@ -249,6 +249,12 @@ def test_stall_and_bounce(rig) -> None:
     fault = seen.events[-1]
     assert fault.kind is EventKind.FAULT and fault.fault is FaultCode.STALL
     assert fault.t_ns - seen.start.t_ns == pytest.approx(daq.stroke_timeout_ns, abs=2_000)
+    # The device sends its FAULT, then cuts the drive and says STOPPED (as the firmware does): read
+    # after the FAULT alone, drive_on raced the emulator's thread (descheduled on a busy host).
+    stop = daq.recv(1_000_000_000)
+    while stop is not None and stop.kind is EventKind.REPORT:
+        stop = daq.recv(1_000_000_000)
+    assert stop is not None and stop.kind is EventKind.STOP and stop.detail == "stall", stop
     assert not emu.drive_on
 
 
