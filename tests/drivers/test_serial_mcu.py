@@ -167,12 +167,22 @@ def test_lost_arrival_edge_is_rebuilt_from_the_report(rig, kind: str, inject: st
 
 def test_lost_edges_and_report_is_a_wire_fault(rig) -> None:
     emu, _, daq = rig
-    emu.inject_drop(3, only=MsgType.EDGE)  # depart, arrive ...
+    # The stroke's edges, its STROKE report and its STOPPED are lost (their sequence numbers spent),
+    # each as the emulator's thread sends it: a sleep before the report's drop, overslept on a busy
+    # host, let the report through and dropped later frames instead.
+    send = emu._send
+    lost = {MsgType.EDGE, MsgType.STROKE, MsgType.STOPPED}
+
+    def lossy(msg) -> None:
+        if msg.TYPE in lost:
+            emu.inject_drop(1, only=msg.TYPE)
+            if msg.TYPE is MsgType.STOPPED:
+                del emu._send  # the stroke's last frame: the link behaves again
+        send(msg)
+
+    emu._send = lossy
     daq.arm(Direction.ON, 1_000_000)
     daq.command(daq.now_ns() + 1_000_000)
-    time.sleep(0.004)
-    emu.inject_drop(1, only=MsgType.STROKE)  # ... and the report
-    emu._drop_only = None  # the pending EDGE drops apply to any frame type now: keep the count exact
     events = []
     while True:
         ev = daq.recv(500_000_000)
@@ -182,8 +192,8 @@ def test_lost_edges_and_report_is_a_wire_fault(rig) -> None:
             break
     assert events[-1].fault is FaultCode.WIRE and "no STROKE report" in events[-1].detail
     assert daq.link_stats()["unrecovered_strokes"] == 1
+    assert emu.injected.dropped >= 4 and "_send" not in vars(emu)  # 2+ edges, report, STOPPED
     # The link itself is fine: the next stroke runs.
-    emu._drop_next = 0
     seen = run_stroke(daq, Direction.OFF if emu.rig.position_mm > 2.5 else Direction.ON)
     assert seen.events[-1].kind is EventKind.STOP
 
