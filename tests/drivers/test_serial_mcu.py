@@ -157,7 +157,11 @@ def test_lost_arrival_edge_is_rebuilt_from_the_report(rig, kind: str, inject: st
         assert [e.t_ns for e in events] == sorted(e.t_ns for e in events)
         assert daq.link_stats()["crc_errors"] + daq.link_stats()["framing_errors"] >= 1
         assert daq.link_stats()["recovered_strokes"] == 1
-        assert events[0].t_ns - cmd.t_cmd_ns == pytest.approx(1_000_000, abs=1_000)
+        # The delay after the commanded instant, or as late as the device said (a COMMAND that a busy
+        # host sent after its instant: 2.9 and 6.5 ms late beside a CPU hog), and it said true.
+        start = events[0]
+        assert start.t_ns - cmd.t_cmd_ns - (start.lateness_ns or 0) == pytest.approx(1_000_000, abs=1_000)
+        assert daq.link_stats()["start_mismatches"] == 0
         return
     seen = run_stroke(daq, Direction.OFF)
     _check_stroke(seen, Direction.OFF, 1_000_000, emu.log[-1])
