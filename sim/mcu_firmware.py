@@ -236,6 +236,7 @@ class McuEmulator:
         self.boots = 0
         #: Resets by the hardware watchdog (after an injected hang).
         self.watchdog_resets = 0
+        self.watchdog_reset_ns: int | None = None  # when the last one was due (host ns)
         self._hang_next = False
         self._hung = False
         self._boot(ResetCause.POWER_ON)
@@ -673,6 +674,7 @@ class McuEmulator:
 
     def _watchdog_reset(self, t_ns: int) -> None:
         self.watchdog_resets += 1
+        self.watchdog_reset_ns = t_ns
         self.rig.stop(t_ns)
         self._boot(ResetCause.WATCHDOG)
 
