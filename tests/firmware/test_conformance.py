@@ -56,7 +56,9 @@ class PythonDevice:
         while not self.emu._rx.empty() and time.monotonic() < end:
             time.sleep(0.001)
         with self.emu._lock:  # a frame being handled is finished
-            self.emu._run_due(time.monotonic_ns())
+            now = time.monotonic_ns()
+            self.emu._watch_host(now)
+            self.emu._run_due(now)
 
     def close(self) -> None:
         self.emu.stop()
