@@ -549,7 +549,9 @@ def make_app(panel: Panel, door: Door | None = None) -> web.Application:
                     if msg.type == WSMsgType.ERROR:
                         break
                     if msg.type == WSMsgType.TEXT:
-                        await ws.send_str(await panel.feed_request(viewer, msg.data))
+                        answer = await panel.feed_request(viewer, msg.data)
+                        with contextlib.suppress(ConnectionError):  # the page went meanwhile
+                            await ws.send_str(answer)
             finally:
                 panel.viewers.discard(viewer)
             return ws
