@@ -18,9 +18,9 @@ from __future__ import annotations
 import heapq
 import itertools
 import logging
-import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -207,7 +207,10 @@ class McuEmulator:
         self.rig = Mover(self.model, start_at)
         self.injected = InjectedFaults()
         self._lock = threading.RLock()
-        self._rx: queue.SimpleQueue[bytes | None] = queue.SimpleQueue()
+        # The host's bytes, each with the instant it reached the UART (stamped and queued together).
+        self._rx: deque[tuple[int, bytes]] = deque()
+        self._rx_lock = threading.Lock()
+        self._wake = threading.Event()
         self._timers: list[tuple[int, int, Callable[[], None]]] = []
         self._tick = itertools.count()
         self._writer: Callable[[bytes], None] | None = None
@@ -242,14 +245,16 @@ class McuEmulator:
         self._boot(ResetCause.POWER_ON)
 
     # -- power and clock -----------------------------------------------------------------------
-    def _boot(self, cause: ResetCause) -> None:
-        """A reset (`cause`): clock restarts at clock_start_us, no session, drive off; once out
-        of the bootloader the firmware says BOOT with the cause, as it reports it in HELLO_ACK."""
+    def _boot(self, cause: ResetCause, t_ns: int | None = None) -> None:
+        """A reset (`cause`) at `t_ns` (now if None): clock restarts at clock_start_us, no session,
+        drive off; once out of the bootloader the firmware says BOOT with the cause, as it reports
+        it in HELLO_ACK."""
         with self._lock:
             self.boots += 1
             self.reset_cause = cause
             self._hung = False
-            self._t_boot_ns = time.monotonic_ns()
+            # A watchdog reset's instant, not this thread's: bytes since are the new firmware's.
+            self._t_boot_ns = time.monotonic_ns() if t_ns is None else t_ns
             self._bootloader_until_ns = self._t_boot_ns + self.bootloader_ns
             self.bootloader_bytes = 0
             self._decoder = _DeviceDecoder()
@@ -268,17 +273,19 @@ class McuEmulator:
             if self.bootloader_ns == 0 and self._writer_attached():
                 # The firmware says BOOT before it reads the UART: a host byte read in between
                 # (a PING answered out of session) would come before it, as no chip does.
-                self._announce()
+                self._announce(self._t_boot_ns)
             else:
-                self._at(self._bootloader_until_ns, self._announce)
+                until = self._bootloader_until_ns
+                self._at(until, lambda: self._announce(until))
 
     def _writer_attached(self) -> bool:
         return getattr(self, "_writer", None) is not None
 
-    def _announce(self) -> None:
-        now = time.monotonic_ns()
-        if now < self._bootloader_until_ns:  # bytes kept the bootloader waiting
-            self._at(self._bootloader_until_ns, self._announce)
+    def _announce(self, t_ns: int) -> None:
+        """Out of the bootloader at `t_ns`, unless bytes it lost since kept it waiting."""
+        if t_ns < self._bootloader_until_ns:
+            until = self._bootloader_until_ns
+            self._at(until, lambda: self._announce(until))
             return
         self._send(Boot(int(self.reset_cause), FW_VERSION))
 
@@ -312,8 +319,20 @@ class McuEmulator:
             self._writer = None
 
     def receive(self, data: bytes) -> None:
-        """Bytes from the host (any thread)."""
-        self._rx.put(bytes(data))
+        """Bytes from the host (any thread), stamped as they arrive: the chip's UART has them then,
+        whenever the firmware thread (late on a busy host) gets to them; it handles them at that
+        instant, in order with what fell due before it."""
+        with self._rx_lock:
+            self._rx.append((time.monotonic_ns(), bytes(data)))
+        self._wake.set()
+
+    def catch_up(self) -> None:
+        """Do now what the chip has done by now: the bytes received handled at their instants and
+        the timers and the host watchdog due by now run, in time order. The firmware thread does
+        this whenever it wakes; a harness that reads the device's state calls it rather than wait
+        for that thread, which a busy host wakes late."""
+        with self._lock:
+            self._catch_up()
 
     def start(self) -> McuEmulator:
         """Run the firmware thread."""
@@ -326,7 +345,7 @@ class McuEmulator:
     def stop(self) -> None:
         """Stop the firmware thread (drive off)."""
         self._running = False
-        self._rx.put(None)
+        self._wake.set()
         if self._thread is not None:
             self._thread.join(5)
             self._thread = None
@@ -336,9 +355,10 @@ class McuEmulator:
     def power_cycle(self) -> None:
         """Cut and restore power: everything the firmware knew is gone, the clock restarts."""
         with self._lock:
+            self._catch_up()  # what came before the power went, the old session had
             self.rig.stop(time.monotonic_ns())
             self._boot(ResetCause.POWER_ON)
-        self._rx.put(b"")  # wake the firmware thread: its BOOT is due now
+        self._wake.set()  # its BOOT is due now
 
     def inject_hang(self) -> None:
         """The next stroke hangs the firmware's main loop as it starts (a firmware bug): its START
@@ -449,36 +469,49 @@ class McuEmulator:
 
     def _run(self) -> None:
         while self._running:
+            self._wake.clear()  # before the catch-up: bytes received after it end the wait at once
             with self._lock:
+                self._catch_up()
                 now = time.monotonic_ns()
-                self._watch_host(now)
-                self._run_due(now)
                 wait = self._timers[0][0] - now if self._timers else _IDLE_WAIT_S * 1e9
                 if self._synced:  # wake when the watchdog falls due, not at the next idle look
                     wait = min(wait, self._last_host_ns + self._watchdog_ns + 1_000 - now)
-            try:
-                data = self._rx.get(timeout=max(0.0, min(wait / 1e9, _IDLE_WAIT_S)))
-            except queue.Empty:
+            self._wake.wait(max(0.0, min(wait / 1e9, _IDLE_WAIT_S)))
+
+    def _catch_up(self) -> None:
+        """The bytes received by now, each handled at the instant it arrived after what fell due
+        before it, then what fell due since (the lock held). A frame is the chip's when its last
+        byte is in, not when this thread woke: beside a busy host's work an ARM handled late
+        found its stroke running and the COMMAND after it found it ended (BUSY, then NOT_ARMED, for
+        two frames sent together), and a COMMAND handled late started its stroke past the wrap."""
+        with self._rx_lock:  # every byte stamped before `now` is queued
+            now = time.monotonic_ns()
+        while self._rx and self._rx[0][0] <= now:
+            t_rx, data = self._rx.popleft()
+            self._due_by(t_rx)
+            self._take(data, t_rx)
+        self._due_by(now)
+
+    def _due_by(self, t_ns: int) -> None:
+        self._watch_host(t_ns)
+        self._run_due(t_ns)
+
+    def _take(self, data: bytes, t_ns: int) -> None:
+        """Bytes that reached the UART at `t_ns`."""
+        if self._hung:
+            return  # a hung main loop reads nothing: the receive ring overflows
+        if t_ns < self._bootloader_until_ns:  # in the bootloader: lost, and it stays longer
+            self.bootloader_bytes += len(data)
+            self._bootloader_until_ns = t_ns + self.bootloader_ns
+            return
+        frames = self._decoder.feed(data)
+        self.rx_errors = self._decoder.errors - self._rx_err_base
+        for seq, msg in frames:
+            if self._rx_drop_next and not isinstance(msg, Hello):
+                self._rx_drop_next -= 1
+                self.injected.dropped += 1
                 continue
-            if data is None:
-                continue
-            with self._lock:
-                now = time.monotonic_ns()
-                if self._hung:
-                    continue  # a hung main loop reads nothing: the receive ring overflows
-                if now < self._bootloader_until_ns:  # in the bootloader: lost, and it stays longer
-                    self.bootloader_bytes += len(data)
-                    self._bootloader_until_ns = now + self.bootloader_ns
-                    continue
-                frames = self._decoder.feed(data)
-                self.rx_errors = self._decoder.errors - self._rx_err_base
-                now = time.monotonic_ns()
-                for seq, msg in frames:
-                    if self._rx_drop_next and not isinstance(msg, Hello):
-                        self._rx_drop_next -= 1
-                        self.injected.dropped += 1
-                        continue
-                    self._on_frame(seq, msg, now)
+            self._on_frame(seq, msg, t_ns)
 
     def _watch_host(self, now: int) -> None:
         """The host watchdog, tripped at the instant it fell due, in order with the timers due
@@ -684,7 +717,7 @@ class McuEmulator:
         self.watchdog_resets += 1
         self.watchdog_reset_ns = t_ns
         self.rig.stop(t_ns)
-        self._boot(ResetCause.WATCHDOG)
+        self._boot(ResetCause.WATCHDOG, t_ns)
 
     def _depart(self, st: _Stroke, gen: int, t_ns: int) -> None:
         if gen != self._gen or st.done:

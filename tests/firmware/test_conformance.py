@@ -49,16 +49,11 @@ class PythonDevice:
         return self.decoder.feed(data)
 
     def _settle(self) -> None:
-        """What the chip would have done by now, done: the bytes written to it handled and its due
-        timers run. Its thread, woken late on a loaded machine, is not the chip's clock (simavr's
-        lockstep waits for the chip; this emulator runs on the wall's)."""
-        end = time.monotonic() + 2.0
-        while not self.emu._rx.empty() and time.monotonic() < end:
-            time.sleep(0.001)
-        with self.emu._lock:  # a frame being handled is finished
-            now = time.monotonic_ns()
-            self.emu._watch_host(now)
-            self.emu._run_due(now)
+        """What the chip would have done by now, done: the bytes written to it handled at the
+        instants they were written and its due timers run, in time order. Its thread, woken late on
+        a loaded machine, is not the chip's clock (simavr's lockstep waits for the chip; this
+        emulator runs on the wall's), so this does not wait for it."""
+        self.emu.catch_up()
 
     def close(self) -> None:
         self.emu.stop()
