@@ -226,6 +226,7 @@ class McuEmulator:
         self._silent_until_ns = 0
         self._out_busy_until_ns = 0
         self._rx_drop_next = 0
+        self._batch: list[bytes] | None = None  # frames that leave in one write (_send_together)
         #: Every stroke that ended, in order, with its physical (host monotonic) stamps.
         self.log: list[_Stroke] = []
         #: Frames the firmware put on the wire (after injection), by type.
@@ -446,7 +447,22 @@ class McuEmulator:
         else:
             self._put_raw(frame)
 
+    def _send_together(self, msgs: list[Message]) -> None:
+        """Frames the UART sends back to back, in one write: a thread descheduled between two
+        writes would part them on the host by milliseconds, as no chip does."""
+        self._batch = []
+        try:
+            for msg in msgs:
+                self._send(msg)
+        finally:
+            data, self._batch = b"".join(self._batch), None
+        if data:
+            self._put_raw(data)
+
     def _put_raw(self, data: bytes) -> None:
+        if self._batch is not None:
+            self._batch.append(data)
+            return
         w = self._writer
         if w is None:
             return
@@ -764,13 +780,11 @@ class McuEmulator:
         self._send(Stopped(st.stroke, int(reason), self.device_us(t_ns)))
         if chatter:  # an arrival that bounces: those edges come after the stroke's frames
             self.injected.bounces += 1
-            for t_b, ch, level in chatter:
-                self._at(
-                    t_b,
-                    lambda t_b=t_b, ch=ch, level=level: self._send(
-                        self._edge(int(ch), level, self.device_us(t_b))
-                    ),
-                )
+            # Stamped as they came, they leave together after the last: the UART, still sending the
+            # stroke's frames (hundreds of us), queues them. Sent apart, a late thread left them
+            # milliseconds apart, each read as an edge of its own (no bounce, no glitch counted).
+            edges = [self._edge(int(ch), level, self.device_us(t_b)) for t_b, ch, level in chatter]
+            self._at(chatter[-1][0], lambda: self._send_together(edges))
 
     @property
     def drive_on(self) -> bool:
