@@ -4,7 +4,9 @@ file of 100,000 strokes (issue 36's scale tests), made once per session."""
 
 from __future__ import annotations
 
+import fcntl
 import itertools
+import os
 import signal
 from collections.abc import Iterator
 from pathlib import Path
@@ -22,6 +24,28 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+#: Files that take a minute or more (their module fixtures and tests; a loaded machine doubles it),
+#: collected first: `make test`'s two processes take whole files in collection order as each frees,
+#: and one of these taken last kept one process busy for minutes after the other had finished.
+SLOW_FIRST = (
+    "tests/daemon/test_systemd_service.py",
+    "tests/experiments/test_experiments.py",
+    "tests/test_docs_blocks.py",
+    "tests/daemon/test_service_doc.py",
+    "tests/test_packaging.py",
+    "tests/experiments/test_live_rig.py",
+    "tests/daemon/test_daemon_device_truth.py",
+    "tests/client/test_export_scale.py",
+    "tests/client/test_export_socket.py",
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The SLOW_FIRST files ahead, in that order; every other file after them, as collected."""
+    rank = {name: i for i, name in enumerate(SLOW_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.relative_to(ROOT).as_posix(), len(rank)))
+
+
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return ROOT
@@ -34,14 +58,32 @@ RECORDS_100K_RUN = 10_000
 
 @pytest.fixture(scope="session")
 def records_100k(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A records file of RECORDS_100K strokes in runs of RECORDS_100K_RUN (~5 s, once per session).
+    """A records file of RECORDS_100K strokes in runs of RECORDS_100K_RUN (`_make_records_100k`),
+    made once per run of the suite: under `make test` its two processes share one (the first to ask
+    makes it, the other waits for it: made twice it cost 14-25 s of a loaded machine's CPU twice).
+    Read-only to its users: copy it to write."""
+    base = tmp_path_factory.getbasetemp()
+    # Under xdist each worker's base is popen-gwN in the run's own directory, shared by the workers
+    # of this run only; a plain pytest's parent is shared by every run, so it keeps its own.
+    where = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    path = where / "records-100k" / "records.sqlite"
+    with open(where / "records-100k.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not path.exists():
+            making = where / f"records-100k.{os.getpid()}"
+            making.mkdir()
+            _make_records_100k(making / "records.sqlite")
+            making.rename(path.parent)  # whole or not at all
+    return path
 
-    The first RECORDS_100K_RUN strokes are written by the control loop on the simulated rig in
+
+def _make_records_100k(path: Path) -> None:
+    """The first RECORDS_100K_RUN strokes are written by the control loop on the simulated rig in
     virtual time through the real record writer; the file is then filled by SQLite copies of them
     (the cycles, stamps, wall times and run ids shifted past the last: nine more runs of the same
     strokes, as a long reliability test repeats), and opened once more by a writer, which builds
     the copied runs' statistics as it does for a file from before them. Making all 100,000 with the
-    loop cost 2.4 min of the suite's 12. Read-only to its users: copy it to write."""
+    loop cost 2.4 min of the suite's 12."""
     import sqlite3
     import sys
 
@@ -51,7 +93,6 @@ def records_100k(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from usmswitch.daemon.records import RecordStore
     from usmswitch.protocol.record import FIELDS, RUN_FIELDS
 
-    path = tmp_path_factory.mktemp("records-100k") / "records.sqlite"
     store = RecordStore(path, wait_when_behind=20_000)
     loop, _daq, _ = make_loop(target_ns=12_000_000, sink=store.submit, seed=21)
     loop.run_sink = store.submit_run
@@ -83,7 +124,6 @@ def records_100k(tmp_path_factory: pytest.TempPathFactory) -> Path:
                 f"INSERT INTO runs ({run_cols}) SELECT {run_vals} FROM runs WHERE run_id <= {runs}", shift
             )
     RecordStore(path).close()  # the copied runs' statistics, built as for a file from before them
-    return path
 
 
 @pytest.fixture(scope="session")
