@@ -261,8 +261,11 @@ class RecordStore(RecordQueries):
         self._queue.put(marker)
         return marker.done.wait(timeout_ns / 1e9)
 
-    def close(self, timeout_ns: int = 10_000_000_000) -> bool:
-        """Write everything still queued, stop the writer, close the file; False if records were left."""
+    def close(self, timeout_ns: int | None = 10_000_000_000) -> bool:
+        """Write everything still queued, stop the writer, close the file; False if records were left.
+
+        A writer not done within `timeout_ns` (None: however long it takes) is left running, holding
+        the file: its -wal and -shm stay until it ends, and for good if the process exits first."""
         if self._closed and self._thread is None:
             self._close_readers()  # opened since (a count after the close)
             if not self.readonly:
@@ -272,7 +275,7 @@ class RecordStore(RecordQueries):
         left = True
         if self._thread is not None:
             self._queue.put(_STOP)
-            self._thread.join(timeout_ns / 1e9)
+            self._thread.join(None if timeout_ns is None else timeout_ns / 1e9)
             left = not self._thread.is_alive()
             if not left:
                 log.error("record writer did not finish in time", path=str(self.path), backlog=self.backlog)

@@ -130,7 +130,9 @@ class SimulatedRig:
 
     def close(self) -> None:
         self.daq.close()
-        self.store.close()
+        # Not the daemon's bounded wait: the writer's close work (the runs' statistics) can take
+        # seconds on a busy machine, and a store given up on leaves -wal and -shm when we exit.
+        self.store.close(timeout_ns=None)
 
 
 class LiveRig:
