@@ -9,11 +9,14 @@ The pieces, one job each:
   replug included;
 - `mcu_usb`: `UsbDevice` and `UsbBackend`, the emulator behind a pyusb backend (the `usb` driver).
 
-`python -m usmswitch.sim.mcu_emulator --link PATH` runs it on a pty until SIGTERM or SIGINT.
+`python -m usmswitch.sim.mcu_emulator --link PATH` runs it on a pty until SIGTERM or SIGINT;
+`--sched-fifo N` runs it at SCHED_FIFO N where the process may (a chip is never descheduled by the
+host's other work; a test beside a busy machine wants the same of its stand-in).
 """
 
 from __future__ import annotations
 
+import os
 import threading
 
 from .mcu_firmware import (
@@ -59,17 +62,39 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="rig model seed")
     ap.add_argument("--clock-start-us", type=int, default=0, help="device clock at power-on (wrap tests)")
     ap.add_argument("--drift-ppm", type=int, default=0, help="device crystal error")
+    ap.add_argument(
+        "--sched-fifo",
+        type=int,
+        default=0,
+        metavar="N",
+        help="run at SCHED_FIFO priority N (1..99) if permitted, else say so and run as is (0: as is)",
+    )
     args = ap.parse_args(argv)
+    if not 0 <= args.sched_fifo <= 99:
+        ap.error(f"--sched-fifo must be 0..99, got {args.sched_fifo}")
+    # Before any thread starts: the emulator's threads inherit the policy of the one creating them.
+    scheduling = _sched_fifo(args.sched_fifo)
     emu = McuEmulator(seed=args.seed, clock_start_us=args.clock_start_us, drift_ppm=args.drift_ppm).start()
     link = PtyLink(emu, args.link).plug()
     done = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: done.set())
-    print(f"mcu emulator on {link.slave_path} via {args.link}", flush=True)
+    print(f"mcu emulator on {link.slave_path} via {args.link}, {scheduling}", flush=True)
     done.wait()
     link.close()
     emu.stop()
     return 0
+
+
+def _sched_fifo(priority: int) -> str:
+    """SCHED_FIFO `priority` for this thread (0: left as is); how it runs, in words."""
+    if not priority:
+        return "scheduled as started"
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except OSError as exc:
+        return f"SCHED_OTHER (SCHED_FIFO {priority} refused: {exc.strerror})"
+    return f"SCHED_FIFO {priority}"
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ import daemonproc
 import pytest
 
 from usmswitch.client import Client, RpcError
+from usmswitch.runtime.realtime import AUTO_PRIORITY, fifo_refusal
 
 MS = 1_000_000
 STROKES = 320
@@ -24,15 +25,23 @@ pytestmark = pytest.mark.realtime
 
 def test_closed_loop_over_serial_records_every_stroke(tmp_path: Path) -> None:
     link = tmp_path / "usmswitch"
+    # The device is a chip of its own, which the host's other work never deschedules: its stand-in
+    # runs at the daemon's SCHED_FIFO priority where this process may use it. At SCHED_OTHER beside
+    # a busy machine the emulator read COMMANDs the daemon had sent 4 ms ahead after their instant
+    # (112 of 320 strokes LATE), the harness's lateness, not the daemon's.
+    refused = fifo_refusal(AUTO_PRIORITY)
     emu = subprocess.Popen(
         [sys.executable, "-m", "usmswitch.sim.mcu_emulator", "--link", str(link), "--seed", "3",
-         "--clock-start-us", str(2**32 - 3_000_000)],  # the device clock wraps during the run
+         "--clock-start-us", str(2**32 - 3_000_000),  # the device clock wraps during the run
+         "--sched-fifo", str(0 if refused else AUTO_PRIORITY)],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
     )  # fmt: skip
     daemon = None
     try:
-        assert emu.stdout.readline().startswith(b"mcu emulator on")
+        ready = emu.stdout.readline()
+        assert ready.startswith(b"mcu emulator on"), ready or emu.stderr.read()
+        assert refused or ready.rstrip().endswith(f"SCHED_FIFO {AUTO_PRIORITY}".encode()), ready
         sock = tmp_path / "d.sock"
         args = ["--driver", "serial", "--port", str(link), "--target", "12ms", "--period", "24ms"]
         daemon = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False))
@@ -61,8 +70,8 @@ def test_closed_loop_over_serial_records_every_stroke(tmp_path: Path) -> None:
     assert [r[0] for r in rows] == list(range(1, STROKES + 1))
     assert all(r[1] is not None for r in rows)  # every stroke arrived and was stamped
     assert stats["all"]["stalls"] == 0
-    # The error of the strokes started on time: a start late (the emulator is a process of this
-    # host, descheduled on a busy one) is flagged LATE and counted below, not spread into the std
+    # The error of the strokes started on time: a start late (a COMMAND sent late, or read late by
+    # an emulator the host descheduled) is flagged LATE and counted below, not spread into the std
     # (361 us with the suite beside it, where the on-time strokes read ~90 us).
     errs = [r[1] for r in rows[100:] if not r[2] & 1]
     std = statistics.pstdev(errs)
@@ -70,6 +79,11 @@ def test_closed_loop_over_serial_records_every_stroke(tmp_path: Path) -> None:
     print(f"\nserial e2e: {len(rows)} strokes, error std {std / 1e3:.1f} us, late {late}")
     # As on the sim driver (~90 us): the device times the start, the host only arms ahead.
     assert std < 200_000
+    if refused:
+        pytest.skip(
+            f"every stroke recorded, error std {std / 1e3:.1f} us; {late} LATE not judged: the emulator"
+            f" ran at SCHED_OTHER ({refused}), so a start late may be the harness's, not the daemon's"
+        )
     assert late <= STROKES // 20
 
 
