@@ -3,16 +3,19 @@
 It speaks docs/mcu-protocol.md as `McuEmulator` does, over a pty (`PtyLink`), and every frame it
 sends is valid (COBS, CRC, the firmware's own sequence numbers): what it injects is what a confused
 device or a noisy line that happens to pass the CRC would say. `tamper` rewrites each frame the
-firmware sends into any list of frames; `say` sends one more now; `flood` sends EDGE frames as fast
-as the line takes them; `chatter` sends a sensor's edges at a given spacing for a while (a line
-ringing); `latency_ns` delays every frame on the line (a USB-serial adapter's latency timer) and
+firmware sends into any list of frames; `say` sends one more now; `flood` sends EDGE frames in a
+window as fast as the host reads them; `chatter` sends a sensor's edges at a given spacing for a
+while (a line ringing); `latency_ns` delays every frame on the line (a USB-serial adapter's latency timer) and
 `trickle` sends the next frames a byte at a time, both in order; `jump_clock` moves the device
 clock without a restart. Importable from any test (tests/conftest.py puts this folder on sys.path).
 """
 
 from __future__ import annotations
 
+import array
 import contextlib
+import fcntl
+import termios
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -22,6 +25,9 @@ from usmswitch.drivers.mcu_protocol import Edge, Message, Start, Stroke
 from usmswitch.sim.mcu_emulator import McuEmulator, PtyLink
 
 Tamper = Callable[[Message], list[Message]]
+
+#: A flood writes its next chunk only when the host has fewer bytes than this left unread.
+_MAX_UNREAD = 1024
 
 
 class FaultyMcu(McuEmulator):
@@ -45,6 +51,8 @@ class FaultyMcu(McuEmulator):
         #: The device instant the firmware thread is handling (None: between two), which a busy
         #: host lets fall behind the wall clock.
         self._instant_ns: int | None = None
+        #: The pty this device is behind (set by plug), whose unread bytes pace a flood.
+        self.link: PtyLink | None = None
 
     def _send(self, msg: Message) -> None:
         tamper = self.tamper
@@ -182,24 +190,51 @@ class FaultyMcu(McuEmulator):
             self.said += 1
             super()._send(msg)
 
-    def flood(self, duration_s: float, channel: int = 0, frames: int | None = None) -> int:
+    def flood(
+        self, duration_s: float, channel: int = 0, frames: int | None = None, *, at_ns: int | None = None
+    ) -> int:
         """EDGE frames of `channel`, each repeating its present level (a chattering report), stamped
-        now, as fast as the line takes them for `duration_s` (or until `frames` are sent); returns
-        how many were sent."""
+        as sent, as fast as the host reads them for `duration_s` from `at_ns` (a host monotonic
+        instant, now if None; waited for if ahead), or until `frames` are sent; returns how many were
+        sent. The window is the device's: a thread that starts late floods less, never later, and no
+        more than a chunk waits on the line unread, so the last frame reaches the host about the
+        window's end (a pty holds tens of kB: a host reading slower than the flood writes would
+        otherwise get the last frames after the window)."""
+        start = time.monotonic_ns() if at_ns is None else at_ns
+        end = start + int(duration_s * 1e9)
+        while (now := time.monotonic_ns()) < start:
+            time.sleep(min(0.01, (start - now) / 1e9))
         n = 0
-        end = time.monotonic() + duration_s
-        while time.monotonic() < end and (frames is None or n < frames):
+        while time.monotonic_ns() < end and (frames is None or n < frames):
+            if self._unread() > _MAX_UNREAD:
+                time.sleep(0.0005)
+                continue
             with self._lock:
                 level = None
-                for _ in range(200):
+                for _ in range(200 if frames is None else min(200, frames - n)):
                     now = time.monotonic_ns()
+                    if now >= end:
+                        break
                     if level is None or (self._timers and self._timers[0][0] <= now):
                         self._run_due(now)  # a START or STOP due by now leaves before this edge
                         level = self.rig.sensors(now)[channel]
                     super()._send(Edge(channel, int(level), self.device_us(now)))
-                n += 200
+                    n += 1
         self.said += n
         return n
+
+    def _unread(self) -> int:
+        """Bytes on the line the host has not read yet (0 when no pty is known)."""
+        link = self.link
+        fd = -1 if link is None else link._slave
+        if fd < 0:
+            return 0
+        buf = array.array("i", [0])
+        try:
+            fcntl.ioctl(fd, termios.FIONREAD, buf)
+        except OSError:
+            return 0
+        return buf[0]
 
 
 def start_of_stroke(k: int, make: Callable[[Start], list[Message]]) -> Tamper:
@@ -233,6 +268,7 @@ def plug(tmp_path: Path, **kwargs: object) -> tuple[FaultyMcu, PtyLink, Path]:
     emu = FaultyMcu(**kwargs).start()
     path = tmp_path / "usmswitch"
     link = PtyLink(emu, path).plug()
+    emu.link = link
     return emu, link, path
 
 

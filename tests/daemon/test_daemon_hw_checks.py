@@ -18,7 +18,7 @@ import pytest
 from mcudaemon import daemon, run
 
 from usmswitch.drivers.mcu import MAX_QUEUED_EVENTS
-from usmswitch.drivers.mcu_protocol import U32_MOD, Edge, Message, Start, Stroke
+from usmswitch.drivers.mcu_protocol import U32_MOD, Edge, Message, Start, Stopped, Stroke
 
 MS = 1_000_000
 FAULT = 16  # Flag.FAULT
@@ -163,23 +163,29 @@ def test_a_flood_of_valid_edges_is_bounded_between_device_and_loop(tmp_path: Pat
         sent, most = [0], [0]
         peak = [rss0]
 
-        def flood_after_each_stroke() -> None:
-            seen = 2
-            while seen < 5:
-                while emu.strokes_arrived == seen:
-                    time.sleep(0.001)
-                seen = emu.strokes_arrived
-                time.sleep(0.03)
-                channel = 1 - int(emu.rig.sensors()[0] == 0)
-                gap = emu.flood(1.2, channel=channel, frames=2 * MAX_QUEUED_EVENTS)
-                sent[0] += gap
-                most[0] = max(most[0], gap)
-                peak[0] = max(peak[0], _rss_kb(proc.pid))  # type: ignore[attr-defined]
+        floods: list[threading.Thread] = []
 
-        t = threading.Thread(target=flood_after_each_stroke, daemon=True)
-        t.start()
+        def flood(t_arrive: int) -> None:
+            channel = 1 - int(emu.rig.sensors()[0] == 0)
+            gap = emu.flood(1.2, channel=channel, frames=2 * MAX_QUEUED_EVENTS, at_ns=t_arrive + 30 * MS)
+            sent[0] += gap
+            most[0] = max(most[0], gap)
+            peak[0] = max(peak[0], _rss_kb(proc.pid))  # type: ignore[attr-defined]
+
+        def flood_after_each_arrival(msg: Message) -> list[Message]:
+            # In the firmware's thread, at the arrival's instant: the flood's window, 30 ms to 1.23 s
+            # after it (the next COMMAND goes ~1.5 s after it), is the device's, however late a
+            # thread wakes to send it (30 ms after the arrival on the wall clock, a thread woken
+            # late flooded into the next stroke: "events lost ... during stroke 4").
+            if isinstance(msg, Stopped) and len(floods) < 3:
+                floods.append(threading.Thread(target=flood, args=(emu.instant_ns(),), daemon=True))
+                floods[-1].start()
+            return [msg]
+
+        emu.tamper = flood_after_each_arrival
         st = run(c, 1_500 * MS, 4)
-        t.join(10)
+        for t in floods:
+            t.join(10)
     got = rows(tmp_path)
     dropped = st["driver_counters"].get("events_dropped")
     print(f"\nflood: {sent[0]} frames, RSS {rss0} kB -> peak {peak[0]} kB, {dropped} dropped")
