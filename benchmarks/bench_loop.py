@@ -114,7 +114,7 @@ def run_daemon(strokes: int, fifo: bool, clients: int) -> dict[str, float]:
                 if time.monotonic() > begun:
                     raise RuntimeError("the daemon's start-up run did not begin within 10 s")
                 time.sleep(0.01)
-            while c.status()["state"] == "cycling":
+            while (last := c.status())["state"] == "cycling":
                 time.sleep(0.2)
         cpu1, t1 = thread_cpu_s(proc.pid), time.monotonic()
         requests = sum(q.get(timeout=60) for _ in hammers)
@@ -128,7 +128,10 @@ def run_daemon(strokes: int, fifo: bool, clients: int) -> dict[str, float]:
     con.close()
     shutil.rmtree(tmp, ignore_errors=True)
     if len(lates) <= 20:  # once, beside a soak: no start-up run recorded (an IndexError here then)
-        raise RuntimeError(f"usmswitchd recorded {len(lates)} strokes of {strokes}: {' '.join(cmd)}")
+        raise RuntimeError(
+            f"usmswitchd recorded {len(lates)} strokes of {strokes} (it said: state {last['state']},"
+            f" cycle {last['cycle']}, fault {last.get('fault')!r}): {' '.join(cmd)}"
+        )
     p50, p99, p999, mx = percentiles(lates[20:])  # the first strokes include start-up
     return {
         "n": len(lates),
