@@ -11,7 +11,9 @@ import os
 import signal
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import faultmcu
 import pytest
@@ -107,6 +109,17 @@ def test_a_clock_jump_is_a_new_handshake_at_any_session_age(tmp_path: Path) -> N
     assert not untrue_clean(got, emu.log)
 
 
+def _fault_then_clean_again(c: Any, emu: Any, tamper: Callable[[Start], list[Message]]) -> tuple[Any, Any]:
+    """6 strokes with `tamper` on the 3rd's START, then (the link resynced, the fault reset) 4 clean
+    ones: the status after each run."""
+    emu.tamper = faultmcu.start_of_stroke(3, tamper)
+    st = run(c, 100 * MS, 6)
+    emu.tamper = None
+    _wait_resynced(c)
+    c.reset_fault()
+    return st, run(c, 100 * MS, 4)
+
+
 def test_a_clock_jump_mid_stroke_is_named_the_links_not_a_stall(tmp_path: Path) -> None:
     """Item 2: a stroke during which the device clock jumped was recorded STALL though the device
     arrived. Its stamps cannot be believed: the stroke ends with FAULT WIRE, never STALL, and after
@@ -119,12 +132,7 @@ def test_a_clock_jump_mid_stroke_is_named_the_links_not_a_stall(tmp_path: Path) 
             emu.jump_clock(70_000)
             return [s]
 
-        emu.tamper = faultmcu.start_of_stroke(3, jump_after)
-        st = run(c, 100 * MS, 6)
-        emu.tamper = None
-        _wait_resynced(c)
-        c.reset_fault()
-        after = run(c, 100 * MS, 4)
+        st, after = _fault_then_clean_again(c, emu, jump_after)
     got = rows(tmp_path)
     assert st["state"] == "fault" and st["fault"].startswith("wire"), st["fault"]
     hit = got[2]
@@ -146,12 +154,7 @@ def test_a_clock_jump_just_before_a_start_is_named_the_links_not_the_edge_order(
             emu.jump_clock(70_000)  # as the firmware fires: the START is stamped on the new clock
             return [dataclasses.replace(s, t_us=(s.t_us + 70_000) % U32_MOD)]
 
-        emu.tamper = faultmcu.start_of_stroke(3, jump_before)
-        st = run(c, 100 * MS, 6)
-        emu.tamper = None
-        _wait_resynced(c)
-        c.reset_fault()
-        after = run(c, 100 * MS, 4)
+        st, after = _fault_then_clean_again(c, emu, jump_before)
     got = rows(tmp_path)
     assert st["state"] == "fault" and st["fault"].startswith("wire"), st["fault"]
     assert "has no START of its own" in st["fault"] and "ahead of the device clock" in st["fault"]
