@@ -11,14 +11,13 @@ through bytes (msgpack, the histograms HDR-encoded), for the records file's `run
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import msgpack
 from hdrh.histogram import HdrHistogram
 
 from .record import CycleRecord
-from .stats import DirectionStats, _rank
+from .stats import DirectionStats, Running, _rank
 
 #: The sketch's bounds: 1 us discernible, up to an hour, 3 significant digits (0.1 %).
 SKETCH_LOWEST_NS = 1_000
@@ -30,40 +29,15 @@ QUANTILE_ABSOLUTE_ERROR_NS = SKETCH_LOWEST_NS
 _FORMAT = 1
 
 
-class ExactRunning:
-    """Count, mean, std and max |x| from exact integer sums (the same figures as `stats.Running`)."""
+class ExactRunning(Running):
+    """`stats.Running` restored from the sums a run's aggregate keeps."""
 
-    __slots__ = ("count", "max_abs", "s", "ss")
+    __slots__ = ()
 
     def __init__(
         self, count: int | str = 0, s: int | str = 0, ss: int | str = 0, max_abs: int | str = 0
     ) -> None:
         self.count, self.s, self.ss, self.max_abs = int(count), int(s), int(ss), int(max_abs)
-
-    def add(self, x: int) -> None:
-        self.count += 1
-        self.s += x
-        self.ss += x * x
-        if abs(x) > self.max_abs:
-            self.max_abs = abs(x)
-
-    @property
-    def mean(self) -> float:
-        return self.s / self.count if self.count else 0.0
-
-    @property
-    def std(self) -> float:
-        n = self.count
-        if n < 2:
-            return 0.0
-        return math.sqrt((n * self.ss - self.s * self.s) / (n * (n - 1)))
-
-    def as_dict(self, prefix: str) -> dict[str, float | int]:
-        return {
-            f"{prefix}_mean_ns": round(self.mean, 1),
-            f"{prefix}_std_ns": round(self.std, 1),
-            f"{prefix}_max_abs_ns": self.max_abs,
-        }
 
     def state(self) -> list[int | str]:
         """The sums to keep; one past msgpack's 64 bits as its decimal text (the sum of squared

@@ -23,27 +23,33 @@ COMMISSIONING_KEPT = 8
 
 
 class Running:
-    """Count, mean, std (Welford) and max |x| of a stream of integer ns values."""
+    """Count, mean, std and max |x| of a stream of integer ns values, from exact integer sums: the
+    figures of every value, the same however they are split or merged (a run's kept aggregate,
+    `aggregate.ExactRunning`, rounds to what a live run says; Welford's floats rounded a mean of
+    an exact half the other way)."""
 
-    __slots__ = ("count", "m2", "max_abs", "mean")
+    __slots__ = ("count", "max_abs", "s", "ss")
 
     def __init__(self) -> None:
-        self.count = 0
-        self.mean = 0.0
-        self.m2 = 0.0
-        self.max_abs = 0
+        self.count = self.s = self.ss = self.max_abs = 0
 
     def add(self, x: int) -> None:
         self.count += 1
-        d = x - self.mean
-        self.mean += d / self.count
-        self.m2 += d * (x - self.mean)
+        self.s += x
+        self.ss += x * x
         if abs(x) > self.max_abs:
             self.max_abs = abs(x)
 
     @property
+    def mean(self) -> float:
+        return self.s / self.count if self.count else 0.0
+
+    @property
     def std(self) -> float:
-        return math.sqrt(self.m2 / (self.count - 1)) if self.count > 1 else 0.0
+        n = self.count
+        if n < 2:
+            return 0.0
+        return math.sqrt((n * self.ss - self.s * self.s) / (n * (n - 1)))
 
     def as_dict(self, prefix: str) -> dict[str, float | int]:
         return {
