@@ -331,7 +331,7 @@ class RunningStats:
         self.strokes = 0
         self.late = 0
         self.faulted = 0
-        self.errors = Running()  # the daemon's own Welford accumulator
+        self.errors = Running()  # the daemon's own accumulator
 
     def add(self, rec: CycleRecord) -> None:
         """Count one stroke (its error, when it has one; its flags always)."""
