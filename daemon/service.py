@@ -33,6 +33,7 @@ from usmswitch.protocol.record import CycleRecord, Flag, RunRecord
 from usmswitch.protocol.units import format_ns
 from usmswitch.runtime.logsetup import configure_logging
 from usmswitch.runtime.realtime import apply_realtime, lift_helpers, resolve_priority, scheduling_text
+from usmswitch.server.rpc import URGENT_THREADS
 
 from .board import BoardPoller
 from .config import Config, ConfigError
@@ -67,9 +68,12 @@ CLOSE_TIMEOUT_FAILING_NS = 3_000_000_000
 SWITCH_INTERVAL_S = 0.0002
 #: The socket's server process's nice above the daemon's when the loop runs at SCHED_OTHER.
 SERVER_NICE_UNDER_OTHER = 5
-#: The socket's server process's event loop runs SCHED_FIFO this far below the loop when the loop
-#: has it (one below the daemon's helper threads).
+#: When the loop has SCHED_FIFO: the threads an estop passes through run one below it, the socket's
+#: server process's event loop this far below (its HTTP doors' one further), and the daemon's
+#: other helper threads (record writer, bridge) below those, so no helper's burst holds an estop
+#: back in the daemon or in the server (docs/daemon.md, "Real time").
 SERVER_FIFO_BELOW = 2
+HELPERS_FIFO_BELOW = 4
 #: From the stop signal to the end of stop(): what is left of it after the drive is off, the
 #: server process gone and the records committed is what PostgreSQL shipping may still take;
 #: the rest ships at the next start. Keeps SIGTERM-to-exit within 100 ms with a database (the
@@ -373,8 +377,13 @@ class Daemon:
             # daemon's nice the server keeps up with bare asyncio at 8 clients (docs/protocol.md).
             self.rpc.lower_priority(SERVER_NICE_UNDER_OTHER)
         if "sched_fifo_priority" in got.applied and priority > 1:
-            lifted = lift_helpers(priority - 1)
-            self.log.info("helper threads below the loop", priority=priority - 1, threads=lifted)
+            helpers = max(1, priority - HELPERS_FIFO_BELOW)
+            lifted = lift_helpers(helpers, dict.fromkeys(URGENT_THREADS, priority - 1))
+            if self.rpc is not None:
+                self.rpc.urgent_priority = priority - 1
+            self.log.info(
+                "helper threads below the loop", priority=helpers, estop=priority - 1, threads=lifted
+            )
             if priority > SERVER_FIFO_BELOW and self.rpc is not None:
                 # The socket's server process reads, forwards and answers an estop the moment it
                 # arrives, above the machine's ordinary work and below the daemon's own threads.

@@ -20,7 +20,7 @@ import os
 import platform
 import resource
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import structlog
@@ -30,6 +30,7 @@ log = structlog.get_logger("usmswitch.realtime")
 # mlockall flags: asm-generic values, except on the architectures that define their own.
 _MCL = {"ppc": (0x2000, 0x4000), "sparc": (0x2000, 0x4000), "alpha": (8192, 16384)}
 CAP_IPC_LOCK = 14
+_PR_SET_NAME = 15
 
 
 @dataclass(frozen=True, slots=True)
@@ -191,28 +192,39 @@ def scheduling_text(result: RealtimeResult, priority: int, not_permitted: str | 
     return "SCHED_OTHER (realtime.sched_fifo_priority = 0)"
 
 
-def lift_helpers(priority: int) -> list[str]:
+def lift_helpers(priority: int, above: Mapping[str, int] | None = None) -> list[str]:
     """SCHED_FIFO `priority` for every other thread of this process; the names of those lifted.
 
     The helper threads (record writer, socket bridge) share the GIL with the loop. At SCHED_OTHER
     an ordinary process on the machine can preempt one while it holds the GIL, and the loop then
     waits for a whole timeslice of someone else (milliseconds of start lateness): a priority
-    inversion. One step below the loop they are never preempted by ordinary processes, never by
-    the loop's core's own work, and give the GIL back within the switch interval. Threads they
-    start later inherit the policy.
+    inversion. At SCHED_FIFO they are never preempted by ordinary processes, never by the loop's
+    core's own work, and give the GIL back within the switch interval. Threads they start later
+    inherit the policy. Threads named in `above` get the priority given there instead (the
+    estop's own: never queued behind a helper's burst at the same priority).
     """
     lifted = []
     me = threading.get_native_id()
+    above = above or {}
     for t in threading.enumerate():
         tid = t.native_id
         if tid is None or tid == me or not t.is_alive():
             continue
         try:
-            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(above.get(t.name, priority)))
             lifted.append(t.name)
         except OSError as exc:  # gone meanwhile, or no permission: carry on at SCHED_OTHER
             log.warning("helper thread stays at SCHED_OTHER", thread=t.name, reason=_describe(exc))
     return lifted
+
+
+def name_thread(name: str) -> None:
+    """The calling thread's name as the kernel shows it (`ps -L`, /proc/PID/task/TID/comm; 15
+    bytes at most): which thread of the daemon or server runs at which priority, for operators
+    and tests."""
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+        libc.prctl(_PR_SET_NAME, name.encode()[:15], 0, 0, 0)
 
 
 def drop_realtime() -> bool:

@@ -25,10 +25,13 @@ import msgpack
 
 from usmswitch.protocol.rpc_params import check_params
 from usmswitch.protocol.wire import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, Limits, RpcError
+from usmswitch.runtime.realtime import name_thread
 
 log = logging.getLogger("usmswitch.rpc")
 
 MAX_FRAME_BYTES = 512
+#: The thread's name, in Python and as the kernel shows it (ps -L).
+THREAD_NAME = "rpc-estop"
 _TICK_S = 0.05  # deadlines are checked at least this often
 
 
@@ -62,7 +65,7 @@ class EstopSocket:
         self._stopping = False
         self._shed = 0  # connections shed for newcomers, since start
         self._shed_logged_ns = 0
-        self._thread = threading.Thread(target=self._run, name="rpc-estop-socket", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=THREAD_NAME, daemon=True)
 
     def start(self) -> None:
         self.sock.setblocking(False)
@@ -81,6 +84,7 @@ class EstopSocket:
 
     # -- the thread ---------------------------------------------------------------------------
     def _run(self) -> None:
+        name_thread(THREAD_NAME)
         sel = selectors.DefaultSelector()
         sel.register(self.sock, selectors.EVENT_READ, None)
         sel.register(self._wake_r, selectors.EVENT_READ, "wake")

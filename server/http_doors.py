@@ -18,8 +18,6 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import contextlib
-import ctypes
-import ctypes.util
 import logging
 import os
 import socket
@@ -27,13 +25,14 @@ import threading
 from collections.abc import Awaitable, Callable
 from typing import Any
 
+from usmswitch.runtime.realtime import name_thread
+
 log = logging.getLogger("usmswitch.rpc")
 
 #: How often this thread looks at the event loop's thread's scheduling, to follow it.
 FOLLOW_S = 0.5
 #: Its name in `ps -L` and /proc (prctl PR_SET_NAME, 15 bytes at most).
 THREAD_NAME = "rpc-http"
-_PR_SET_NAME = 15
 
 
 class CrossBackend:
@@ -113,7 +112,7 @@ class HttpDoors:
         setup: Callable[[asyncio.AbstractEventLoop], Awaitable[list[Any]]],
         ready: concurrent.futures.Future[None],
     ) -> None:
-        _name_thread(THREAD_NAME)
+        name_thread(THREAD_NAME)
         self.follow()
         loop = self.loop = self.loop_factory()
         asyncio.set_event_loop(loop)
@@ -175,13 +174,6 @@ class HttpDoors:
             with contextlib.suppress(RuntimeError):
                 loop.call_soon_threadsafe(loop.stop)
             thread.join(timeout_s)
-
-
-def _name_thread(name: str) -> None:
-    """The calling thread's name as the kernel shows it (ps -L, /proc/PID/task/TID/comm)."""
-    with contextlib.suppress(OSError, AttributeError):
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
-        libc.prctl(_PR_SET_NAME, name.encode()[:15], 0, 0, 0)
 
 
 async def serve_http(

@@ -45,8 +45,9 @@ from usmswitch.protocol.wire import (
     packb,
 )
 from usmswitch.runtime.children import end_child
-from usmswitch.runtime.realtime import renice_child, server_fifo
+from usmswitch.runtime.realtime import name_thread, renice_child, server_fifo
 from usmswitch.server.busy_poll import DEFAULT_WINDOW_NS
+from usmswitch.server.estop_socket import THREAD_NAME as ESTOP_THREAD
 
 from .rpc_process import serve
 
@@ -60,6 +61,12 @@ STOP_GRACE_S = 0.01
 
 
 # -- the daemon side -------------------------------------------------------------------------------
+
+
+#: The daemon's threads an estop passes through (the urgent channel's, the estop socket's): they run
+#: SCHED_FIFO above the daemon's other helpers, so a record writer's or bridge's burst at the same
+#: priority never holds an estop back (FIFO threads of one priority wait for each other).
+URGENT_THREADS = ("rpc-urgent", ESTOP_THREAD)
 
 
 class SocketBusyError(RuntimeError):
@@ -203,6 +210,8 @@ class RpcServer:
         #: The server process's event loop at SCHED_FIFO this priority (0: SCHED_OTHER); see
         #: raise_priority.
         self.fifo_priority = 0
+        #: SCHED_FIFO for an urgent channel's thread started after a restart (0: as its starter).
+        self.urgent_priority = 0
         self.busy_poll_ns = busy_poll_ns
         self.log_settings = (log_format, log_level)
         self.max_restarts = max_restarts
@@ -619,6 +628,11 @@ class RpcServer:
 
     def _serve_urgent(self, link: _Link) -> None:
         """One link's urgent calls, each answered from this thread as soon as it is done."""
+        name_thread("rpc-urgent")
+        if self.urgent_priority:
+            # Started by a helper thread (a restart): lifted above it, as at the daemon's start.
+            with contextlib.suppress(OSError):  # refused: it runs at its starter's priority
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.urgent_priority))
         feed = msgpack.Unpacker(raw=False, max_buffer_size=1 << 20)
         packer = msgpack.Packer(use_bin_type=True, autoreset=True)
         while True:

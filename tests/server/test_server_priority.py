@@ -38,13 +38,33 @@ def _policies(pid: int) -> dict[int, tuple[int, int]]:
     return out
 
 
-def _http_thread(pid: int) -> int | None:
-    """The thread serving the panel and /metrics (named rpc-http), if there is one."""
+def _named(pid: int, *names: str) -> list[int]:
+    """The threads of `pid` the kernel knows by one of `names` (prctl PR_SET_NAME)."""
+    found = []
     for tid in map(int, os.listdir(f"/proc/{pid}/task")):
         with contextlib.suppress(FileNotFoundError):
-            if Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip() == "rpc-http":
-                return tid
-    return None
+            if Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip() in names:
+                found.append(tid)
+    return found
+
+
+def _http_thread(pid: int) -> int | None:
+    """The thread serving the panel and /metrics (named rpc-http), if there is one."""
+    return next(iter(_named(pid, "rpc-http")), None)
+
+
+def _estop_threads_above_the_helpers(daemon: int) -> bool:
+    """The daemon's threads an estop passes through (the urgent channel's, the estop socket's) at
+    SCHED_FIFO 49, the loop at 50, every other helper at 46: below the server's event loop (48)
+    and HTTP doors (47), so no record writer's or bridge's burst holds an estop back."""
+    urgent = _named(daemon, "rpc-urgent", "rpc-estop")
+    policies = _policies(daemon)
+    others = {p for tid, p in policies.items() if tid not in urgent and tid != daemon}
+    return (
+        len(urgent) == 2
+        and all(policies.get(tid) == (os.SCHED_FIFO, 49) for tid in urgent)
+        and others <= {(os.SCHED_FIFO, 46), (os.SCHED_FIFO, 50)}
+    )
 
 
 def _until(what: str, check: object, timeout_s: float = 10.0) -> None:
@@ -78,6 +98,10 @@ def test_the_server_event_loop_runs_real_time_below_the_loop_and_its_workers_at_
         for round_ in ("first", "restarted"):
             server = daemonproc.child_pid(proc, SERVER)
             _until(
+                f"the daemon's estop threads at SCHED_FIFO 49, its other helpers at 46 ({round_})",
+                lambda: _estop_threads_above_the_helpers(proc.pid),
+            )
+            _until(
                 f"the {round_} server's event loop at SCHED_FIFO 48",
                 lambda server=server: _policies(server)[server] == (os.SCHED_FIFO, 48),
             )
@@ -100,7 +124,8 @@ def test_the_server_event_loop_runs_real_time_below_the_loop_and_its_workers_at_
             for reader in readers:  # below everything real-time, from their birth
                 assert set(_policies(reader).values()) == {(os.SCHED_OTHER, 0)}, reader
             if round_ == "first":
-                # Restarted by the daemon's bridge thread (SCHED_FIFO 49): put back at 48.
+                # Restarted by the daemon's bridge thread (SCHED_FIFO 46): put back at 48, its
+                # new urgent channel's thread in the daemon at 49.
                 os.kill(server, signal.SIGKILL)
                 _until(
                     "a restarted server",
