@@ -69,6 +69,15 @@ def load(conn: sqlite3.Connection, select: str, run_id: int) -> RunAggregate | N
     return agg
 
 
+def _ended_already(conn: sqlite3.Connection, run_ids: set[int]) -> set[int]:
+    """Of `run_ids`, the runs whose row says they have ended: a stroke cut short by an estop is
+    submitted after its run's end (its record comes once the stroke is over), and its run's
+    aggregate was held for good (~1 MB a run: 380 MB after 400 estops)."""
+    marks = ",".join("?" * len(run_ids))
+    sql = f"SELECT run_id FROM runs WHERE end_reason IS NOT NULL AND run_id IN ({marks})"
+    return {row[0] for row in conn.execute(sql, sorted(run_ids))}
+
+
 def _summary(agg: RunAggregate) -> dict[str, Any]:
     """What a reply shows of an aggregate: its figures, without the sketches."""
     return {
@@ -228,24 +237,28 @@ class AggregateKeeper:
                 continue  # already folded (read from the file)
             agg.add(rec)
             self._dirty.add(run_id)
-        self.save(conn, force=ended)
+        touched = {rec.run_id for rec in records if rec.run_id is not None} - ended
+        self.save(conn, force=ended | _ended_already(conn, touched) if touched else ended)
 
     def save(self, conn: sqlite3.Connection, force: set[int] | None = None) -> None:
         now = time.monotonic_ns()
         ending = {r for r in force or () if r in self._aggs}  # saved with their figures, dirty or not
-        for run_id in sorted(self._dirty | ending):
-            if run_id in ending or now - self._saved_ns.get(run_id, 0) >= SAVE_EVERY_NS:
-                try:
+        try:
+            for run_id in sorted(self._dirty | ending):
+                if run_id in ending or now - self._saved_ns.get(run_id, 0) >= SAVE_EVERY_NS:
                     self._write(conn, run_id, self._aggs[run_id], summary=run_id in ending)
-                except sqlite3.Error as exc:
-                    self.last_error = str(exc)
-                    return
-                self.last_error = None
+                    self._dirty.discard(run_id)
+                    self._saved_ns[run_id] = now
+            self.last_error = None
+        except sqlite3.Error as exc:
+            self.last_error = str(exc)
+        finally:
+            # An ended run takes no more strokes: hold nothing for it, saved or not (one whose
+            # save failed is built again from its strokes: by a reader, and at the next start).
+            for run_id in force or ():
+                self._aggs.pop(run_id, None)
+                self._saved_ns.pop(run_id, None)
                 self._dirty.discard(run_id)
-                self._saved_ns[run_id] = now
-        for run_id in force or ():
-            self._aggs.pop(run_id, None)  # an ended run takes no more strokes: hold nothing for it
-            self._saved_ns.pop(run_id, None)
 
     def flush(self, conn: sqlite3.Connection) -> None:
         """Save every aggregate not yet saved (the writer is closing)."""

@@ -64,24 +64,20 @@ class Sketch:
         """Nearest-rank percentiles `qs` (0..100), as `stats.percentiles_of` takes them over every
         value (the value of rank ceil(q n / 100)), each within the sketch's error; None when empty.
         (HDR's own `get_value_at_percentile` rounds the rank, one stroke off in a short run's tail.)"""
-        total = self.hist.get_total_count()
+        import numpy as np  # here, not at import: usmswitchctl imports this module without it
+
+        hist = self.hist
+        total = hist.get_total_count()
         if total == 0:
             return [None] * len(qs)
-        ranks = [_rank(q, total) for q in qs]
-        out: list[int | None] = [None] * len(qs)
-        seen = 0
-        for item in self.hist.get_recorded_iterator():
-            seen += item.count_added_in_this_iter_step
-            for i, rank in enumerate(ranks):
-                if out[i] is None and seen >= rank:
-                    v = item.value_iterated_to
-                    lo, hi = (
-                        self.hist.get_lowest_equivalent_value(v),
-                        self.hist.get_highest_equivalent_value(v),
-                    )
-                    out[i] = (lo + hi) // 2  # the bucket's middle: within half its width
-            if all(v is not None for v in out):
-                break
+        # The counts' running sum in numpy: walking HDR's recorded iterator in Python cost ~30 ms
+        # a sketch at 1,000 distinct values, and a run's end (six sketches) held up the record writer.
+        running = np.cumsum(np.ctypeslib.as_array(hist.counts), dtype=np.int64)
+        out: list[int | None] = []
+        for index in np.searchsorted(running, [_rank(q, total) for q in qs], side="left"):
+            v = hist.get_value_from_index(int(index))
+            lo, hi = hist.get_lowest_equivalent_value(v), hist.get_highest_equivalent_value(v)
+            out.append((lo + hi) // 2)  # the bucket's middle: within half its width
         return out
 
     def encode(self) -> bytes:
