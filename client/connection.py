@@ -26,6 +26,9 @@ from urllib.parse import parse_qs, urlsplit
 
 import msgpack
 
+from usmswitch.protocol.export_plan import ExportPlan
+from usmswitch.protocol.record import check_label
+from usmswitch.protocol.rpc_params import MAX_EXPORT_STROKES
 from usmswitch.protocol.sockets import UntrustedSocketError, check_peer, check_socket_owner
 from usmswitch.protocol.wire import (
     MAX_MSGID,
@@ -220,6 +223,9 @@ class Client(Api):
         self._sock = sock
         self._unpacker = msgpack.Unpacker(raw=False, max_buffer_size=self.max_reply_bytes)
         self._replies.clear()
+        self._abandoned.clear()  # replies to a closed connection's calls never come
+        self._sent.clear()
+        self._pending_out.clear()
         self.topics = set()
         self._run_holds = {}
         if self.family == "tcp":
@@ -269,20 +275,63 @@ class Client(Api):
         return result_of(self._wait(msgid))
 
     def export_csv(
-        self, run: int | None = None, first: int = 1, last: int | None = None, *, label: str | None = None
+        self,
+        run: int | None = None,
+        first: int = 1,
+        last: int | None = None,
+        *,
+        label: str | None = None,
+        max_strokes: int = MAX_EXPORT_STROKES,
     ) -> Iterator[tuple[int, int, str]]:
         """Every stroke (of a run, of the runs with `label`, from cycle `first` to `last`) as CSV
-        lines without the header (`usmswitch.protocol.record_csv.csv_header_line`), a chunk a call:
-        (strokes, last cycle, text). Memory is one chunk on both ends; stop iterating and the server
-        reads no more."""
-        while True:
-            chunk = self.export_chunk(run, first, last, label=label)
-            if not chunk["strokes"]:
-                return
-            yield chunk["strokes"], chunk["last_cycle"], chunk["csv"]
-            first = chunk["last_cycle"] + 1
-            if last is not None and first > last:
-                return
+        lines without the header (`usmswitch.protocol.record_csv.csv_header_line`), a chunk of up to
+        `max_strokes` at a time: (strokes, last cycle, text), in cycle order.
+
+        The chunks are asked a few ahead (`protocol.export_plan`): the server builds the next while
+        this one travels and is written. Memory is a few chunks on both ends; stop iterating and no
+        more are asked (the replies in flight are dropped as they come)."""
+        plan = ExportPlan(first, last, max_strokes)
+        tail = [] if label is None else [check_label(label)]
+        ids: deque[int] = deque()  # the msgids of plan.in_flight, in the same order
+        retried = False
+        chunk: dict[str, Any] | None = None
+
+        def lost(exc: ConnectionError) -> None:
+            nonlocal retried
+            if retried or not self.retry:  # as call() does: once more, on a fresh connection
+                raise exc
+            retried = True
+            ids.clear()
+            plan.restart()
+            self.reconnect()
+
+        try:
+            while True:
+                try:  # the next requests in flight before this chunk is handed over
+                    for a, b, most in plan.requests():
+                        ids.append(self._send("export", [run, a, b, most, *tail], flush=False))
+                    self._flush()
+                except ConnectionError as exc:
+                    lost(exc)
+                    continue
+                if chunk is not None:
+                    yield chunk["strokes"], chunk["last_cycle"], chunk["csv"]
+                    chunk = None
+                if not ids:
+                    return
+                try:
+                    reply = self._wait(ids[0])
+                except ConnectionError as exc:
+                    lost(exc)
+                    continue
+                ids.popleft()
+                retried = False
+                got = result_of(reply)
+                if plan.answered(got["strokes"], got["last_cycle"]) and got["strokes"]:
+                    chunk = got
+        finally:
+            for msgid in ids:
+                self._abandon(msgid)
 
     def pipeline(self, calls: Iterable[tuple[str, list[Any]]]) -> list[Any]:
         """Send every request before reading any reply; results (or RpcError instances) in order."""
@@ -332,6 +381,12 @@ class Client(Api):
             raise ReplyTimeout(method, (time.monotonic_ns() - sent_ns) / 1e9, self, ping_ms) from None
         self._sent.pop(msgid, None)
         return self._replies.pop(msgid)
+
+    def _abandon(self, msgid: int) -> None:
+        """Nobody waits for `msgid` any more: its reply is dropped, now or when it comes."""
+        self._sent.pop(msgid, None)
+        if self._replies.pop(msgid, None) is None and self._sock is not None:
+            self._abandoned.add(msgid)
 
     def _ping_ms(self) -> float | None:
         """A ping's round trip on a new connection, in ms (None: no answer within a second or the

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
 import concurrent.futures
 import contextlib
 import gc
@@ -24,7 +25,7 @@ from typing import Any
 
 import msgpack
 
-from usmswitch.protocol.rpc_params import MAX_EXPORT_STROKES
+from usmswitch.protocol.export_plan import ExportPlan
 from usmswitch.protocol.wire import (
     MAX_MSGID,
     REQUEST,
@@ -91,8 +92,9 @@ class PanelConn(Conn):
         self.listeners.append(listener)
 
     async def export_csv(self, run_id: int, write: Callable[[bytes], Any]) -> int:
-        """A run as CSV, a chunk at a time (read by a reader process, as the socket's `export`),
-        each written as the browser takes it: the memory is a chunk, a browser gone reads no more."""
+        """A run as CSV, its chunks read by reader processes as the socket's `export` (a few in
+        flight, `protocol.export_plan`, so the next is built while this one is written), each
+        written as the browser takes it: the memory is a few chunks, a browser gone reads no more."""
         from usmswitch.protocol.record_csv import csv_header_line  # the panel's export only
 
         hub = self.hub
@@ -100,24 +102,39 @@ class PanelConn(Conn):
             raise RpcError(ErrorCode.UNAVAILABLE, "export: this server has no records file")
         readers = hub.readers
 
-        async def chunk(first: int) -> bytes:  # on the hub's loop, where the readers live
-            return await readers.read("export", [run_id, first, None, MAX_EXPORT_STROKES])
+        def read(method: str, params: list[Any]) -> asyncio.Future[bytes]:
+            async def on_hub() -> bytes:  # on the hub's loop, where the readers live
+                return await readers.read(method, params)
 
-        async def run() -> bytes:  # its label and notes, for the header's comment line
-            return await readers.read("stats", [run_id, None, None, None])
+            return asyncio.wrap_future(asyncio.run_coroutine_threadsafe(on_hub(), hub.loop))
 
-        first, n = 1, 0
-        while True:  # on the HTTP doors' loop (server/http_doors.py)
-            got = await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(chunk(first), hub.loop))
-            part = msgpack.unpackb(got, raw=False)
-            if first == 1:  # the run is known (its first read said so): the header
-                got = await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(run(), hub.loop))
-                await write(csv_header_line([msgpack.unpackb(got, raw=False)["run"]]).encode())
-            if not part["strokes"]:
-                return n
-            n += part["strokes"]
-            await write(part["csv"].encode())
-            first = part["last_cycle"] + 1
+        plan = ExportPlan()
+        asked: collections.deque[asyncio.Future[bytes]] = collections.deque()
+        about: asyncio.Future[bytes] | None = read("stats", [run_id, None, None, None])  # label, notes
+        n = 0
+
+        def ask() -> None:
+            for first, last, most in plan.requests():
+                asked.append(read("export", [run_id, first, last, most]))
+
+        try:  # on the HTTP doors' loop (server/http_doors.py)
+            ask()
+            while asked:
+                part = msgpack.unpackb(await asked.popleft(), raw=False)
+                if about is not None:  # the run is known (its first read said so): the header
+                    run = msgpack.unpackb(await about, raw=False)["run"]
+                    about = None
+                    await write(csv_header_line([run]).encode())
+                handed = plan.answered(part["strokes"], part["last_cycle"])
+                ask()  # the next in flight before this one is written
+                if handed and part["strokes"]:
+                    n += part["strokes"]
+                    await write(part["csv"].encode())
+            return n
+        finally:
+            for fut in (*asked, *([about] if about is not None else [])):
+                if not fut.cancel() and not fut.cancelled():
+                    fut.exception()  # retrieved, not warned of: the export failed or ended already
 
     def write(self, data: bytes) -> None:
         _, msgid, error, result = msgpack.unpackb(data, raw=False)
