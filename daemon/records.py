@@ -170,7 +170,7 @@ class RecordStore(RecordQueries):
         #: Called on the writer thread with each run row once committed, in order with the records:
         #: a run's end reaches it after every stroke of the run has reached `on_commit`.
         self.on_run: Callable[[RunRecord], None] | None = None
-        #: The retention policy the writer applies when idle (daemon/retention.py; None: keep all).
+        #: The retention policy the writer applies (daemon/retention.py; None: keep all).
         self.retention: Retention | None = None
         #: Called before each batch is written: the daemon makes it wait while the loop is about
         #: to start a stroke (the writer's Python work would hold the GIL the loop needs).
@@ -491,12 +491,8 @@ class RecordStore(RecordQueries):
                     "record writer backlog full: oldest records dropped", dropped=lost, path=str(self.path)
                 )
             now = time.monotonic_ns()
-            retention = self.retention
-            if not pending and self._writer_error is None and retention is not None and retention.due(now):
-                try:
-                    retention.apply(conn)
-                except sqlite3.Error as exc:  # the strokes stay where they are: tried again later
-                    log.warning("retention failed", path=str(self.path), error=str(exc))
+            if not pending:
+                self._retain(conn)
             if not pending and self._writer_error is None and now >= next_check:
                 next_check = now + FILE_CHECK_NS
                 try:
@@ -533,6 +529,7 @@ class RecordStore(RecordQueries):
                     # The runs' statistics after what waits on the strokes (subscribers, the
                     # shipper, the recovery): their own transaction, its failure only logged.
                     self._fold_aggregates(conn, batch, rejected)
+                    self._retain(conn)  # a run that ended in this batch, before the strokes after it
                     next_check = time.monotonic_ns() + FILE_CHECK_NS
                     done += len(batch)
                     batch = []  # the records are on disk: hold none of them while idle
@@ -643,6 +640,16 @@ class RecordStore(RecordQueries):
         except sqlite3.Error as exc:
             log.warning("run statistics not saved", path=str(self.path), error=str(exc))
 
+    def _retain(self, conn: sqlite3.Connection) -> None:
+        """Apply the retention policy when it is due (daemon/retention.py)."""
+        retention = self.retention
+        if retention is None or self._writer_error is not None or not retention.due(time.monotonic_ns()):
+            return
+        try:
+            retention.apply(conn)
+        except sqlite3.Error as exc:  # the strokes stay where they are: tried again later
+            log.warning("retention failed", path=str(self.path), error=str(exc))
+
     def _tell_committed(self, batch: list[Any], rejected: set[int]) -> None:
         """Hand the records and runs now in the file to `on_commit` and `on_run`, in the order they
         were submitted (a subscriber sees only what is kept, and a run's end after its strokes)."""
@@ -653,6 +660,8 @@ class RecordStore(RecordQueries):
                     records.append(item)
             elif type(item) is RunRecord:
                 self.runs_written += 1
+                if item.last_cycle is not None and self.retention is not None:
+                    self.retention.run_ended()
                 self._tell(self.on_commit, records)
                 records = []
                 self._tell(self.on_run, item)

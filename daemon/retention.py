@@ -2,14 +2,17 @@
 stays bounded (issue 36; the file grew ~175 bytes a stroke, forever).
 
 The policy (`[records]` keep_strokes, keep_days, keep_bytes; 0: no limit) is applied by the record
-writer when it is idle, at most once a minute: while the file holds more strokes than keep_strokes,
-or more bytes than keep_bytes, or a run that ended more than keep_days ago, the oldest ended run is
-moved, whole, with its run row and its statistics, into `records-archive.sqlite` beside it (the
-same schema: `usmswitchctl export --from` and `RecordsFile.dataframe()` read it as they read the
-records file). Never a run in progress, never a stroke without a run (a lone `switch`), and, where
-the records are shipped to PostgreSQL, never a stroke not yet shipped. Each move is one transaction
-over both files (ATTACH): a crash leaves the run in one of them, never both or neither. The space a
-move frees is reused by the strokes after it, so the file stops growing. Each move is logged.
+writer as soon as a run's end is written (what makes a run movable), busy or not, and otherwise at
+most once a minute (keep_days ages runs; a run in progress grows the file): while the file holds
+more strokes than keep_strokes, or more used bytes than keep_bytes, or a run that ended more than
+keep_days ago, the oldest ended run is moved, whole, with its run row and its statistics, into
+`records-archive.sqlite` beside it (the same schema: `usmswitchctl export --from` and
+`RecordsFile.dataframe()` read it as they read the records file). Never a run in progress, never a
+stroke without a run (a lone `switch`), and, where the records are shipped to PostgreSQL, never a
+stroke not yet shipped. Each move is one transaction over both files (ATTACH): a crash leaves the
+run in one of them, never both or neither. The pages a move frees are reused by the strokes after
+it, so the file settles at about keep_bytes plus the largest run (a run in progress is never moved)
+and grows no further. Each move is logged.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from .run_aggregates import TABLE as AGGREGATES_TABLE
 log = structlog.get_logger("usmswitch.records")
 
 ARCHIVE_FILE = "records-archive.sqlite"
-#: The writer looks at the policy at most this often (an idle writer, between strokes).
+#: The writer looks at the policy at most this often, but for a run's end (looked at at once).
 CHECK_EVERY_NS = 60_000_000_000
 _DAY_NS = 86_400_000_000_000
 
@@ -64,16 +67,24 @@ class Retention:
         self._shipped = shipped
         self._every = check_every_ns
         self._next_ns = 0
+        self._ended = False  # a run's end written since the last look
         #: Runs moved to the archive by this writer, and their strokes.
         self.runs_archived = 0
         self.strokes_archived = 0
 
+    def run_ended(self) -> None:
+        """A run's end is in the file: look at once. In virtual time runs follow each other far
+        faster than once a minute, with the writer never idle; waiting for either let the file
+        grow by many runs past its bound."""
+        self._ended = True
+
     def due(self, now_ns: int) -> bool:
-        return self.policy.active and now_ns >= self._next_ns
+        return self.policy.active and (self._ended or now_ns >= self._next_ns)
 
     def apply(self, conn: sqlite3.Connection) -> int:
         """Move the oldest ended runs until the policy holds; returns how many runs moved."""
         self._next_ns = time.monotonic_ns() + self._every
+        self._ended = False
         p = self.policy
         runs = conn.execute(
             "SELECT run_id, first_cycle, last_cycle, ended_wall_ns FROM runs"

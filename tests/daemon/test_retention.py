@@ -47,10 +47,20 @@ def _wait_applied(store: RecordStore, runs: int) -> None:
         time.sleep(0.02)
 
 
+def _wait_looked(store: RecordStore) -> None:
+    """Until the idle writer has looked at the policy once (the daemon's start)."""
+    import time
+
+    end = time.monotonic() + 20
+    while not store.retention._next_ns:  # type: ignore[union-attr]
+        assert time.monotonic() < end
+        time.sleep(0.02)
+
+
 def test_old_runs_move_whole_to_the_archive_and_the_file_stays_bounded(tmp_path: Path) -> None:
     path = tmp_path / "records.sqlite"
     store = RecordStore(path)
-    store.retention = Retention(RetentionPolicy(keep_strokes=1000), path, check_every_ns=0)
+    store.retention = Retention(RetentionPolicy(keep_strokes=1000), path)
     try:
         loop, _daq, _ = make_loop(sink=store.submit, seed=4)
         loop.run_sink = store.submit_run
@@ -90,6 +100,38 @@ def test_old_runs_move_whole_to_the_archive_and_the_file_stays_bounded(tmp_path:
     assert out.read_text().count("\n") == 401
     with RecordStore(archive, readonly=True) as a:  # the statistics moved with the strokes
         assert a.run_stats(1)["all"]["strokes"] == 400
+
+
+def test_each_ended_run_is_looked_at_however_fast_the_runs_come(tmp_path: Path) -> None:
+    """In virtual time runs follow each other faster than the writer's once-a-minute look, and the
+    writer is never idle: each run's end (what makes a run movable) is looked at as it is written,
+    so the file never holds much more than the bound and the run in progress."""
+    path = tmp_path / "records.sqlite"
+    store = RecordStore(path, max_batch=100, wait_when_behind=300)  # as the daemon in virtual time
+    store.retention = Retention(RetentionPolicy(keep_strokes=1000), path)  # the daemon's period
+    try:
+        loop, _daq, _ = make_loop(sink=store.submit, seed=8)
+        loop.run_sink = store.submit_run
+        _wait_looked(store)  # as in the daemon, idle at start: the next look a minute away
+        for _ in range(8):  # 3,200 strokes back to back, no flush between the runs
+            loop.run_cycles(30 * MS, 400)
+        assert store.flush(30_000_000_000)
+        assert [r.run_id for r in store.runs()] == [7, 8], [r.run_id for r in store.runs()]
+        assert store.count() == 800
+    finally:
+        store.close()
+    con = sqlite3.connect(path)
+    try:
+        page_size = con.execute("PRAGMA page_size").fetchone()[0]
+        free = con.execute("PRAGMA freelist_count").fetchone()[0]
+        pages = con.execute("PRAGMA page_count").fetchone()[0]
+    finally:
+        con.close()
+    # The file's pages are its high-water mark: ~1,000 strokes and the run in progress (+ a batch),
+    # not the 3,200 strokes made. Its 800 strokes now use pages - free; the peak stays within 2x.
+    assert pages <= 2 * (pages - free), (pages, free, page_size)
+    with RecordsFile(tmp_path / ARCHIVE_FILE) as old:
+        assert [r["run_id"] for r in old.runs()] == [1, 2, 3, 4, 5, 6]
 
 
 def test_nothing_the_postgresql_copy_lacks_is_moved(tmp_path: Path) -> None:
