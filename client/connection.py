@@ -26,9 +26,8 @@ from urllib.parse import parse_qs, urlsplit
 
 import msgpack
 
-from usmswitch.protocol.export_plan import ExportPlan
+from usmswitch.protocol.export_plan import CHUNK, ExportPlan
 from usmswitch.protocol.record import check_label
-from usmswitch.protocol.rpc_params import MAX_EXPORT_STROKES
 from usmswitch.protocol.sockets import UntrustedSocketError, check_peer, check_socket_owner
 from usmswitch.protocol.wire import (
     MAX_MSGID,
@@ -281,11 +280,11 @@ class Client(Api):
         last: int | None = None,
         *,
         label: str | None = None,
-        max_strokes: int = MAX_EXPORT_STROKES,
+        max_strokes: int = CHUNK,
     ) -> Iterator[tuple[int, int, str]]:
         """Every stroke (of a run, of the runs with `label`, from cycle `first` to `last`) as CSV
         lines without the header (`usmswitch.protocol.record_csv.csv_header_line`), a chunk of up to
-        `max_strokes` at a time: (strokes, last cycle, text), in cycle order.
+        `max_strokes` (1..10,000) at a time: (strokes, last cycle, text), in cycle order.
 
         The chunks are asked a few ahead (`protocol.export_plan`): the server builds the next while
         this one travels and is written. Memory is a few chunks on both ends; stop iterating and no

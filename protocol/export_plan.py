@@ -18,9 +18,14 @@ from collections import deque
 
 from .rpc_params import MAX_EXPORT_STROKES
 
-#: Range requests kept in flight: one a reader process of the server's large-reads lane (two by
-#: default, Limits.max_reads), so neither waits for the client between chunks.
-AHEAD = 2
+#: Range requests kept in flight: one more than the reader processes of the server's large-reads
+#: lane (Limits.max_reads, 2), so a reader that finishes a chunk starts the next one queued at once
+#: instead of waiting for the client to take that chunk (and write the one before) and ask again.
+AHEAD = 3
+#: Strokes a chunk, as exports ask them: half the protocol's most (MAX_EXPORT_STROKES), so that an
+#: export of 10,000 strokes is two chunks built at once, not one built alone; a request costs the
+#: reader ~0.5 ms beside ~35 ms of SQL for its 5,000 strokes.
+CHUNK = 5000
 #: The highest cycle a request may name (rpc_params' bound on first_cycle and last_cycle).
 MAX_CYCLE = 2**62
 

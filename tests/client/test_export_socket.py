@@ -112,8 +112,8 @@ def test_chunks_are_bounded_and_a_client_may_stop_early(serving: tuple[Path, Pat
     with Client(str(sock), timeout=60) as c:
         chunks = c.export_csv(run=3)
         strokes, last, text = next(chunks)
-        assert strokes == 10_000 and text.count("\n") == 10_000
-        assert last == 30_000 and text.startswith("20001,")
+        assert strokes == 5000 and text.count("\n") == 5000  # export_plan.CHUNK
+        assert last == 25_000 and text.startswith("20001,")
         chunks.close()  # asks for no more
         one = c.export_chunk(None, 99_999, None, 5)
         assert one["strokes"] == 2 and one["last_cycle"] == 100_000
@@ -161,7 +161,7 @@ def test_a_small_read_is_answered_beside_four_exports(serving: tuple[Path, Path]
 
 def test_the_next_chunks_are_asked_before_this_one_is_handed_over(serving: tuple[Path, Path]) -> None:
     """The server builds the next chunks while one travels and is written: the request for each
-    chunk's successor is out before the chunk reaches the caller, two ranges ahead, each range
+    chunk's successors are out before the chunk reaches the caller, three ranges ahead, each range
     max_strokes cycles (complete by construction). Before, each request waited for the last."""
     sock, db = serving
     with AskSpy(str(sock), timeout=60) as c:
@@ -171,21 +171,22 @@ def test_the_next_chunks_are_asked_before_this_one_is_handed_over(serving: tuple
             got.append(text)
         assert "".join(got) == _file_csv(db, run=4)
     # Where the run starts is asked first (one stroke: its CSV is read again in the first range);
-    # then ranges of 3000 cycles, two in flight, each chunk's successor asked before it is handed
-    # over; the short one (the run's end) stops the asking ahead, and once the range in flight
-    # after it is answered (empty), one stroke from there says there is no more.
+    # then ranges of 3000 cycles, three in flight, each chunk's successors asked before it is
+    # handed over; the short one (the run's end) stops the asking ahead, and once the ranges in
+    # flight after it are answered (empty), one stroke from there says there is no more.
     assert c.log == [
         ("ask", 1, None, 1),
         ("ask", 30_001, 33_000, 3000),
         ("ask", 33_001, 36_000, 3000),
         ("ask", 36_001, 39_000, 3000),
-        ("got", 3000, 33_000),
         ("ask", 39_001, 42_000, 3000),
-        ("got", 3000, 36_000),
+        ("got", 3000, 33_000),
         ("ask", 42_001, 45_000, 3000),
+        ("got", 3000, 36_000),
+        ("ask", 45_001, 48_000, 3000),
         ("got", 3000, 39_000),
         ("got", 1000, 40_000),
-        ("ask", 45_001, None, 1),
+        ("ask", 48_001, None, 1),
     ]
 
 
@@ -235,14 +236,14 @@ def test_an_export_with_a_last_cycle_ends_there(
 def test_a_client_that_stops_early_asks_no_more_and_its_connection_serves_on(
     serving: tuple[Path, Path],
 ) -> None:
-    """Stopped with chunks in flight: no request goes out after the stop, the replies in flight are
+    """Stopped with three chunks in flight: no request goes out after the stop, the replies in flight are
     dropped as they come, and the next calls on the same connection get their own answers."""
     sock, db = serving
     with AskSpy(str(sock), timeout=60) as c:
         chunks = c.export_csv(max_strokes=2000)
         assert next(chunks)[:2] == (2000, 2000)
-        in_flight = [e for e in c.log if e[0] == "ask"][-2:]
-        assert in_flight == [("ask", 2001, 4000, 2000), ("ask", 4001, 6000, 2000)]
+        in_flight = [e for e in c.log if e[0] == "ask"][-3:]
+        assert in_flight == [("ask", 2001, 4000, 2000), ("ask", 4001, 6000, 2000), ("ask", 6001, 8000, 2000)]
         asked = len(c.log)
         chunks.close()
         assert [r["run_id"] for r in c.runs(1)] == [10]
@@ -252,7 +253,7 @@ def test_a_client_that_stops_early_asks_no_more_and_its_connection_serves_on(
         assert "".join(t for _, _, t in again) == _file_csv(db, run=3)
         assert [n for n, _, _ in again] == [4000, 4000, 2000]
         assert len([e for e in c.log[asked:] if e[0] == "ask" and e[3] == 2000]) == 0
-        # The two dropped replies come, and are kept by nobody.
+        # The three dropped replies come, and are kept by nobody.
         end = time.monotonic() + 60
         while c._abandoned and time.monotonic() < end:
             with contextlib.suppress(TimeoutError):
