@@ -69,14 +69,16 @@ def test_old_runs_move_whole_to_the_archive_and_the_file_stays_bounded(tmp_path:
         kept = [(r.run_id, r.first_cycle, r.last_cycle) for r in store.runs()]
         assert store.count() <= 1000 and kept == [(5, 1601, 2000), (6, 2001, 2400)], kept
         # Rounds of six more: the file holds as many strokes as before, in the pages the moves
-        # freed: after a first round or two (free pages in the right places), it stops growing.
+        # freed. Its bound (docs/records.md): what keep_strokes holds plus the largest run (400 of
+        # 1,000 strokes); how many pages a round leaves free depends on how the writer's batches
+        # fell (a loaded machine: 71, 74, 75, 75, 82 pages), so the bound, not a page count.
         sizes = [_pages(path)]
         for k in range(4):
             _runs_of(store, loop, 6, 400)
             _wait_applied(store, 10 + 6 * k)
             assert store.count() <= 1000
             sizes.append(_pages(path))
-        assert sizes[-1] <= sizes[2] * 1.05, sizes
+        assert max(sizes) <= sizes[0] * 1.4 * 1.1, sizes
         # An open run is never moved, however old the policy says the file is.
         run = loop.start_cycling(30 * MS, 0)
         for _ in range(1200):
