@@ -19,17 +19,21 @@ rig's records from the PostgreSQL copy the daemons ship, and `open_records(sourc
 
 from __future__ import annotations
 
+import collections
 import csv
 import io
 import json
 import os
 import sqlite3
+import threading
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
+from usmswitch.protocol.export_plan import ExportPlan
 from usmswitch.protocol.record import FIELDS, LATER_FIELDS, CycleRecord, Flag, RunRecord
 from usmswitch.protocol.record_csv import BadCell, csv_rows_of_table, csv_text_chunks
 
@@ -210,6 +214,10 @@ class RecordsSource(ABC):
 DATAFRAME_RENAMES = {"flags": "flag_bits", "mode": "loop_mode"}
 
 
+#: Threads an export from the file builds its chunks on (each with its own read connection).
+EXPORT_THREADS = 2
+
+
 class RecordsFile(RecordsSource):
     """A records file (or a state directory holding one), opened read-only."""
 
@@ -219,7 +227,7 @@ class RecordsFile(RecordsSource):
         self.name = str(self.path)
         if not self.path.is_file():
             raise RecordsFileError(f"no records file at {self.path}")
-        uri = f"file:{quote(str(self.path.resolve()))}?mode=ro"
+        self._uri = uri = f"file:{quote(str(self.path.resolve()))}?mode=ro"
         try:
             self._db = sqlite3.connect(uri, uri=True)
             self._db.row_factory = sqlite3.Row
@@ -306,13 +314,44 @@ class RecordsFile(RecordsSource):
     ) -> Iterator[tuple[int, int, str]]:
         """The records (of a run, of the runs with a label) as CSV text, each chunk's built by SQLite
         in one statement (issue 36: within 2x `sqlite3 -csv` of the same rows), the same bytes as
-        the csv module writes of them."""
+        the csv module writes of them. The chunks ahead are built on two threads, each on a
+        connection of its own, as the socket's export asks two reader processes
+        (protocol/export_plan.py): SQLite builds one chunk while Python finishes another (one at a
+        time, 2.64x `sqlite3 -csv` at 10^7 strokes)."""
         if run is not None:
             self.run(run)
+        plan = ExportPlan(first, last, max_strokes=chunk)
+        connections: list[sqlite3.Connection] = []
+        local = threading.local()
+
+        def build(a: int, b: int | None, most: int) -> tuple[int, int | None, str]:
+            conn = getattr(local, "conn", None)
+            if conn is None:
+                # Used by its thread alone; closed below once the threads have ended.
+                conn = local.conn = sqlite3.connect(self._uri, uri=True, check_same_thread=False)
+                connections.append(conn)
+            return next(csv_text_chunks(conn, a, b, run, most, label=label), (0, None, ""))
+
         try:
-            yield from csv_text_chunks(self._db, first, last, run, chunk, label=label)
+            with ThreadPoolExecutor(EXPORT_THREADS, thread_name_prefix="export") as pool:
+                pending: collections.deque[Future[tuple[int, int | None, str]]] = collections.deque()
+                try:
+                    while True:
+                        pending.extend(pool.submit(build, *req) for req in plan.requests())
+                        if not pending:
+                            return
+                        n, top, text = pending.popleft().result()
+                        if plan.answered(n, top) and n:
+                            assert top is not None
+                            yield n, top, text
+                finally:
+                    for future in pending:  # a reader that stopped early: nothing more is built
+                        future.cancel()
         except BadCell as exc:
             raise RecordsFileError(f"{self.path}: {exc}") from None
+        finally:
+            for conn in connections:
+                conn.close()
 
     def cycle_span(
         self, first: int = 1, last: int | None = None, run: int | None = None

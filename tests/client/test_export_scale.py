@@ -81,3 +81,22 @@ def test_the_progress_bar_is_drawn_on_a_terminal_only(
         assert b"export" in drawn and b"strokes" in drawn, drawn[:500]
         assert printed == f"100000 records written to {out}\n"
     assert out.read_text() == _record_path_csv(records_100k)
+
+
+def test_the_files_chunks_built_ahead_are_in_order_and_an_early_stop_stops_them(records_100k: Path) -> None:
+    """`RecordsFile.csv_chunks` builds the chunks ahead on two threads (issue 36): they come in
+    cycle order with nothing twice or missing, for a range with an explicit last cycle and for
+    small chunks; a reader that stops after one chunk leaves no thread or connection behind, and
+    the file reads on."""
+    import threading
+
+    with RecordsFile(records_100k) as f:
+        lines = _record_path_csv(records_100k).splitlines(keepends=True)[1:]
+        got = "".join(text for _n, _last, text in f.csv_chunks(1, 25_003, chunk=777))
+        assert got == "".join(lines[:25_003])
+        chunks = f.csv_chunks(chunk=1000)
+        n, last, text = next(chunks)
+        assert (n, last) == (1000, 1000) and text == "".join(lines[:1000])
+        chunks.close()
+        assert not [t for t in threading.enumerate() if t.name.startswith("export")]
+        assert len(f) == 100_000
