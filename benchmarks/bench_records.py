@@ -36,7 +36,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
 import statistics
 import subprocess
 import sys
@@ -47,6 +46,7 @@ import urllib.request
 from pathlib import Path
 from typing import Any
 
+from benchmarks.daemon_proc import stop_daemon
 from benchmarks.table import print_table
 
 MS = 1_000_000
@@ -136,12 +136,7 @@ def make(dest: Path, strokes: int) -> None:
         status = client.status()
         client.close()
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_daemon(proc)
         log.close()
     seconds = time.monotonic() - t0
     rec = status["records"]
@@ -283,11 +278,7 @@ def _measure(n: int) -> tuple[list[str], list[str]]:
         server = sum(rss_bytes(k) for k in children(proc.pid))
         daemon = rss_bytes(proc.pid)
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(120)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_daemon(proc, 120)
         shutil.rmtree(tmp, ignore_errors=True)
     samples = info["samples"]
     half = samples[len(samples) // 2 :] or samples

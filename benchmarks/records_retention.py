@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import os
 import shutil
-import signal
 import sqlite3
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from benchmarks.daemon_proc import stop_daemon
 
 MS = 1_000_000
 #: At scale 1: RUNS runs of RUN_STROKES strokes (~175 bytes each: ~70 MB in all) against a bound of
@@ -132,12 +133,7 @@ def measure_retention() -> tuple[list[list[str]], list[str]]:
         status = client.status()["records"]
         client.close()
     finally:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(60)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        stop_daemon(proc)
         log.close()
     archive = state / "records-archive.sqlite"
     kept = _count(db, "SELECT count(*) FROM cycles")
