@@ -26,6 +26,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from usmswitch.runtime.realtime import name_thread
+from usmswitch.server.estop_link import EstopLink, EstopUnreached
 
 log = logging.getLogger("usmswitch.rpc")
 
@@ -39,13 +40,33 @@ class CrossBackend:
     """The panel's Backend (web/panel.py) on the HTTP doors' loop over one on the event loop's
     (`_PanelConn`): calls, notifications and exports each cross between the two threads."""
 
-    def __init__(self, inner: Any, home: asyncio.AbstractEventLoop, here: asyncio.AbstractEventLoop) -> None:
+    def __init__(
+        self,
+        inner: Any,
+        home: asyncio.AbstractEventLoop,
+        here: asyncio.AbstractEventLoop,
+        estop: EstopLink | None = None,
+    ) -> None:
         self.inner = inner
         self.home = home  # the Unix and TCP doors' loop, where `inner` lives
         self.here = here
+        self.estop = estop  # the estop socket, when the daemon has one (server/estop_link.py)
 
     def call(self, method: str, params: list[Any]) -> asyncio.Future[Any]:
-        """A socket method, dispatched on the event loop's thread; the reply resolves here."""
+        """A socket method, dispatched on the event loop's thread; the reply resolves here. An
+        estop goes by the estop socket first, not through that thread."""
+        if method == "estop" and self.estop is not None:
+            return self.here.create_task(self._estop(self.estop, params))
+        return self._via_home(method, params)
+
+    async def _estop(self, link: EstopLink, params: list[Any]) -> Any:
+        try:
+            return await link.call(params)
+        except EstopUnreached as exc:
+            log.warning("rpc: panel estop by the event loop: no answer on the estop socket (%s)", exc)
+        return await self._via_home("estop", params)
+
+    def _via_home(self, method: str, params: list[Any]) -> asyncio.Future[Any]:
         fut: asyncio.Future[Any] = self.here.create_future()
 
         def settle(done: asyncio.Future[Any]) -> None:
@@ -202,7 +223,8 @@ async def serve_http(
                 from usmswitch.web.panel import serve_panel  # aiohttp: only here
 
                 hosts = frozenset(cfg.get("web_allowed_hosts", ()))
-                backend = CrossBackend(panel_conn, home, here)
+                estop = cfg.get("estop_socket")
+                backend = CrossBackend(panel_conn, home, here, None if estop is None else EstopLink(estop))
                 servers.append(
                     await serve_panel(sock, backend, cfg["web_token"], cfg["web_token_file"], hosts)
                 )

@@ -446,6 +446,8 @@ class RpcServer:
             "web_token": self.web_token if self.web is not None else None,
             "web_token_file": self.web_token_file,
             "web_allowed_hosts": self.web_allowed_hosts,
+            # The panel's estop goes there first (server/estop_link.py).
+            "estop_socket": None if self.urgent_path is None else str(self.urgent_path),
             "lost": self.lost,
             # In a thread of the daemon's process, polling would hold the GIL against the loop.
             "busy_poll_ns": self.busy_poll_ns if self.isolation == "process" else 0,

@@ -23,6 +23,7 @@ from daemonproc import MS, daemon_args, spawn, stop, wait_serving
 from usmswitch.client import Client
 from usmswitch.protocol.record_csv import CSV_HEADER
 from usmswitch.protocol.sockets import web_token_path
+from usmswitch.protocol.wire import estop_socket_path
 from usmswitch.web.panel import TOKEN_HEADER
 
 
@@ -271,6 +272,19 @@ def test_a_page_presses_the_estop_on_its_live_feed(rig: dict[str, Any]) -> None:
         pressed = asyncio.run(send('{"estop": "b1"}', rig["token"]))["estop"]
         assert pressed["id"] == "b1" and "error" not in pressed
         assert pressed["result"]["state"] == "fault"
+        # From the HTTP doors' thread by the estop socket, behind nothing on the event loop.
+        assert c.status()["fault"] == "estop (panel, live feed, estop socket)"
+        c.reset_fault()
+        c.start_cycling(15 * MS, take_over=True)
+        # The estop socket not there: the same estop goes by the event loop and the urgent channel.
+        estop_sock = estop_socket_path(rig["sock"])
+        aside = estop_sock.with_name("aside.sock")
+        estop_sock.rename(aside)
+        try:
+            pressed = asyncio.run(send('{"estop": "b2"}', rig["token"]))["estop"]
+        finally:
+            aside.rename(estop_sock)
+        assert pressed["id"] == "b2" and pressed["result"]["state"] == "fault"
         assert c.status()["fault"] == "estop (panel, live feed)"
         c.reset_fault()
         c.start_cycling(15 * MS, take_over=True)

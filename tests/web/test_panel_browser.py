@@ -395,15 +395,16 @@ def test_the_estop_with_the_token_latches_fault(rig: dict[str, Any], browser: An
             assert time.monotonic() - t0 < 1.0, "no FAULT 1 s after the estop"
         took = time.monotonic() - t0
         print(f"\npanel estop: FAULT latched {took * 1e3:.1f} ms after the click (Selenium's click included)")
-        # On the live feed the page holds open (issue 35), not a POST: "estop (panel)" is the POST's.
-        assert state["fault"] == "estop (panel, live feed)"  # was "estop (socket)" (issue 37's bites)
-        shown = "FAULT latched: estop (panel, live feed)"
+        # On the feed the page holds open (issue 35); "estop (panel, estop socket)" is the POST's.
+        # was "estop (socket)" (issue 37's bites); by the estop socket from the HTTP doors' thread
+        assert state["fault"] == "estop (panel, live feed, estop socket)"
+        shown = "FAULT latched: estop (panel, live feed, estop socket)"
         wait_for("the fault shown", lambda: shown in text(browser, "fault"))
         browser.find_element("id", "reset").click()
         wait_for("the fault reset", lambda: c.status()["state"] != "fault")
         # With the feed down (closing; it reconnects within a second), the estop goes by POST.
         browser.execute_script("feed.close();")
         estop.click()
-        wait_for("the POST's estop", lambda: c.status()["fault"] == "estop (panel)")
+        wait_for("the POST's estop", lambda: c.status()["fault"] == "estop (panel, estop socket)")
         browser.find_element("id", "reset").click()
         wait_for("the fault reset", lambda: c.status()["state"] != "fault")
