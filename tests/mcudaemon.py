@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import bisect
 import contextlib
+import json
 import sqlite3
 import time
 from collections.abc import Iterator
@@ -21,6 +22,8 @@ MS = 1_000_000
 FAULT, STALL, MISMATCH, NOISE = 1 << 4, 1 << 2, 1 << 11, 1 << 12
 #: A record is clean when none of these flags is set: its operating time was learned.
 NOT_CLEAN = int(UNUSABLE) | MISMATCH
+#: The daemon's stderr (its JSON log), kept beside its state once it stopped.
+DAEMON_LOG = "daemon.log"
 
 
 @contextlib.contextmanager
@@ -29,6 +32,7 @@ def daemon(tmp_path: Path, port: Path, *extra: str) -> Iterator[tuple[Client, ob
     sock = tmp_path / "d.sock"
     args = ["--driver", "serial", "--port", str(port), "--target", "12ms", *extra]
     proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False))
+    err = b""
     try:
         daemonproc.wait_serving(sock, proc)
         with Client(str(sock), timeout=10) as c:
@@ -39,6 +43,8 @@ def daemon(tmp_path: Path, port: Path, *extra: str) -> Iterator[tuple[Client, ob
     else:
         err = daemonproc.stop(proc)
         assert proc.returncode == 0, err.decode()[-3000:]
+    finally:
+        (tmp_path / DAEMON_LOG).write_bytes(err)  # rows() reads why a stroke was not learned
 
 
 def run(c: Client, period_ns: int, count: int, timeout_s: float = 20.0) -> dict:
@@ -61,6 +67,7 @@ class Row:
     operating_ns: int | None
     error_ns: int | None
     lateness_ns: int | None
+    why: str = ""  # the daemon's word on a stroke it did not learn (its log), for a failure to say
 
     @property
     def clean(self) -> bool:
@@ -69,7 +76,20 @@ class Row:
 
 def not_clean(got: list[Row]) -> list[str]:
     """The rows that are not clean, each as its cycle and its flags by name: what a failure says."""
-    return [f"cycle {r.cycle}: {Flag(r.flags)!r}" for r in got if not r.clean]
+    return [f"cycle {r.cycle}: {Flag(r.flags)!r}{f' ({r.why})' if r.why else ''}" for r in got if not r.clean]
+
+
+def _not_learned(tmp_path: Path) -> dict[int, str]:
+    """Cycle -> why, from the daemon's log lines on strokes it did not learn."""
+    why: dict[int, str] = {}
+    log = tmp_path / DAEMON_LOG
+    for line in log.read_text(errors="replace").splitlines() if log.exists() else ():
+        with contextlib.suppress(ValueError):
+            entry = json.loads(line)
+            event = str(entry.get("event", "")) if isinstance(entry, dict) else ""
+            if event.startswith("stroke not") and "cycle" in entry:
+                why[entry["cycle"]] = str(entry.get("why", event))
+    return why
 
 
 def rows(tmp_path: Path) -> list[Row]:
@@ -80,7 +100,8 @@ def rows(tmp_path: Path) -> list[Row]:
             "SELECT cycle, direction, flags, t_start_ns, t_arrive_ns, operating_ns, error_ns, lateness_ns"
             " FROM cycles ORDER BY cycle"
         )
-        return [Row(*r) for r in con.execute(sql)]
+        why = _not_learned(tmp_path)
+        return [Row(*r, why=why.get(r[0], "")) for r in con.execute(sql)]
     finally:
         con.close()
 
