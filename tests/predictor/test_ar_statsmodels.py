@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 from ar_series import ar_around_mean, drifting, steps
-from statsmodels.tsa.ar_model import AutoReg
 
 from usmswitch.predictor import ARPredictor, aic_table
 
@@ -15,6 +14,10 @@ WINDOW = 100
 
 
 def _fit(window: list[int], order: int, trend: str, hold_back: int | None = None):
+    # Imported here, not at the top: statsmodels takes ~2 s of CPU to import, which every process
+    # of make test would pay to collect this file, and only the one that runs it needs.
+    from statsmodels.tsa.ar_model import AutoReg
+
     return AutoReg(np.asarray(window, dtype=float), lags=order, trend=trend, hold_back=hold_back).fit()
 
 
