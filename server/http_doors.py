@@ -51,12 +51,17 @@ class CrossBackend:
         self.home = home  # the Unix and TCP doors' loop, where `inner` lives
         self.here = here
         self.estop = estop  # the estop socket, when the daemon has one (server/estop_link.py)
+        self._estops: set[asyncio.Task[Any]] = set()  # under way (held: a task is only weakly kept)
 
     def call(self, method: str, params: list[Any]) -> asyncio.Future[Any]:
         """A socket method, dispatched on the event loop's thread; the reply resolves here. An
         estop goes by the estop socket first, not through that thread."""
         if method == "estop" and self.estop is not None:
-            return self.here.create_task(self._estop(self.estop, params))
+            # Shielded: a page gone (its handler cancelled) must not cancel an estop under way.
+            task = self.here.create_task(self._estop(self.estop, params))
+            self._estops.add(task)
+            task.add_done_callback(self._estops.discard)
+            return asyncio.shield(task)
         return self._via_home(method, params)
 
     async def _estop(self, link: EstopLink, params: list[Any]) -> Any:
