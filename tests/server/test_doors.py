@@ -7,6 +7,7 @@ import dataclasses
 import resource
 import socket
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -101,6 +102,50 @@ def test_a_full_estop_socket_sheds_its_longest_idle_holder_for_an_estop(
     assert note[:2] == [2, "error"] and note[2][0][0] == ErrorCode.BUSY
     assert "gave way" in note[2][0][1]
     assert holders[1].call("ping", msgid=2)[3] == "pong"  # the others keep their slots
+
+
+def test_an_estop_sent_a_moment_after_its_connect_is_answered_before_the_loops_next_start(
+    sockdir: Path, estops: Estops
+) -> None:
+    """The panel's estop (a connect, its request a moment later) waited for the loop's next start
+    whenever the estop socket's thread took the connection before the request came: p99 7-9 ms
+    by the panel where the estop socket's own path read 2 (`make bench BENCH=abuse`). Here the
+    loop's start never comes until the reply has: it must come all the same. A connection that
+    sent nothing still makes the next round's first wait its turn."""
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(str(sockdir / "e.sock"))
+    listener.listen(16)
+    started = threading.Event()  # the loop's next start
+    turns: list[int] = []
+
+    def gate() -> None:
+        turns.append(1)
+        started.wait(10)
+
+    companion = EstopSocket(listener, {"estop": estops.estop}, Limits(), gate=gate)
+    companion.start()
+    try:
+        raw = Raw(str(sockdir / "e.sock"))
+        for _ in range(500):  # until the thread has taken it, with nothing to read yet
+            if companion._peers:
+                break
+            time.sleep(0.01)
+        reply = raw.call("estop")  # Raw's 5 s timeout: what waited for the gate never came
+        assert reply[2] is None and reply[3]["state"] == "fault", reply
+        assert not turns
+        second = Raw(str(sockdir / "e.sock"))
+        second.send([0, 1, "estop", []])
+        for _ in range(500):
+            if turns:
+                break
+            time.sleep(0.01)
+        assert turns, "the round after a silent connection's did not wait its turn"
+        started.set()
+        assert second.read(1)[0][3]["state"] == "fault"
+    finally:
+        started.set()
+        companion.stop()
+        listener.close()
 
 
 def test_client_estop_gets_through_every_slot_held_on_both_sockets(small: RpcServer, estops: Estops) -> None:
