@@ -18,11 +18,12 @@ from typing import Any
 
 import msgpack
 
-from usmswitch.protocol.wire import MAX_MSGID, REQUEST, RESPONSE, RpcError
+from usmswitch.protocol.wire import REQUEST, RESPONSE, RpcError
 
 #: Time for the whole exchange (connect, request, answer) before the panel goes the old way.
 TIMEOUT_S = 0.25
 _MAX_FRAME_BYTES = 512  # the estop socket's own bound on a frame
+_MSGID = 1  # one request per connection: its id needs to be unique on it alone
 
 
 class EstopUnreached(Exception):
@@ -35,24 +36,22 @@ class EstopLink:
     def __init__(self, path: str | Path, timeout_s: float = TIMEOUT_S) -> None:
         self.path = Path(path)
         self.timeout_s = timeout_s
-        self.msgid = 0
 
     async def call(self, params: list[Any]) -> Any:
         """The estop's result; RpcError if the daemon refused it; EstopUnreached if the socket did
         not answer (the caller then sends it another way)."""
-        self.msgid = msgid = self.msgid % MAX_MSGID + 1
         try:
             async with asyncio.timeout(self.timeout_s):
-                return await self._exchange(msgid, params)
+                return await self._exchange(params)
         except (OSError, TimeoutError, ValueError) as exc:  # ValueError: undecodable bytes
             raise EstopUnreached(f"{self.path}: {type(exc).__name__}: {exc}") from exc
 
-    async def _exchange(self, msgid: int, params: list[Any]) -> Any:
+    async def _exchange(self, params: list[Any]) -> Any:
         # Connected and sent at once, not a loop callback later: the estop socket's thread reads a
         # new connection's request as it accepts it, and one not there yet waited its next round
         # (p99 7-9 ms by the panel where the estop socket read 2, `make bench BENCH=abuse`).
         loop = asyncio.get_running_loop()
-        frame = msgpack.packb([REQUEST, msgid, "estop", params], use_bin_type=True)
+        frame = msgpack.packb([REQUEST, _MSGID, "estop", params], use_bin_type=True)
         with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
             sock.setblocking(False)
             try:
@@ -66,7 +65,7 @@ class EstopLink:
             while data := await loop.sock_recv(sock, _MAX_FRAME_BYTES):
                 unpacker.feed(data)
                 for msg in unpacker:
-                    if type(msg) is list and len(msg) == 4 and msg[0] == RESPONSE and msg[1] == msgid:
+                    if type(msg) is list and len(msg) == 4 and msg[0] == RESPONSE and msg[1] == _MSGID:
                         error = msg[2]
                         if error is None:
                             return msg[3]
