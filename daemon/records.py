@@ -503,7 +503,7 @@ class RecordStore(RecordQueries):
             if pending and (self._writer_error is None or now >= retry_at or stopping):
                 while pending:
                     self.gate()
-                    batch = [pending.popleft() for _ in range(min(self._max_batch, len(pending)))]
+                    batch = self._next_batch(pending)
                     try:
                         self._check_file()
                         counts = self._write(conn, batch)
@@ -561,6 +561,20 @@ class RecordStore(RecordQueries):
                 for _, marker in waiters:
                     marker.done.set()
                 return
+
+    def _next_batch(self, pending: deque[Any]) -> list[Any]:
+        """Up to max_batch items off `pending`; with retention kept, a run's end ends its batch, so
+        the run is moved before the strokes after it are written: a backlog (a writer behind, a
+        disk back) grows the file by one run past keep_bytes, not by a batch of many runs."""
+        if self.retention is None:
+            return [pending.popleft() for _ in range(min(self._max_batch, len(pending)))]
+        batch = []
+        while pending and len(batch) < self._max_batch:
+            item = pending.popleft()
+            batch.append(item)
+            if type(item) is RunRecord and item.last_cycle is not None:
+                break
+        return batch
 
     def _write(
         self, conn: sqlite3.Connection, batch: list[Any]
