@@ -6,6 +6,7 @@ import contextlib
 import itertools
 import json
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -73,6 +74,16 @@ def test_starts_cycles_and_sigterm_exits_0_with_every_row(tmp_path: Path) -> Non
     assert len(recorded) == final[0]["records"]
     assert [c for c, _ in recorded] == list(range(1, len(recorded) + 1))
     assert not (tmp_path / "d.sock").exists()
+    # Where the stop's time went, each step and the whole from the signal (docs/service.md).
+    (exiting,) = [entry["took"] for entry in logs if entry.get("event") == "exiting"]
+    steps, _, whole = exiting.partition("; ")
+    laps = re.findall(r"([a-z][a-z ]*) (\d+\.\d) ms", steps)
+    assert [name for name, _ in laps] == [
+        "drive off", "socket closed", "driver released", "records flushed", "shipper and metrics stopped",
+        "file settled",
+    ], exiting  # fmt: skip
+    total = re.fullmatch(r"(\d+\.\d) ms in all", whole)
+    assert total is not None and sum(float(ms) for _, ms in laps) <= float(total.group(1)) + 0.5, exiting
 
 
 def test_bad_config_key_refuses_to_start_naming_it(tmp_path: Path) -> None:
