@@ -25,6 +25,7 @@ import threading
 from collections.abc import Awaitable, Callable
 from typing import Any
 
+from usmswitch.protocol.wire import RpcError
 from usmswitch.runtime.realtime import name_thread
 from usmswitch.server.estop_link import EstopLink, EstopUnreached
 
@@ -51,25 +52,21 @@ class CrossBackend:
         self.home = home  # the Unix and TCP doors' loop, where `inner` lives
         self.here = here
         self.estop = estop  # the estop socket, when the daemon has one (server/estop_link.py)
-        self._estops: set[asyncio.Task[Any]] = set()  # under way (held: a task is only weakly kept)
 
     def call(self, method: str, params: list[Any]) -> asyncio.Future[Any]:
         """A socket method, dispatched on the event loop's thread; the reply resolves here. An
-        estop goes by the estop socket first, not through that thread."""
+        estop goes by the estop socket first, at once, not through that thread."""
         if method == "estop" and self.estop is not None:
-            # Shielded: a page gone (its handler cancelled) must not cancel an estop under way.
-            task = self.here.create_task(self._estop(self.estop, params))
-            self._estops.add(task)
-            task.add_done_callback(self._estops.discard)
-            return asyncio.shield(task)
+            done: asyncio.Future[Any] = self.here.create_future()
+            try:
+                done.set_result(self.estop.call(params))
+            except RpcError as exc:
+                done.set_exception(exc)
+            except EstopUnreached as exc:
+                log.warning("rpc: panel estop by the event loop: no answer on the estop socket (%s)", exc)
+                return self._via_home(method, params)
+            return done
         return self._via_home(method, params)
-
-    async def _estop(self, link: EstopLink, params: list[Any]) -> Any:
-        try:
-            return await link.call(params)
-        except EstopUnreached as exc:
-            log.warning("rpc: panel estop by the event loop: no answer on the estop socket (%s)", exc)
-        return await self._via_home("estop", params)
 
     def _via_home(self, method: str, params: list[Any]) -> asyncio.Future[Any]:
         fut: asyncio.Future[Any] = self.here.create_future()
