@@ -62,8 +62,8 @@ def load_exports(path: str, stop: Any) -> None:
         while not stop.is_set():
             try:
                 c.history(10_000)
-            except ConnectionClosed:
-                return  # the daemon went (the SIGTERM row ends it under this load)
+            except (ConnectionClosed, FileNotFoundError):
+                return  # the daemon went (the SIGTERM row ends it under this load; its socket too)
             except (OSError, RpcError):
                 if stop.is_set():
                     return  # the load ended mid-call
