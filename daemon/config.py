@@ -21,7 +21,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-from usmswitch.drivers.mcu import MAX_STROKE_TIMEOUT_NS
+from usmswitch.drivers.mcu import DEFAULT_LINK_TIMEOUT_NS, DEFAULT_REPLY_TIMEOUT_NS, MAX_STROKE_TIMEOUT_NS
 from usmswitch.drivers.serial_mcu import DEFAULT_BAUD
 from usmswitch.fleet.pg_schema import check_url, redact_url
 from usmswitch.predictor import DEFAULT_MODEL, MAX_ORDER, MODELS, check_stroke_ns, min_samples
@@ -74,6 +74,8 @@ SIM_STATE_SUBDIR = "sim"
 # Bounds that match the socket's checks (docs/protocol.md): a target or a delay past 10 s is a typo.
 MAX_TARGET_NS = 10_000_000_000
 MAX_DEBOUNCE_NS = 10_000_000
+#: A serial or USB device's reply: past the link's timeout the link is called silent first.
+MAX_REPLY_TIMEOUT_NS = DEFAULT_LINK_TIMEOUT_NS
 MAX_BUSY_POLL_NS = 10_000_000  # past a script's pace between calls: a core polled for nothing
 # Modbus RTU parity (the serial line spec's default is even) and the request timeout's bounds,
 # the driver's own (drivers/modbus_board.py: timeout_ms 10..10000).
@@ -134,6 +136,8 @@ class DriverConfig:
 
     kind: str = "sim"
     debounce_ns: int = 100_000
+    # A device's ACK or PONG later than this is a lost frame (resent; a stroke's report unchecked).
+    reply_timeout_ns: int = DEFAULT_REPLY_TIMEOUT_NS
     serial: SerialConfig = field(default_factory=SerialConfig)
     usb: UsbConfig = field(default_factory=UsbConfig)
 
@@ -433,6 +437,11 @@ def _build(raw: dict[str, Any], env: Mapping[str, str]) -> Config:
     driver = DriverConfig(
         kind=t.get("kind", choice(DRIVERS), "sim"),
         debounce_ns=t.get("debounce", duration_at_most(MAX_DEBOUNCE_NS), 100_000),
+        reply_timeout_ns=t.get(
+            "reply_timeout",
+            duration_at_most(MAX_REPLY_TIMEOUT_NS, positive=True),
+            DriverConfig.reply_timeout_ns,
+        ),
         serial=SerialConfig(
             port=s.get("port", nonempty_text, SerialConfig.port),
             baudrate=table_int(s, "baudrate", SerialConfig.baudrate, 50, 20_000_000),

@@ -40,6 +40,7 @@ def make_daq(config: Config) -> Daq:
             debounce_ns=debounce,
             stroke_timeout_ns=config.control.stroke_timeout_ns,
             max_delay_ns=longest_delay,
+            reply_timeout_ns=config.driver.reply_timeout_ns,
         )
     if kind == "usb":
         from usmswitch.drivers.usb_mcu import UsbMcuDaq
@@ -51,5 +52,6 @@ def make_daq(config: Config) -> Daq:
             debounce_ns=debounce,
             stroke_timeout_ns=config.control.stroke_timeout_ns,
             max_delay_ns=longest_delay,
+            reply_timeout_ns=config.driver.reply_timeout_ns,
         )
     raise ConfigError("driver.kind", f"unknown driver {kind!r}; known: {', '.join(DRIVER_KINDS)}")

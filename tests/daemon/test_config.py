@@ -222,6 +222,8 @@ def test_file_values_and_units(tmp_path: Path):
         ("[control]\ntarget = 12", 'control.target: 12 has no unit: write "12ms"'),
         ("[cycle]\nperiod = 50000000", 'cycle.period: 50000000 has no unit: write "50000000ms"'),
         ("[driver]\ndebounce = 100", 'driver.debounce: 100 has no unit: write "100ms"'),
+        ('[driver]\nreply_timeout = "401ms"', "driver.reply_timeout: 401ms is longer than the limit 400ms"),
+        ("[driver]\nreply_timeout = 25", 'driver.reply_timeout: 25 has no unit: write "25ms"'),
         ('[control]\nwindow = "100"', "control.window: expected an integer, got '100' (str)"),
         ('[control]\norder = "2"', "control.order: '2' is not an order 1..8 or 'auto'"),
         ('[cycle]\ncount = "5"', "cycle.count: expected an integer, got '5' (str)"),
@@ -475,3 +477,18 @@ def test_every_problem_of_a_file_is_said_at_once(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"^cycle\.period: duration 'nope'") as one:
         load_config(write(tmp_path, '[cycle]\nperiod = "nope"\n'), env=ENV)
     assert not isinstance(one.value, ConfigErrors)
+
+
+def test_the_drivers_reply_timeout_reaches_the_serial_driver(tmp_path: Path) -> None:
+    """`[driver] reply_timeout`: a slow link's ACKs and PONGs (a USB-serial adapter's latency
+    timer, a loaded test host's fake device) are not lost frames; 25 ms unless set."""
+    from usmswitch.daemon.daqfactory import make_daq
+    from usmswitch.drivers.mcu import DEFAULT_REPLY_TIMEOUT_NS
+
+    base = {"driver.kind": "serial", "driver.serial.port": str(tmp_path / "no-such-tty")}
+    assert make_daq(load_config(None, base, env=ENV)).reply_timeout_ns == DEFAULT_REPLY_TIMEOUT_NS
+    cfg = load_config(None, {**base, "driver.reply_timeout": "250ms"}, env=ENV)
+    assert cfg.driver.reply_timeout_ns == 250_000_000
+    assert make_daq(cfg).reply_timeout_ns == 250_000_000  # built, not opened: no device needed
+    with pytest.raises(ConfigError, match=r"driver\.reply_timeout: '0ms' must be longer than 0"):
+        load_config(None, {"driver.reply_timeout": "0ms"}, env=ENV)
