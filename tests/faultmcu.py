@@ -215,8 +215,13 @@ class FaultyMcu(McuEmulator):
                     now = time.monotonic_ns()
                     if now >= end:
                         break
-                    if level is None or (self._timers and self._timers[0][0] <= now):
-                        self._run_due(now)  # a START or STOP due by now leaves before this edge
+                    if level is None or self._rx or (self._timers and self._timers[0][0] <= now):
+                        # The bytes received by now and what they and the timers make due (a START,
+                        # a FAULT, a STOP) leave before this edge: a COMMAND the firmware's thread
+                        # had not yet taken, starved beside a busy host's work, once started its
+                        # stroke after 77 ms of edges and its FAULT went out stamped before them.
+                        self._catch_up()
+                        now = time.monotonic_ns()
                         level = self.rig.sensors(now)[channel]
                     super()._send(Edge(channel, int(level), self.device_us(now)))
                     n += 1
