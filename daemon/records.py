@@ -566,13 +566,12 @@ class RecordStore(RecordQueries):
         """Up to max_batch items off `pending`; with retention kept, a run's end ends its batch, so
         the run is moved before the strokes after it are written: a backlog (a writer behind, a
         disk back) grows the file by one run past keep_bytes, not by a batch of many runs."""
-        if self.retention is None:
-            return [pending.popleft() for _ in range(min(self._max_batch, len(pending)))]
+        retained = self.retention is not None
         batch = []
         while pending and len(batch) < self._max_batch:
             item = pending.popleft()
             batch.append(item)
-            if type(item) is RunRecord and item.last_cycle is not None:
+            if retained and type(item) is RunRecord and item.last_cycle is not None:
                 break
         return batch
 
