@@ -295,7 +295,7 @@ class Daq(ABC):
                     hold.behind.append(ev)
                     continue
                 return ev
-            if ev.t_ns > self.clock.now_ns() + self.delivery_latency_ns + MAX_STAMP_AHEAD_NS:
+            if ev.t_ns > self.clock.now_ns() + self.delivery_latency_ns + self.stamp_ahead_ns():
                 # From the future: a corrupt or confused stamp. Held, it would hold every event
                 # behind it (the debouncer waits for its sensor to settle) and set the order check
                 # against all that follow: it is dropped and counted, and outlives nothing.
@@ -344,6 +344,11 @@ class Daq(ABC):
             self.glitches += 1
             self.noise[hold.edge.channel] += 1
         self._ready.extend(hold.behind)
+
+    def stamp_ahead_ns(self) -> int:
+        """How far past the driver's clock (and the delivery latency) `recv` believes a stamp: a
+        driver whose clock is an estimate of the device's widens it by that estimate's uncertainty."""
+        return MAX_STAMP_AHEAD_NS
 
     def _push(self, ev: Event) -> None:
         """Queue an event the driver produced outside `_recv_internal` (e.g. a fault on write)."""

@@ -232,6 +232,12 @@ class McuDaq(HandshakeMixin, Daq):
         self._mark_lost("driver closed", report=False)
         self.transport.close()
 
+    def stamp_ahead_ns(self) -> int:
+        # The link took each stamp within the clock's uncertainty (half the round trip of the
+        # sample it stands on, which a busy host makes long, all on the way back: the clock then
+        # runs that far behind the device); `recv` must not drop what the link believed.
+        return STAMP_AHEAD_NS + self.timeline.err_ns(time.monotonic_ns())
+
     def ping(self) -> bool:
         """True when the link is up and the device spoke within the link timeout."""
         with self._state:

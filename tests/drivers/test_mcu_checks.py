@@ -245,3 +245,25 @@ def test_an_edge_older_than_the_sensor_snapshot_does_not_overwrite_it(tmp_path: 
         assert daq.levels() == (1, 0)
         emu.say(Edge(1, 1, emu.device_us()))  # "B active", now: taken until the next PONG
         assert wait_for(lambda: daq.levels() == (1, 1), 0.5)
+
+
+def test_a_stroke_after_a_slow_handshake_loses_none_of_its_events(tmp_path: Path) -> None:
+    """Loaded run 23: the first stroke after a handshake whose replies reached the host late (a busy
+    host reads its port late) came without its START and departure. The clock stood on samples
+    whose round trips were all on the way back, so it ran half a round trip behind the device; the
+    link took the stroke's stamps within that uncertainty, and `recv` then dropped them as from the
+    future, against a bound without it. Now `recv` allows the driver clock's own uncertainty."""
+    # A slow heartbeat: the clock stands on the handshake's samples through the stroke.
+    slow = {"heartbeat_ns": 1000 * MS, "link_timeout_ns": 5000 * MS, "watchdog_ms": 4000}
+    with faultmcu.plugged(tmp_path, seed=42) as (emu, port):
+        emu.latency_ns = 20 * MS  # every reply 20 ms on its way back (under the 25 ms reply timeout)
+        with _open(port, **slow) as daq:
+            assert wait_for(lambda: daq.levels() is not None)  # the session's first PONG, as slow
+            emu.behave()  # then a quick line: the stroke's frames are read as they come
+            ahead_us = emu.device_us() - daq.timeline.to_raw_us(daq.clock.now_ns())
+            assert 8_000 <= ahead_us <= daq.timeline.err_ns(time.monotonic_ns()) // 1000, ahead_us
+            seen = run_stroke(daq, Direction.ON)
+            kinds = [e.kind for e in seen.events]
+            assert kinds[0] is EventKind.START, kinds
+            assert seen.edge(Direction.ON.source, 0).t_ns < seen.edge(Direction.ON.dest, 1).t_ns
+            assert seen.events[-1].detail == "arrived" and daq.future_stamps == 0
