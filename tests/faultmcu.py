@@ -5,8 +5,9 @@ sends is valid (COBS, CRC, the firmware's own sequence numbers): what it injects
 device or a noisy line that happens to pass the CRC would say. `tamper` rewrites each frame the
 firmware sends into any list of frames; `say` sends one more now; `flood` sends EDGE frames in a
 window as fast as the host reads them; `chatter` sends a sensor's edges at a given spacing for a
-while (a line ringing); `latency_ns` delays every frame on the line (a USB-serial adapter's latency timer) and
-`trickle` sends the next frames a byte at a time, both in order; `jump_clock` moves the device
+while (a line ringing); `later` sends a frame at a later instant of the device; `latency_ns` delays
+every frame on the line (a USB-serial adapter's latency timer) and `trickle` sends the next frames a
+byte at a time, both in order; `jump_clock` moves the device
 clock without a restart. Importable from any test (tests/conftest.py puts this folder on sys.path).
 """
 
@@ -165,6 +166,21 @@ class FaultyMcu(McuEmulator):
                     )
 
                 self._at(t, edge)
+
+    def later(self, after_ns: int, msg: Callable[[int], Message]) -> None:
+        """Send `msg(stamp_us)` `after_ns` after the device's present instant (a tamper's: the one
+        the firmware is handling), on the firmware's own timers, stamped and numbered then, as a
+        device sends a frame at its instant and never ahead of it. Sent at once, a frame stamped
+        6 ms ahead fell outside the band the host believes when its clock was behind the device by
+        its whole uncertainty (loaded run 26: an edge dropped as ahead of the device clock)."""
+        with self._lock:
+            t = self.instant_ns() + after_ns
+
+            def send() -> None:
+                self.said += 1
+                McuEmulator._send(self, msg(self.device_us(t)))
+
+            self._at(t, send)
 
     def chatter(self, channel: int, spacing_ns: int, duration_ns: int) -> threading.Thread:
         """Edges of `channel`, alternating from the level it does not have now, every `spacing_ns`

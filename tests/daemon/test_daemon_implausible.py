@@ -41,12 +41,9 @@ def test_a_lone_arrival_is_a_glitch_and_an_arrival_before_the_departure_is_not_a
                     if seen[0] == 2:
                         mine.add(msg.stroke)
                         src, dst = msg.direction, 1 - msg.direction
-                        t = msg.t_us
-                        return [
-                            msg,
-                            Edge(dst, 1, (t + 5000) % U32_MOD),
-                            Edge(src, 0, (t + 6000) % U32_MOD),
-                        ]
+                        emu.later(5 * MS, lambda t_us: Edge(dst, 1, t_us))
+                        emu.later(6 * MS, lambda t_us: Edge(src, 0, t_us))
+                        return [msg]
                     mine.clear()
                 if mine and isinstance(msg, Edge | Stroke):
                     return []  # the stroke's true edges and its report: lost
