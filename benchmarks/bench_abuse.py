@@ -190,9 +190,9 @@ PATHS = ("estop socket", "main socket", "TCP", "panel feed", "panel POST")
 
 class PanelFeed:
     """A live feed opened with the token, read all the time on a thread of its own as the page
-    reads it; `estop()` sends `{"estop": ID}` on it and times the answer (ms) from the send to the
-    answer's arrival. A feed that closed (shed, the server busy) is opened again and the estop
-    timed from the open.
+    reads it, opened when made as the page opens it on load; `estop()` sends `{"estop": ID}` on it
+    and times the answer (ms) from the send to the answer's arrival. A feed that closed (shed, the
+    server busy) is opened again and the estop timed from the open.
 
     Read only inside `estop()` (as it was until stop 46), the ticks of the window and of the other
     paths' rounds (30 s and more) waited in the socket, and the first estop of each round read them
@@ -208,6 +208,7 @@ class PanelFeed:
         self._answers: dict[int, asyncio.Future[tuple[int, dict[str, Any]]]] = {}
         self._thread = threading.Thread(target=self.loop.run_forever, name="panel-feed", daemon=True)
         self._thread.start()
+        self._call(self._open())  # as the page opens it on load, before any estop
 
     def _call(self, coro: Any, timeout_s: float = 15.0) -> Any:
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout_s)
