@@ -26,6 +26,16 @@ def daemon_args(tmp: Path, *extra: str, sim: bool = True, socket: Path | None = 
     return [*args, *extra]
 
 
+def slow_link(tmp: Path) -> list[str]:
+    """`--config` of a serial link given 100 ms for a reply (a slow link's setting, docs/config.md),
+    for a daemon on the firmware emulator: the fake device is a process or thread on the test's own
+    busy machine, and its PONG came later than the 25 ms a real board is given (loaded runs: a clean
+    stroke read MISMATCH, "no PONG came to check the device clock at the stroke's end")."""
+    conf = tmp / "mcu-link.toml"
+    conf.write_text('[driver]\nreply_timeout = "100ms"\n')
+    return ["--config", str(conf)]
+
+
 def spawn(args: list[str], **popen: object) -> subprocess.Popen[bytes]:
     """Start a daemon with stdout discarded and stderr (its JSON log) kept for the test."""
     popen.setdefault("stdout", subprocess.DEVNULL)

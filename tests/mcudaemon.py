@@ -30,12 +30,16 @@ DAEMON_LOG = "daemon.log"
 def daemon(tmp_path: Path, port: Path, *extra: str) -> Iterator[tuple[Client, object]]:
     """A serial-driver daemon on `port`, its client; stopped (and its exit checked) after."""
     sock = tmp_path / "d.sock"
-    # The fake device is a thread of the test's process: beside a busy machine's work its PONG once
-    # came later than the 25 ms a real board is given, and a clean stroke read MISMATCH ("no PONG
-    # came to check the device clock at the stroke's end"). A slow link's setting (docs/config.md).
-    conf = tmp_path / "mcu-link.toml"
-    conf.write_text('[driver]\nreply_timeout = "100ms"\n')
-    args = ["--driver", "serial", "--port", str(port), "--target", "12ms", "--config", str(conf), *extra]
+    args = [
+        "--driver",
+        "serial",
+        "--port",
+        str(port),
+        "--target",
+        "12ms",
+        *daemonproc.slow_link(tmp_path),
+        *extra,
+    ]
     proc = daemonproc.spawn(daemonproc.daemon_args(tmp_path, *args, sim=False))
     err = b""
     try:
