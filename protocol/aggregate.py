@@ -11,6 +11,7 @@ through bytes (msgpack, the histograms HDR-encoded), for the records file's `run
 
 from __future__ import annotations
 
+import weakref
 from typing import Any
 
 import msgpack
@@ -47,15 +48,25 @@ class ExactRunning(Running):
         ]
 
 
+def _acyclic(hist: HdrHistogram) -> HdrHistogram:
+    """`hist`, its encoder's reference back to it made weak. hdrh's histogram and its encoder refer
+    to each other: a cycle only the collector frees, and the daemon runs with the collector off but
+    for the young generations (daemon/loop.py), so every sketch a run's aggregates and reads made
+    (~94 KB of counts each, six a run) stayed: the abuse bench's daemon grew 54 -> 380 MB over
+    11,000 runs, 1,600 sketches alive after 500 estop/restart cycles. Refcounting frees it now."""
+    hist.encoder.histogram = weakref.proxy(hist)
+    return hist
+
+
 class Sketch:
     """Quantiles of non-negative ns values in fixed memory (an HDR histogram)."""
 
     __slots__ = ("hist",)
 
     def __init__(self, encoded: bytes | None = None) -> None:
-        self.hist = HdrHistogram(SKETCH_LOWEST_NS, SKETCH_HIGHEST_NS, SKETCH_DIGITS)
+        self.hist = _acyclic(HdrHistogram(SKETCH_LOWEST_NS, SKETCH_HIGHEST_NS, SKETCH_DIGITS))
         if encoded:
-            self.hist.decode_and_add(encoded)
+            self.hist.add(_acyclic(HdrHistogram.decode(encoded, self.hist.b64_wrap)))
 
     def add(self, x: int) -> None:
         self.hist.record_value(min(max(x, 0), SKETCH_HIGHEST_NS))

@@ -45,3 +45,31 @@ def test_a_live_run_and_its_kept_aggregate_say_the_same_figures() -> None:
             live.add(x)
             kept.add(x)
         assert live.as_dict("error") == ExactRunning(*kept.state()).as_dict("error"), xs
+
+
+def test_a_dropped_sketch_is_freed_without_the_cyclic_collector() -> None:
+    """The daemon runs with the collector off but for the young generations: a sketch (and the
+    histogram a decode makes on the way) must go by refcounting alone. hdrh's histogram and its
+    encoder referred to each other, and 1,600 sketches were alive after 500 runs."""
+    import gc
+    import weakref
+
+    from usmswitch.protocol.aggregate import Sketch
+
+    full = Sketch()
+    for v in (1_000, 2_000_000, 9_000_000):
+        full.add(v)
+    encoded = full.encode()
+    gc.disable()
+    try:
+        gc.collect()
+        made = Sketch(encoded)
+        assert made.quantiles((50,)) == full.quantiles((50,))
+        ref = weakref.ref(made.hist)
+        del made
+        assert ref() is None, "the sketch's histogram waits for the cyclic collector"
+        # Nor the one its decode made: only `full`'s is left.
+        left = [o for o in gc.get_objects() if type(o).__name__ == "HdrHistogram"]
+        assert all(o is full.hist for o in left), left
+    finally:
+        gc.enable()
