@@ -6,8 +6,8 @@ busy that process is (a connection flood, large history replies), and the thread
 daemon's helper priority. What an attacker can do to it is bounded: a few connections
 (`Limits.max_urgent_connections`), frames of a few hundred bytes, a request within
 `Limits.urgent_timeout_ns` of connecting and a frame finished within `Limits.frame_timeout_ns`.
-Work that is not an estop (accepting more than one connection at a time, refusing, timing out) waits
-its turn behind the loop's start (`gate`); an estop never does.
+Every connection is accepted and read the moment it comes (an estop cannot be told from the rest
+before it is read); closing connections that timed out waits its turn behind the loop's start (`gate`).
 """
 
 from __future__ import annotations
@@ -65,7 +65,6 @@ class EstopSocket:
         self._stopping = False
         self._shed = 0  # connections shed for newcomers, since start
         self._shed_logged_ns = 0
-        self._owe_turn = False  # the last round ended on a connection that had sent nothing yet
         self._thread = threading.Thread(target=self._run, name=THREAD_NAME, daemon=True)
 
     def start(self) -> None:
@@ -105,19 +104,14 @@ class EstopSocket:
             sel.close()
 
     def _accept(self, sel: selectors.BaseSelector) -> None:
-        # The first connection of a round is taken at once, its request read and an estop answered
-        # (a new connection is how usmswitchctl sends one: waiting for the loop's start cost it up to
-        # 10 ms); any more wait their turn behind the loop's start, as the rest of this thread's work.
-        # A first whose request is not there yet ends the round: its request is read the moment it
-        # comes (this thread, woken at the connect, often takes it before the client's send), not
-        # after the loop's next start (the panel's estop: p99 7-9 ms for the estop socket's 2).
-        # The next round then waits its turn before its first, so silent connections gain nothing.
-        first = not self._owe_turn
-        self._owe_turn = False
+        # Every pending connection is taken at once and its request read, an estop answered: the
+        # only way to find an estop is to read it, so none waits behind the connections ahead of
+        # it in the backlog, silent or not (32 one-byte holders, renewed, each made the next accept
+        # wait the loop's start: an estop behind them, p99 7.8 ms). An accept and a read are a few
+        # tens of microseconds, each a system call that lets the loop have the GIL; the backlog
+        # (1024) and the attacker's own connects bound the round. What is more than reading (the
+        # timeouts' closes) still waits its turn behind the loop's start, in `_sweep`.
         while True:
-            if not first:
-                self.gate()
-            first = False
             try:
                 conn, _ = self.sock.accept()
             except (BlockingIOError, InterruptedError):
@@ -128,8 +122,8 @@ class EstopSocket:
             most = self.limits.max_urgent_connections
             if len(self._peers) >= most:
                 # Every peer here is idle between requests (each is answered at once), so the
-                # one idle longest gives way: holders cannot lock a new estop out, only delay it
-                # by one accept. A newcomer is never the one shed.
+                # one idle longest gives way: holders cannot lock a new estop out. A newcomer is
+                # never the one shed.
                 oldest = min(self._peers.values(), key=lambda p: p.last_ns)
                 self._close(
                     sel,
@@ -145,10 +139,7 @@ class EstopSocket:
             peer = _Peer(conn, now, now + self.limits.urgent_timeout_ns)
             self._peers[conn] = peer
             sel.register(conn, selectors.EVENT_READ, peer)
-            self._read(sel, peer)  # its request is often there already: answer it before more accepts
-            if peer.frames == 0 and conn in self._peers:
-                self._owe_turn = True
-                return
+            self._read(sel, peer)  # its request is often there already: answered before more accepts
 
     def _log_shed(self, most: int) -> None:
         now = time.monotonic_ns()
