@@ -86,6 +86,16 @@ class Hub:
         self.counts = dict.fromkeys(KINDS, 0)  # open connections per listener kind
         self.reserved = dict.fromkeys(KINDS, 0)  # past the budget, for an estop (Limits.urgent_reserve)
         self.shed = dict.fromkeys(KINDS, 0)  # holders shed for newcomers, since start
+        # Per door, its holders not yet proven (silent since connecting, or not authenticated), in
+        # the order they came: the first shed, found without a scan of every connection (a
+        # renewed flood of 600 made that scan most of this loop's work, an estop behind it 14 ms).
+        self.unproven: dict[str, dict[Conn, None]] = {k: {} for k in KINDS}
+        # A newcomer is not shed before the loop has read what it sent: a burst of accepts makes
+        # every connection of it before reading any, and the later ones of a burst of 600 shed
+        # the earlier, an estop among them, unread. Connections made in this loop's turn carry
+        # its `epoch`; only those of an earlier turn may give way.
+        self.epoch = 0
+        self._epoch_moving = False
         self._shed_logged_ns = 0
         self.auth_failures: dict[str, tuple[int, int]] = {}  # TCP peer address -> (failures, wait until)
         self.auth_failed_total = 0
@@ -153,6 +163,18 @@ class Hub:
                 _s(wait) if wait else "no wait",
             )
 
+    def arrival_epoch(self) -> int:
+        """The epoch of a connection made now: it ends two turns of the loop later, when the
+        turn after this one has read the sockets (uvloop and asyncio alike)."""
+        if not self._epoch_moving:
+            self._epoch_moving = True
+            self.loop.call_soon(self.loop.call_soon, self._next_epoch)
+        return self.epoch
+
+    def _next_epoch(self) -> None:
+        self.epoch += 1
+        self._epoch_moving = False
+
     def full_text(self, kind: str, most: int) -> str:
         """What a connection past a door's budget is told."""
         where = "TCP" if kind == "tcp" else "Unix socket"
@@ -162,18 +184,19 @@ class Hub:
         """Make room on a full door: close its unauthenticated holder, else its longest-idle one
         (nothing outstanding, no request for `shed_idle_ns`; a subscription is no exemption)."""
         now = time.monotonic_ns()
-        idle_enough = now - self.limits.shed_idle_ns
-        victim = None
-        best = (True, 0)
-        for conn in self.conns:
-            if conn.kind != kind or conn.reserved or conn.closed or conn.outstanding:
-                continue
-            proven = conn.authed and conn.frames > 0
-            if not proven or conn.last_req_ns <= idle_enough:
-                # Unauthenticated or silent since connecting first, then the longest idle.
-                rank = (proven, conn.last_req_ns)
-                if victim is None or rank < best:
-                    victim, best = conn, rank
+        epoch = self.epoch
+        victim = next(
+            (c for c in self.unproven[kind] if c.epoch < epoch and not (c.outstanding or c.closed)), None
+        )
+        best = (False, 0)
+        if victim is None:
+            idle_enough = now - self.limits.shed_idle_ns
+            best = (True, idle_enough + 1)
+            for conn in self.conns:  # the proven: the longest idle, if idle long enough
+                if conn.kind != kind or conn.reserved or conn.closed or conn.outstanding:
+                    continue
+                if conn.epoch < epoch and conn.last_req_ns < best[1]:
+                    victim, best = conn, (True, conn.last_req_ns)
         if victim is None:
             return False
         how = "idle longest" if best[0] else "not authenticated" if not victim.authed else "silent"
@@ -385,6 +408,7 @@ class Conn(asyncio.Protocol):
         self.drop_pending = 0
         self.drop_total = 0
         self.reserved = False  # taken past the door's budget: auth and estop only, briefly
+        self.epoch = 0  # the loop's turn it came in (Hub.arrival_epoch)
         self.reads: set[asyncio.Future[bytes]] = set()  # in a reader's queue or being read
 
     # asyncio callbacks
@@ -394,13 +418,20 @@ class Conn(asyncio.Protocol):
         limits = hub.limits
         transport.set_write_buffer_limits(high=limits.subscriber_buffer_bytes)
         most = limits.max_tcp_connections if self.tcp else limits.max_connections
+        self.epoch = hub.arrival_epoch()
         if hub.counts[self.kind] >= most and not hub.shed_one(self.kind, most):
             # Past the budget with nobody to shed: a reserved slot that takes only auth and estop,
             # so that no holder of every slot can keep an estop out of this door.
             self.reserved = True
             if hub.reserved[self.kind] >= limits.urgent_reserve:
+                # The oldest that has been read gives way; none has (a burst past every slot):
+                # the reserve grows for this turn, bounded by the listen backlog.
                 oldest = min(
-                    (c for c in hub.conns if c.reserved and c.kind == self.kind and not c.closed),
+                    (
+                        c
+                        for c in hub.conns
+                        if c.reserved and c.kind == self.kind and not c.closed and c.epoch < hub.epoch
+                    ),
                     key=lambda c: c.born_ns,
                     default=None,
                 )
@@ -412,6 +443,7 @@ class Conn(asyncio.Protocol):
             return
         hub.conns.add(self)
         hub.counts[self.kind] += 1
+        hub.unproven[self.kind][self] = None
         self.counted = True
 
     def connection_lost(self, exc: Exception | None) -> None:
@@ -463,6 +495,8 @@ class Conn(asyncio.Protocol):
             return
         if out:
             self.write(b"".join(out))
+        if self.frames and self.authed:
+            self.hub.unproven[self.kind].pop(self, None)
         if self.frames_end < self.fed:
             if self.partial_since_ns is None:
                 self.partial_since_ns = time.monotonic_ns()
@@ -661,6 +695,7 @@ class Conn(asyncio.Protocol):
         if self.counted:
             self.counted = False
             self.hub.conns.discard(self)
+            self.hub.unproven[self.kind].pop(self, None)
             if self.reserved:
                 self.hub.reserved[self.kind] -= 1
             else:

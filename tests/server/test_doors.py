@@ -3,6 +3,7 @@ an estop reachable however its slots are held. Real sockets, a real server proce
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import resource
 import socket
@@ -18,6 +19,7 @@ from rawsock import Raw
 from usmswitch.client import Client
 from usmswitch.protocol.wire import ErrorCode, Limits, RpcError
 from usmswitch.server.estop_socket import EstopSocket
+from usmswitch.server.hub import Conn, Hub
 from usmswitch.server.rpc import RpcServer
 
 TOKEN = "t0ken-of-twenty-chars"
@@ -166,6 +168,65 @@ def test_client_estop_gets_through_every_slot_held_on_both_sockets(small: RpcSer
     assert estops.count == 5
     for raw in (*subscribed, *holders):
         raw.close()
+
+
+class _Transport:
+    """What a Conn asks of its transport, and whether it was closed."""
+
+    def __init__(self) -> None:
+        self.closed = False
+        self.written = b""
+
+    def set_write_buffer_limits(self, high: int) -> None:
+        pass
+
+    def write(self, data: bytes) -> None:
+        self.written += data
+
+    def can_write_eof(self) -> bool:
+        return False
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_a_newcomer_is_not_shed_before_the_server_has_read_it() -> None:
+    """A burst of connections can be made in one turn of the server's loop before any is read:
+    each past the budget shed the oldest silent holder, and the later ones of a burst shed the
+    earlier, unread, though one had sent an estop (a renewed flood of 600 on the main socket: the
+    estop's connection closed with "this connection, silent, gave way"). The Hub is driven here as
+    the loop drives it: a burst made within one turn, holders made turns before it."""
+    loop = asyncio.new_event_loop()
+    try:
+        cfg = {
+            "limits": dataclasses.asdict(Limits(max_connections=4, urgent_reserve=2)),
+            "token": None,
+            "handlers": [],
+            "urgent": ["estop"],
+            "snapshot_methods": [],
+            "topics": [],
+            "snaps": {},
+            "finishers": {},
+            "records_path": None,
+            "lost": 0,
+            "busy_poll_ns": 0,
+        }
+        hub = Hub(cfg, loop)
+
+        def made() -> tuple[Conn, _Transport]:
+            conn, transport = Conn(hub, "unix"), _Transport()
+            conn.connection_made(transport)  # type: ignore[arg-type]
+            return conn, transport
+
+        holders = [made() for _ in range(4)]
+        for _ in range(3):  # turns of the loop go by
+            loop.run_until_complete(asyncio.sleep(0))
+        burst = [made() for _ in range(12)]  # one turn: none read yet
+        assert [t.closed for _, t in holders] == [True] * 4  # the holders of earlier turns gave way
+        assert not any(t.closed for _, t in burst), "a newcomer was shed before it was read"
+        assert b"gave way" in holders[0][1].written
+    finally:
+        loop.close()
 
 
 def test_subscribed_connections_are_shed_when_idle_and_their_slots_are_needed(small: RpcServer) -> None:
