@@ -292,6 +292,8 @@ def test_a_run_the_records_lack_is_a_usage_error_naming_the_file(idle: Rig) -> N
     """Issue 37's bites: `export --run 999` said `refused: [-32602 INVALID_PARAMS] history: no run
     999` (exit 1) where the same from a file is a usage error; now both say which records lack it."""
     records = idle.state_dir / "records.sqlite"
+    # A run of its own, so that the records have runs to name (alone, the module's rig had none).
+    assert run(idle, "cycle", "--period", "20ms", "--count", "2", "--wait").returncode == 0
     for argv in (
         ["export", "--csv", "-", "--run", "9999"],
         ["stats", "--run", "9999"],
