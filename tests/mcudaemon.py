@@ -45,6 +45,7 @@ def daemon(tmp_path: Path, port: Path, *extra: str) -> Iterator[tuple[Client, ob
     try:
         daemonproc.wait_serving(sock, proc)
         with Client(str(sock), timeout=10) as c:
+            c.ping()  # not a silent connection: a test that waits 2 s before its first call keeps it
             yield c, proc
     except Exception as exc:
         err = daemonproc.stop(proc)

@@ -110,12 +110,17 @@ def test_reads_of_a_client_that_left_are_dropped(rig: tuple[Path, int]) -> None:
         raw = Raw(str(sock))
         raw.send(*([0, i, "history", [10_000]] for i in range(1, 33)))
         raw.close()
-    time.sleep(2.0)  # the reads that had begun end (one of 10,000 records: well under a second)
-    before = _cpu_s(server_pid)
-    time.sleep(2.0)
-    used = _cpu_s(server_pid) - before
     # 128 reads of ~1 s of CPU each were queued: kept on, they use a core's worth for minutes.
-    assert used < 0.5, f"the server used {used:.2f} s of CPU in 2 s after its clients left"
+    # Dropped, the server is quiet once the reads that had begun end (well under a second each,
+    # seconds on a loaded machine).
+    end = time.monotonic() + 30
+    while True:
+        before = _cpu_s(server_pid)
+        time.sleep(2.0)
+        used = _cpu_s(server_pid) - before
+        if used < 0.5:
+            break
+        assert time.monotonic() < end, f"the server used {used:.2f} s of CPU in 2 s, 30 s after they left"
     with Client(str(sock), timeout=60) as c:
         assert len(c.history(5)) == 5
 
