@@ -87,8 +87,8 @@ class Hub:
         self.reserved = dict.fromkeys(KINDS, 0)  # past the budget, for an estop (Limits.urgent_reserve)
         self.shed = dict.fromkeys(KINDS, 0)  # holders shed for newcomers, since start
         # Per door, its holders not yet proven (silent since connecting, or not authenticated), in
-        # the order they came: the first shed, found without a scan of every connection (a
-        # renewed flood of 600 made that scan most of this loop's work, an estop behind it 14 ms).
+        # the order they came: the first shed, found without a scan of every connection (under a
+        # renewed flood of 600 that scan was some 60 % of this loop's busy time).
         self.unproven: dict[str, dict[Conn, None]] = {k: {} for k in KINDS}
         # A newcomer is not shed before the loop has read what it sent: a burst of accepts makes
         # every connection of it before reading any, and the later ones of a burst of 600 shed
@@ -188,18 +188,18 @@ class Hub:
         victim = next(
             (c for c in self.unproven[kind] if c.epoch < epoch and not (c.outstanding or c.closed)), None
         )
-        best = (False, 0)
-        if victim is None:
-            idle_enough = now - self.limits.shed_idle_ns
-            best = (True, idle_enough + 1)
-            for conn in self.conns:  # the proven: the longest idle, if idle long enough
+        if victim is not None:
+            how = "silent" if victim.authed else "not authenticated"
+        else:
+            how = "idle longest"
+            since = now - self.limits.shed_idle_ns + 1  # idle long enough: no request since
+            for conn in self.conns:  # the proven: the longest idle
                 if conn.kind != kind or conn.reserved or conn.closed or conn.outstanding:
                     continue
-                if conn.epoch < epoch and conn.last_req_ns < best[1]:
-                    victim, best = conn, (True, conn.last_req_ns)
-        if victim is None:
-            return False
-        how = "idle longest" if best[0] else "not authenticated" if not victim.authed else "silent"
+                if conn.epoch < epoch and conn.last_req_ns < since:
+                    victim, since = conn, conn.last_req_ns
+            if victim is None:
+                return False
         victim.fatal(ErrorCode.BUSY, f"{self.full_text(kind, most)}: this connection, {how}, gave way")
         self.shed[kind] += 1
         if now - self._shed_logged_ns >= 10_000_000_000:  # one line per 10 s, however many
