@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import json
 import os
 import sys
@@ -164,6 +165,9 @@ def entry() -> None:
     """The `usmswitchd` command: main(), then out without the interpreter's teardown (once main()
     returns, the drive is off, every record is committed, the children are gone and the state
     directory unlocked: Daemon.stop)."""
+    # A daemon that hangs shows where: systemd's watchdog ends it with SIGABRT, and every thread's
+    # stack goes to stderr (the journal) before it dies.
+    faulthandler.enable(all_threads=True)
     exit_now(main())
 
 

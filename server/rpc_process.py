@@ -13,6 +13,7 @@ import asyncio
 import collections
 import concurrent.futures
 import contextlib
+import faulthandler
 import gc
 import importlib
 import logging
@@ -349,4 +350,5 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
+    faulthandler.enable(all_threads=True)  # a hang's stacks on SIGABRT, as the daemon's (daemon/cli.py)
     exit_now(main())  # every read is read-only and every client closed: nothing is left to save

@@ -72,7 +72,14 @@ def stop_timed(proc: subprocess.Popen[bytes], timeout_s: float = 20.0) -> tuple[
     """SIGTERM and wait; (what the daemon logged on stderr, seconds from the signal to its exit)."""
     t0 = time.monotonic()
     proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=timeout_s)
+    try:
+        _, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        # Where it hangs: SIGABRT makes the daemon print every thread's stack (faulthandler).
+        proc.send_signal(signal.SIGABRT)
+        _, err = proc.communicate(timeout=30)
+        tail = (err or b"").decode(errors="replace")[-12_000:]
+        raise AssertionError(f"no exit {timeout_s:.0f} s after SIGTERM; its stderr ends:\n{tail}") from None
     return err or b"", time.monotonic() - t0
 
 

@@ -254,6 +254,25 @@ def test_a_frozen_server_process_does_not_hold_the_exit(tmp_path: Path) -> None:
     assert stopped and stopped[0]["flushed"] and stopped[0]["records"] == len(rows(tmp_path))
 
 
+def test_a_daemon_ended_by_the_watchdogs_sigabrt_shows_every_threads_stack(tmp_path: Path) -> None:
+    """A hung daemon says where: systemd's watchdog ends it with SIGABRT (WatchdogSec, the shipped
+    units), and every thread's stack goes to stderr, the journal, before it dies."""
+    proc = start(tmp_path)
+    try:
+        with wait_for_socket(tmp_path, proc) as client:
+            client.ping()
+        proc.send_signal(signal.SIGABRT)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == -signal.SIGABRT
+    text = err.decode(errors="replace")
+    assert "Fatal Python error: Aborted" in text, text[-2000:]
+    assert "Current thread" in text and "daemon/service.py" in text and "in run" in text, text[-4000:]
+    assert text.count("Thread 0x") >= 2, "the other threads' stacks too (records writer, socket bridge)"
+
+
 def _ended(pid: int, timeout_s: float = 5.0) -> bool:
     """True once `pid` is gone or a zombie (killed; reaped by whoever reaps orphans here)."""
     end = time.monotonic() + timeout_s
