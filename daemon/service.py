@@ -1,7 +1,8 @@
 """usmswitchd put together: config -> logs -> records -> driver -> predictors -> loop -> socket.
 
-The loop runs in the main thread (signals arrive there); the record writer and the socket bridge
-are threads off the timing path, the socket server a process of its own.
+The loop runs in the main thread (signals arrive there; the stop-signal thread acts on them:
+stop_signals.py); the record writer and the socket bridge are threads off the timing path, the
+socket server a process of its own.
 
 Nothing is lost silently: one daemon per state directory (a lock held for its life), a records
 file that cannot be written latches FAULT and stops cycling, and the exit status says when a
@@ -13,11 +14,9 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
-import signal
 import stat
 import statistics
 import sys
-import threading
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future
@@ -54,13 +53,12 @@ from .sdnotify import Notifier
 from .sensitivity_memory import Sensitivities, SensitivityMemory
 from .shipper_process import ShipperProcess
 from .sockdir import ensure_private_dir, prepare_socket_dir
+from .stop_signals import STOP_THREAD, StopSignals
 
 RECORDS_FILE = "records.sqlite"
 LOCK_FILE = "usmswitchd.lock"
 #: Exit status when the daemon stopped with records unwritten, dropped or rejected (cli.py's too).
 EXIT_RECORDS_LOST = 4
-#: The signals that end the daemon: drive off, records flushed (SIGHUP: the terminal closed).
-STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 # How long stop() waits for the record writer: a healthy one is done in milliseconds; a failing
 # one gets a few retries (space may come back) before the loss is counted and reported.
 CLOSE_TIMEOUT_NS = 10_000_000_000
@@ -208,8 +206,9 @@ class Daemon:
         self.rpc: Any = None
         self.board: BoardPoller | None = None
         self.fleet: Fleet | None = None
-        self._stop_asked_ns: int | None = None  # when the first stop signal came
-        self._old_handlers: dict[int, Any] = {}  # the stop signals' handlers before start()
+        # From the first instant of start(): a SIGTERM while starting ends the daemon as cleanly
+        # as one while running (the socket answers before run() begins).
+        self.stop_signals = StopSignals(self._on_stop_signal)
         #: True once every part runs (READY=1 sent): the socket answers a moment before.
         self.ready = False
         self._next_summary_ns = 0
@@ -223,7 +222,7 @@ class Daemon:
     def start(self) -> None:
         """Open everything in dependency order; raises with a clear message if a part cannot start."""
         cfg = self.config
-        self._catch_stop_signals()
+        self.stop_signals.catch()
         group = cfg.socket.group or None
         state_dir = prepare_state_dir(Path(cfg.daemon.state_dir), group)
         self._lock_fd = lock_state_dir(state_dir)
@@ -313,7 +312,7 @@ class Daemon:
             commissioning=commissioning,
             min_stroke_ns=min_stroke,
         )
-        if self._stop_asked_ns is not None:  # a stop signal came while starting
+        if self.stop_signals.first_ns is not None:  # a stop signal came while starting
             self.loop.shutdown()
         known = [d for d in (Direction.ON, Direction.OFF) if d not in commissioning]
         if cfg.control.mode == "closed" and known:
@@ -400,7 +399,7 @@ class Daemon:
             self.rpc.lower_priority(SERVER_NICE_UNDER_OTHER)
         if "sched_fifo_priority" in got.applied and priority > 1:
             helpers = max(1, priority - HELPERS_FIFO_BELOW)
-            lifted = lift_helpers(helpers, dict.fromkeys(URGENT_THREADS, priority - 1))
+            lifted = lift_helpers(helpers, dict.fromkeys((*URGENT_THREADS, STOP_THREAD), priority - 1))
             if self.rpc is not None:
                 self.rpc.urgent_priority = priority - 1
             self.log.info(
@@ -418,7 +417,7 @@ class Daemon:
                 "idle, 19 % with /metrics scraped hard; 0.5 % at SCHED_FIFO); `stats` shows the late "
                 "rate; run as the shipped unit (LimitRTPRIO) or grant CAP_SYS_NICE",
             )
-        self._catch_stop_signals()
+        self.stop_signals.catch()
         # Other threads (record writer, socket bridge) give the GIL back within this bound when
         # the loop wants it; at the default 5 ms a busy thread would land in the start lateness.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
@@ -449,11 +448,10 @@ class Daemon:
             status = self.stop()
         return status
 
-    def _on_signal(self, signum: int, frame: object) -> None:
-        # Drive off at once; the loop returns at its next check and stop() flushes the records.
-        # During start() there may be no loop yet: it is shut down as soon as it exists.
-        if self._stop_asked_ns is None:
-            self._stop_asked_ns = time.monotonic_ns()
+    def _on_stop_signal(self) -> None:
+        # Drive off at once (the stop-signal thread); the loop returns at its next check and stop()
+        # flushes the records. During start() there may be no loop yet: start() shuts it down as
+        # soon as it exists.
         if self.loop is not None:
             self.loop.shutdown()
 
@@ -461,19 +459,6 @@ class Daemon:
         """The drive board set a fault bit (poller thread): drive off now and FAULT, as an estop."""
         if self.loop is not None:
             self.loop.estop(f"drive board fault: {why}")
-
-    def _catch_stop_signals(self) -> None:
-        """From the first instant of start(): a SIGTERM while starting ends the daemon as cleanly as
-        one while running (the socket answers before run() begins). Only the main thread may."""
-        if threading.current_thread() is not threading.main_thread():
-            return
-        for sig in STOP_SIGNALS:
-            self._old_handlers.setdefault(sig, signal.signal(sig, self._on_signal))
-
-    def _restore_signals(self) -> None:
-        for sig, handler in self._old_handlers.items():
-            signal.signal(sig, handler)
-        self._old_handlers.clear()
 
     def stop(self) -> int:
         """Drive off, socket closed, every record flushed, the driver released. Safe to call twice.
@@ -483,7 +468,7 @@ class Daemon:
         """
         status = 0
         closed_store = None  # the store, once closed with its writer finished
-        lap = _Laps(self._stop_asked_ns)
+        lap = _Laps(self.stop_signals.first_ns)
         self.notifier.stopping(status="stopping: drive off, flushing records")
         if self.daq is not None:
             try:
@@ -540,7 +525,7 @@ class Daemon:
             self.store = None
         if self.fleet is not None:
             # After the store closed: what it committed ships within what is left of the budget.
-            asked = self._stop_asked_ns if self._stop_asked_ns is not None else time.monotonic_ns()
+            asked = self.stop_signals.first_ns or time.monotonic_ns()
             self.fleet.stop(asked + STOP_BUDGET_NS)
             self.fleet = None
             lap("shipper and metrics stopped")
@@ -558,7 +543,7 @@ class Daemon:
             self.log.warning("exiting", took=lap.text(), budget="100 ms")
         else:
             self.log.info("exiting", took=lap.text())
-        self._restore_signals()
+        self.stop_signals.restore()
         return status
 
     def records_status(self) -> dict[str, Any]:

@@ -54,14 +54,15 @@ def _http_thread(pid: int) -> int | None:
 
 
 def _estop_threads_above_the_helpers(daemon: int) -> bool:
-    """The daemon's threads an estop passes through (the urgent channel's, the estop socket's) at
-    SCHED_FIFO 49, the loop at 50, every other helper at 46: below the server's event loop (48)
-    and HTTP doors (47), so no record writer's or bridge's burst holds an estop back."""
-    urgent = _named(daemon, "rpc-urgent", "rpc-estop")
+    """The daemon's threads an estop or a stop passes through (the urgent channel's, the estop
+    socket's, the stop signals') at SCHED_FIFO 49, the loop at 50, every other helper at 46: below
+    the server's event loop (48) and HTTP doors (47), so no record writer's or bridge's burst holds
+    an estop back."""
+    urgent = _named(daemon, "rpc-urgent", "rpc-estop", "stop-signal")
     policies = _policies(daemon)
     others = {p for tid, p in policies.items() if tid not in urgent and tid != daemon}
     return (
-        len(urgent) == 2
+        len(urgent) == 3
         and all(policies.get(tid) == (os.SCHED_FIFO, 49) for tid in urgent)
         and others <= {(os.SCHED_FIFO, 46), (os.SCHED_FIFO, 50)}
     )
