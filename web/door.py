@@ -65,7 +65,7 @@ class Door:
         def factory() -> asyncio.BaseProtocol:
             if self._sweeper is None:
                 self._sweeper = asyncio.get_running_loop().create_task(self._sweep_forever())
-            return _Tracked(self, make())
+            return _Tracked(self, make)
 
         return factory
 
@@ -186,11 +186,18 @@ class Door:
 
 
 class _Tracked(asyncio.Protocol):
-    """aiohttp's protocol behind the door: counted at connection_made, seen at each byte."""
+    """aiohttp's protocol behind the door: counted at connection_made, made at the first byte.
 
-    def __init__(self, door: Door, inner: asyncio.BaseProtocol) -> None:
+    A connection that has sent nothing costs the door its entry and no more: aiohttp's handler (its
+    parser, its timers and a task for each connection) is made when a request begins. Under 1,100
+    silent connections renewed as they were shed, each accept made one and the shed closed it, and
+    an estop's connection waited behind them in the kernel's accept queue.
+    """
+
+    def __init__(self, door: Door, make: Callable[[], asyncio.BaseProtocol]) -> None:
         self.door = door
-        self.inner = cast(asyncio.Protocol, inner)
+        self.make = make
+        self.inner: asyncio.Protocol | None = None
         self.transport: asyncio.BaseTransport | None = None
         self.admitted = False
 
@@ -202,29 +209,33 @@ class _Tracked(asyncio.Protocol):
             )
             return
         self.admitted = True
-        self.inner.connection_made(transport)
 
     def data_received(self, data: bytes) -> None:
-        if self.admitted:
-            assert self.transport is not None
-            self.door.data(self.transport, data)
-            self.inner.data_received(data)
+        if not self.admitted:
+            return
+        assert self.transport is not None
+        self.door.data(self.transport, data)
+        inner = self.inner
+        if inner is None:
+            inner = self.inner = cast(asyncio.Protocol, self.make())
+            inner.connection_made(self.transport)
+        inner.data_received(data)
 
     def eof_received(self) -> bool | None:
-        return self.inner.eof_received() if self.admitted else None
+        return self.inner.eof_received() if self.inner is not None else None
 
     def pause_writing(self) -> None:
-        if self.admitted:
+        if self.inner is not None:  # nothing is written before aiohttp's handler exists
             self.inner.pause_writing()
 
     def resume_writing(self) -> None:
-        if self.admitted:
+        if self.inner is not None:
             self.inner.resume_writing()
 
     def connection_lost(self, exc: Exception | None) -> None:
         if self.transport is not None:
             self.door.lost(self.transport)
-        if self.admitted:
+        if self.inner is not None:
             self.inner.connection_lost(exc)
 
 

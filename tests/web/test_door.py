@@ -75,3 +75,52 @@ def test_a_complete_request_is_not_shed_by_a_full_door() -> None:
     assert answer.startswith(b"HTTP/1.1 200"), answer[:200]
     assert answer.endswith(b"answered\n")
     assert shed == b""  # the silent holder gave way instead, closed without a word
+
+
+async def _silent_then_spoken() -> tuple[int, int, bytes, int]:
+    made = 0
+    door = Door("test door", 64, head_s=10.0, idle_s=60.0)
+
+    async def handler(request: web.BaseRequest) -> web.StreamResponse:
+        return await door.handling(request, lambda r: _ok())
+
+    async def _ok() -> web.Response:
+        return web.Response(text="answered\n")
+
+    aiohttp_server = web.Server(handler)
+
+    def make() -> asyncio.BaseProtocol:
+        nonlocal made
+        made += 1
+        return aiohttp_server()
+
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    server = await asyncio.get_running_loop().create_server(door.protocol_factory(make), sock=listener)
+    silent = [_connect(port) for _ in range(40)]
+    try:
+        await asyncio.sleep(0.5)
+        counted, made_silent = len(door.conns), made
+        asker = silent.pop()
+        asker.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+        answer = await _read_all(asker)
+        asker.close()
+        return counted, made_silent, answer, made
+    finally:
+        for s in silent:
+            s.close()
+        server.close()
+        door.close()
+
+
+def test_a_silent_connection_costs_the_door_no_aiohttp_handler_until_it_speaks() -> None:
+    """Issue 35, item 4: 1,100 silent connections renewed as they were shed made an aiohttp handler
+    (parser, timers, a task) at each accept, closed unused by the shed; an estop's connection
+    waited behind them in the accept queue (panel POST p99 16.8 ms; 10.2 with handlers made at
+    the first byte, `BENCH_ABUSE_ONLY=half-open make bench BENCH=abuse`)."""
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        counted, made_silent, answer, made = runner.run(_silent_then_spoken())
+    assert counted == 40, "every connection counted against the budget from its accept"
+    assert made_silent == 0
+    assert answer.startswith(b"HTTP/1.1 200") and answer.endswith(b"answered\n"), answer[:200]
+    assert made == 1
