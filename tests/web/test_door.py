@@ -32,8 +32,9 @@ async def _read_all(s: socket.socket) -> bytes:
     return out
 
 
-async def _ready_request_survives_a_full_door() -> tuple[bytes, bytes | None]:
-    door = Door("test door", 2, head_s=10.0, idle_s=60.0)
+async def _serve(door: Door) -> tuple[asyncio.AbstractServer, int, list[int]]:
+    """aiohttp behind `door` on a free loopback port, answering "answered" to every request; the
+    list's one number counts the aiohttp handlers made."""
 
     async def handler(request: web.BaseRequest) -> web.StreamResponse:
         return await door.handling(request, lambda r: _ok())
@@ -41,11 +42,21 @@ async def _ready_request_survives_a_full_door() -> tuple[bytes, bytes | None]:
     async def _ok() -> web.Response:
         return web.Response(text="answered\n")
 
+    aiohttp_server = web.Server(handler)
+    made = [0]
+
+    def make() -> asyncio.BaseProtocol:
+        made[0] += 1
+        return aiohttp_server()
+
     listener = socket.create_server(("127.0.0.1", 0))
-    port = listener.getsockname()[1]
-    server = await asyncio.get_running_loop().create_server(
-        door.protocol_factory(web.Server(handler)), sock=listener
-    )
+    server = await asyncio.get_running_loop().create_server(door.protocol_factory(make), sock=listener)
+    return server, listener.getsockname()[1], made
+
+
+async def _ready_request_survives_a_full_door() -> tuple[bytes, bytes | None]:
+    door = Door("test door", 2, head_s=10.0, idle_s=60.0)
+    server, port, _ = await _serve(door)
     held: list[socket.socket] = []
     try:
         idle = _connect(port)  # the door's first holder: silent, the one to shed
@@ -78,34 +89,17 @@ def test_a_complete_request_is_not_shed_by_a_full_door() -> None:
 
 
 async def _silent_then_spoken() -> tuple[int, int, bytes, int]:
-    made = 0
     door = Door("test door", 64, head_s=10.0, idle_s=60.0)
-
-    async def handler(request: web.BaseRequest) -> web.StreamResponse:
-        return await door.handling(request, lambda r: _ok())
-
-    async def _ok() -> web.Response:
-        return web.Response(text="answered\n")
-
-    aiohttp_server = web.Server(handler)
-
-    def make() -> asyncio.BaseProtocol:
-        nonlocal made
-        made += 1
-        return aiohttp_server()
-
-    listener = socket.create_server(("127.0.0.1", 0))
-    port = listener.getsockname()[1]
-    server = await asyncio.get_running_loop().create_server(door.protocol_factory(make), sock=listener)
+    server, port, made = await _serve(door)
     silent = [_connect(port) for _ in range(40)]
     try:
         await asyncio.sleep(0.5)
-        counted, made_silent = len(door.conns), made
+        counted, made_silent = len(door.conns), made[0]
         asker = silent.pop()
         asker.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
         answer = await _read_all(asker)
         asker.close()
-        return counted, made_silent, answer, made
+        return counted, made_silent, answer, made[0]
     finally:
         for s in silent:
             s.close()
