@@ -282,8 +282,26 @@ class Methods:
         A run going is never ended silently: the daemon's own start-up run (`[cycle] autostart`,
         what `make run` starts) gives way to a client's run with a log line; a run a client or an
         experiment started is taken over only when asked (`take_over`), else refused naming it.
+
+        Answered once the run's row is committed: a script's next `history` or `stats` of that run
+        is read from the file by a reader process, which would not know the run before.
         """
-        return self._on_loop(lambda: self.start_run(*params))
+        done: Future[Any] = Future()
+
+        def started(fut: Future[Any]) -> None:
+            exc = fut.exception()
+            if exc is not None:
+                done.set_exception(exc)
+                return
+            reply = fut.result()
+            if self.store.writer_error is not None:  # the file fails: the run is kept, not waited on
+                done.set_result(reply)
+                return
+            # On the loop thread, after the run's row was queued: this no-op commits with it.
+            self.store.write(lambda conn: None).add_done_callback(lambda _: done.set_result(reply))
+
+        self._on_loop(lambda: self.start_run(*params)).add_done_callback(started)
+        return done
 
     def start_run(
         self,

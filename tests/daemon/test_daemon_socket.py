@@ -9,6 +9,7 @@ import signal
 import socket
 import sqlite3
 import stat
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -99,6 +100,28 @@ def test_mode_change_applies_from_the_next_stroke_and_is_recorded(idle: Daemon) 
     kinds = [k for (k,) in con.execute("SELECT kind FROM events ORDER BY rowid")]
     con.close()
     assert "mode" in kinds and "target" in kinds
+
+
+def test_a_run_is_known_to_history_as_soon_as_start_cycling_answers(idle: Daemon) -> None:
+    """CI at 62730fa: `history(50, run)` just after that run's `start_cycling` answered "no run 9
+    (runs are 1..8)": the reply left before the run's row was committed, and history is read from
+    the file by a reader process. Here the record writer is held 150 ms by a lock on the file."""
+    with idle.client() as c:
+        c.history(1)  # the reads' lane started: its process spawn is no part of the race
+        db = idle.tmp / "state" / "records.sqlite"
+        con = sqlite3.connect(db, isolation_level=None, check_same_thread=False)
+        con.execute("BEGIN IMMEDIATE")  # the writer's next commit waits (its busy timeout: 200 ms)
+        release = threading.Timer(0.15, con.rollback)
+        release.start()
+        try:
+            started = c.start_cycling(20 * MS, 3)
+            assert c.history(5, started["run_id"]) is not None
+            (run,) = c.runs(1)
+            assert run["run_id"] == started["run_id"]
+        finally:
+            release.join()
+            con.close()
+        c.stop_cycling()
 
 
 def test_cycling_stats_and_subscription(idle: Daemon) -> None:
