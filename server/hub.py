@@ -97,6 +97,7 @@ class Hub:
         self.epoch = 0
         self._epoch_moving = False
         self._shed_logged_ns = 0
+        self._shed_frames: dict[tuple[str, int, str], bytes] = {}
         self.auth_failures: dict[str, tuple[int, int]] = {}  # TCP peer address -> (failures, wait until)
         self.auth_failed_total = 0
         self._auth_logged_ns = 0
@@ -200,7 +201,11 @@ class Hub:
                     victim, since = conn, conn.last_req_ns
             if victim is None:
                 return False
-        victim.fatal(ErrorCode.BUSY, f"{self.full_text(kind, most)}: this connection, {how}, gave way")
+        frame = self._shed_frames.get((kind, most, how))
+        if frame is None:  # the same words at every shed: packed once (a flood sheds thousands a second)
+            text = f"{self.full_text(kind, most)}: this connection, {how}, gave way"
+            frame = self._shed_frames[kind, most, how] = note_frame("error", [int(ErrorCode.BUSY), text])
+        victim.close_with(frame)
         self.shed[kind] += 1
         if now - self._shed_logged_ns >= 10_000_000_000:  # one line per 10 s, however many
             self._shed_logged_ns = now
@@ -389,7 +394,7 @@ class Conn(asyncio.Protocol):
         self.hub = hub
         self.kind = kind
         self.tcp = kind == "tcp"
-        self.unpacker = unpacker(hub.limits)
+        self.unpacker: msgpack.Unpacker | None = None  # made at the first byte: silent ones cost none
         self.transport: asyncio.Transport | None = None
         self.closed = False
         self.counted = False
@@ -472,17 +477,20 @@ class Conn(asyncio.Protocol):
     def data_received(self, data: bytes) -> None:
         if self.closed:
             return
+        up = self.unpacker
+        if up is None:
+            up = self.unpacker = unpacker(self.hub.limits)
         try:
-            self.unpacker.feed(data)
+            up.feed(data)
         except msgpack.BufferFull:
             self.fatal(ErrorCode.TOO_LARGE, f"frame larger than {self.hub.limits.max_frame_bytes} bytes")
             return
         self.fed += len(data)
         out: list[bytes] = []
         try:
-            for msg in self.unpacker:
+            for msg in up:
                 self.frames += 1
-                self.frames_end = self.unpacker.tell()  # exact here; past a partial frame after
+                self.frames_end = up.tell()  # exact here; past a partial frame after
                 reply = self.handle(msg)
                 if reply is not None:
                     out.append(reply)
@@ -669,9 +677,14 @@ class Conn(asyncio.Protocol):
         """Say why (a response when there is a msgid, else an "error" notification), then close."""
         if self.closed or self.transport is None:
             return
-        frame = (
+        self.close_with(
             note_frame("error", [int(code), message]) if msgid is None else error_frame(msgid, code, message)
         )
+
+    def close_with(self, frame: bytes) -> None:
+        """Send `frame` (why), then close: half-closed and read on a moment, when it can be."""
+        if self.closed or self.transport is None:
+            return
         transport = self.transport
         transport.write(frame)
         self.closed = True

@@ -9,15 +9,17 @@ import resource
 import socket
 import threading
 import time
+import tracemalloc
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import pytest
 from rawsock import Raw
 
 from usmswitch.client import Client
-from usmswitch.protocol.wire import ErrorCode, Limits, RpcError
+from usmswitch.protocol.wire import ErrorCode, Limits, RpcError, packb
 from usmswitch.server.estop_socket import EstopSocket
 from usmswitch.server.hub import Conn, Hub
 from usmswitch.server.rpc import RpcServer
@@ -183,11 +185,38 @@ class _Transport:
     def write(self, data: bytes) -> None:
         self.written += data
 
+    def get_write_buffer_size(self) -> int:
+        return 0
+
     def can_write_eof(self) -> bool:
         return False
 
     def close(self) -> None:
         self.closed = True
+
+
+def _hub(loop: asyncio.AbstractEventLoop, limits: Limits) -> Hub:
+    """A Hub driven in this process, as the server process's loop drives it."""
+    cfg = {
+        "limits": dataclasses.asdict(limits),
+        "token": None,
+        "handlers": [],
+        "urgent": ["estop"],
+        "snapshot_methods": [],
+        "topics": [],
+        "snaps": {},
+        "finishers": {},
+        "records_path": None,
+        "lost": 0,
+        "busy_poll_ns": 0,
+    }
+    return Hub(cfg, loop)
+
+
+def _made(hub: Hub) -> tuple[Conn, _Transport]:
+    conn, transport = Conn(hub, "unix"), _Transport()
+    conn.connection_made(transport)  # type: ignore[arg-type]
+    return conn, transport
 
 
 def test_a_newcomer_is_not_shed_before_the_server_has_read_it() -> None:
@@ -198,33 +227,36 @@ def test_a_newcomer_is_not_shed_before_the_server_has_read_it() -> None:
     the loop drives it: a burst made within one turn, holders made turns before it."""
     loop = asyncio.new_event_loop()
     try:
-        cfg = {
-            "limits": dataclasses.asdict(Limits(max_connections=4, urgent_reserve=2)),
-            "token": None,
-            "handlers": [],
-            "urgent": ["estop"],
-            "snapshot_methods": [],
-            "topics": [],
-            "snaps": {},
-            "finishers": {},
-            "records_path": None,
-            "lost": 0,
-            "busy_poll_ns": 0,
-        }
-        hub = Hub(cfg, loop)
-
-        def made() -> tuple[Conn, _Transport]:
-            conn, transport = Conn(hub, "unix"), _Transport()
-            conn.connection_made(transport)  # type: ignore[arg-type]
-            return conn, transport
-
-        holders = [made() for _ in range(4)]
+        hub = _hub(loop, Limits(max_connections=4, urgent_reserve=2))
+        holders = [_made(hub) for _ in range(4)]
         for _ in range(3):  # turns of the loop go by
             loop.run_until_complete(asyncio.sleep(0))
-        burst = [made() for _ in range(12)]  # one turn: none read yet
+        burst = [_made(hub) for _ in range(12)]  # one turn: none read yet
         assert [t.closed for _, t in holders] == [True] * 4  # the holders of earlier turns gave way
         assert not any(t.closed for _, t in burst), "a newcomer was shed before it was read"
         assert b"gave way" in holders[0][1].written
+    finally:
+        loop.close()
+
+
+def test_a_silent_connection_holds_no_decoder_until_its_first_byte() -> None:
+    """A connection's msgpack decoder takes ~100 KB (its buffer sized for the largest frame): made
+    at the accept, a flood of 600 silent connections renewed held 64 + 4 of them and paid for
+    making and freeing one at each of thousands of accepts a second. Made at the first byte now."""
+    loop = asyncio.new_event_loop()
+    try:
+        hub = _hub(loop, Limits())
+        tracemalloc.start()
+        try:
+            before = tracemalloc.get_traced_memory()[0]
+            silent = [_made(hub) for _ in range(64)]
+            each = (tracemalloc.get_traced_memory()[0] - before) / len(silent)
+        finally:
+            tracemalloc.stop()
+        assert each < 10_000, f"{each:.0f} bytes a silent connection"
+        conn, transport = silent[0]
+        conn.data_received(packb([0, 7, "ping", []]))
+        assert msgpack.unpackb(transport.written) == [1, 7, None, "pong"]
     finally:
         loop.close()
 
