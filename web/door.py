@@ -52,6 +52,13 @@ class Door:
         self.head_s = head_s
         self.idle_s = idle_s
         self.conns: dict[asyncio.BaseTransport, _Entry] = {}
+        # The sheddable, oldest first (insertion order is time order): heads begun (and complete,
+        # waiting a step for their handler), and idle connections. A full door sheds the first
+        # of either at once, and the sweep reads each from its front only as far as the late ones
+        # go: no scan of the budget at each accept (1,100 silent connections renewed: ~10 % of
+        # the HTTP thread was that scan).
+        self._heads: dict[_Entry, None] = {}
+        self._idle: dict[_Entry, None] = {}
         self.refused = self.shed = self.timed_out = 0
         self._logged_ns = 0
         self._sweeper: asyncio.Task[None] | None = None
@@ -86,12 +93,16 @@ class Door:
             entry.head_since = None
             entry.ready = False
             entry.tail = b""
+            self._heads.pop(entry, None)
+            self._idle.pop(entry, None)
         try:
             return await handler(request)
         finally:
             if entry is not None:
                 entry.active -= 1
                 entry.idle_since = time.monotonic()
+                if not entry.active and entry.transport in self.conns:
+                    self._idle[entry] = None
 
     def close(self) -> None:
         """Stop the sweeper (the server is closing)."""
@@ -105,19 +116,14 @@ class Door:
             self.refused += 1
             self._say(f"full (max {self.max_connections} connections): newcomers refused with 503")
             return False
-        self.conns[transport] = _Entry(transport, time.monotonic())
+        entry = self.conns[transport] = _Entry(transport, time.monotonic())
+        self._idle[entry] = None
         return True
 
     def _shed_one(self) -> bool:
-        victim = None
-        best: tuple[int, float] = (2, 0.0)
-        for entry in self.conns.values():
-            if entry.active or entry.ready:
-                continue
-            # A head begun and never finished first (slowloris), then the longest idle.
-            rank = (0, entry.head_since) if entry.head_since is not None else (1, entry.idle_since)
-            if victim is None or rank < best:
-                victim, best = entry, rank
+        # A head begun and never finished first (slowloris), then the longest idle.
+        # A head complete and waiting for its handler is never shed: skipped (a step's worth).
+        victim = next((e for e in self._heads if not e.ready), None) or next(iter(self._idle), None)
         if victim is None:
             return False
         self.shed += 1
@@ -126,8 +132,13 @@ class Door:
         return True
 
     def _drop(self, entry: _Entry) -> None:
-        self.conns.pop(entry.transport, None)
+        self._forget(entry)
         entry.transport.close()
+
+    def _forget(self, entry: _Entry) -> None:
+        self.conns.pop(entry.transport, None)
+        self._heads.pop(entry, None)
+        self._idle.pop(entry, None)
 
     def data(self, transport: asyncio.BaseTransport, data: bytes) -> None:
         """Bytes arrived on `transport`: a head begun, or complete (its handler comes next)."""
@@ -136,6 +147,8 @@ class Door:
             return
         if entry.head_since is None:
             entry.head_since = time.monotonic()
+            self._idle.pop(entry, None)
+            self._heads[entry] = None
         seen = entry.tail + data
         if b"\r\n\r\n" in seen:
             entry.ready = True
@@ -144,27 +157,26 @@ class Door:
             entry.tail = seen[-3:]
 
     def lost(self, transport: asyncio.BaseTransport) -> None:
-        self.conns.pop(transport, None)
+        entry = self.conns.get(transport)
+        if entry is not None:
+            self._forget(entry)
 
     def sweep(self) -> None:
         """Close connections past their head or idle time (each byte restarts nothing)."""
         now = time.monotonic()
-        for entry in list(self.conns.values()):
-            if entry.active:
-                continue
-            if entry.head_since is not None and now - entry.head_since > self.head_s:
-                late = True
-            elif entry.head_since is None and now - entry.idle_since > self.idle_s:
-                late = False
-            else:
-                continue
-            if late:
-                self.timed_out += 1
-                self._say(f"a request head not complete within {self.head_s:g} s: closed")
-                _write_close(entry.transport, 408, "Request Timeout", "request head not complete in time\n")
-                self.conns.pop(entry.transport, None)
-            else:
-                self._drop(entry)
+        while self._heads:
+            entry = next(iter(self._heads))
+            if entry.head_since is None or now - entry.head_since <= self.head_s:
+                break
+            self.timed_out += 1
+            self._say(f"a request head not complete within {self.head_s:g} s: closed")
+            _write_close(entry.transport, 408, "Request Timeout", "request head not complete in time\n")
+            self._forget(entry)
+        while self._idle:
+            entry = next(iter(self._idle))
+            if now - entry.idle_since <= self.idle_s:
+                break
+            self._drop(entry)
 
     async def _sweep_forever(self) -> None:
         while True:

@@ -118,3 +118,57 @@ def test_a_silent_connection_costs_the_door_no_aiohttp_handler_until_it_speaks()
     assert made_silent == 0
     assert answer.startswith(b"HTTP/1.1 200") and answer.endswith(b"answered\n"), answer[:200]
     assert made == 1
+
+
+class _Held:
+    """A transport the door holds: whether it was closed, what was written before."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.closed = False
+        self.written = b""
+
+    def write(self, data: bytes) -> None:
+        self.written += data
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_a_full_door_sheds_a_head_begun_first_then_the_longest_idle_oldest_first() -> None:
+    """The door keeps its sheddable holders in time order (heads begun, idle) and sheds the front
+    of either at once, without scanning its budget at each accept: the order it always had."""
+    door = Door("panel", 4, head_s=10, idle_s=60)
+    idle_a, idle_b, drip, ready = (_Held(n) for n in ("idle a", "idle b", "drip", "ready"))
+    for t in (idle_a, idle_b, drip, ready):
+        assert door.admit(t)  # type: ignore[arg-type]
+    door.data(drip, b"GET / HT")  # type: ignore[arg-type]  # a head begun, never finished
+    door.data(ready, b"GET / HTTP/1.1\r\n\r\n")  # type: ignore[arg-type]  # complete: never shed
+    order = []
+    for k in range(3):
+        newcomer = _Held(f"new {k}")
+        assert door.admit(newcomer)  # type: ignore[arg-type]
+        shed = [t for t in (idle_a, idle_b, drip, ready) if t.closed and t.name not in order]
+        order += [t.name for t in shed]
+    assert order == ["drip", "idle a", "idle b"] and not ready.closed
+    assert door.shed == 3 and len(door.conns) == 4
+
+
+def test_the_sweep_closes_late_heads_with_408_and_long_idle_ones_and_no_other() -> None:
+    door = Door("metrics", 8, head_s=5, idle_s=120)
+    late_head, fresh_head, long_idle, fresh_idle = (_Held(n) for n in ("late", "fresh", "long", "new"))
+    for t in (long_idle, late_head):
+        door.admit(t)  # type: ignore[arg-type]
+    door.data(late_head, b"GET /metrics")  # type: ignore[arg-type]
+    for e in door.conns.values():  # as if made long ago
+        e.idle_since -= 200
+        if e.head_since is not None:
+            e.head_since -= 6
+    for t in (fresh_idle, fresh_head):
+        door.admit(t)  # type: ignore[arg-type]
+    door.data(fresh_head, b"GET /")  # type: ignore[arg-type]
+    door.sweep()
+    assert late_head.closed and b"408 Request Timeout" in late_head.written
+    assert long_idle.closed and long_idle.written == b""
+    assert not fresh_head.closed and not fresh_idle.closed
+    assert door.timed_out == 1 and set(door.conns) == {fresh_head, fresh_idle}
