@@ -32,7 +32,7 @@ from .config import Config
 from .config_values import parse_host_port, parse_listen
 from .loop import AUTOSTART_OWNER, ControlLoop, LoopError, Mode, State
 from .reach import TargetUnreachableError
-from .records import RecordStore
+from .records import RecordStore, RecordStoreError
 from .run_queue import PARAMS, Entry, RunQueue
 from .web_token import TokenFile
 
@@ -283,24 +283,32 @@ class Methods:
         what `make run` starts) gives way to a client's run with a log line; a run a client or an
         experiment started is taken over only when asked (`take_over`), else refused naming it.
 
-        Answered once the run's row is committed: a script's next `history` or `stats` of that run
-        is read from the file by a reader process, which would not know the run before.
+        Answered once the run's row is committed (`_once_committed`).
         """
+        return self._once_committed(self._on_loop(lambda: self.start_run(*params)))
+
+    def _once_committed(self, fut: Future[Any]) -> Future[Any]:
+        """`fut`'s reply once what the loop queued for the records file before it is committed: a
+        script's next `history`, `runs` or `stats` of a run is read from the file by a reader
+        process, and answered "no run 9" for a run whose start had been answered (CI, 62730fa)."""
         done: Future[Any] = Future()
 
-        def started(fut: Future[Any]) -> None:
-            exc = fut.exception()
+        def settled(f: Future[Any]) -> None:
+            exc = f.exception()
             if exc is not None:
                 done.set_exception(exc)
                 return
-            reply = fut.result()
-            if self.store.writer_error is not None:  # the file fails: the run is kept, not waited on
-                done.set_result(reply)
-                return
-            # On the loop thread, after the run's row was queued: this no-op commits with it.
-            self.store.write(lambda conn: None).add_done_callback(lambda _: done.set_result(reply))
+            reply = f.result()
+            try:
+                if self.store.writer_error is None:  # failing: what was queued is kept, not waited on
+                    # After the loop queued its rows (their future is done): a no-op that commits with them.
+                    self.store.write(lambda conn: None).add_done_callback(lambda _: done.set_result(reply))
+                    return
+            except RecordStoreError:  # closed: the daemon is stopping
+                pass
+            done.set_result(reply)
 
-        self._on_loop(lambda: self.start_run(*params)).add_done_callback(started)
+        fut.add_done_callback(settled)
         return done
 
     def start_run(
@@ -490,7 +498,7 @@ class Methods:
                 "run": None if run is None else run.to_dict(),
             }
 
-        return self._on_loop(run)
+        return self._once_committed(self._on_loop(run))
 
     def reset_fault(self, params: list[Any]) -> Future[Any]:
         def run() -> dict[str, Any]:

@@ -102,26 +102,40 @@ def test_mode_change_applies_from_the_next_stroke_and_is_recorded(idle: Daemon) 
     assert "mode" in kinds and "target" in kinds
 
 
-def test_a_run_is_known_to_history_as_soon_as_start_cycling_answers(idle: Daemon) -> None:
+def test_a_runs_start_and_end_are_in_the_file_when_their_replies_come(idle: Daemon) -> None:
     """CI at 62730fa: `history(50, run)` just after that run's `start_cycling` answered "no run 9
     (runs are 1..8)": the reply left before the run's row was committed, and history is read from
-    the file by a reader process. Here the record writer is held 150 ms by a lock on the file."""
-    with idle.client() as c:
-        c.history(1)  # the reads' lane started: its process spawn is no part of the race
-        db = idle.tmp / "state" / "records.sqlite"
+    the file by a reader process. Here the record writer is held 150 ms by a lock on the file before
+    each reply; `runs` read just after them says what they said."""
+    db = idle.tmp / "state" / "records.sqlite"
+
+    def writer_held() -> tuple[sqlite3.Connection, threading.Timer]:
         con = sqlite3.connect(db, isolation_level=None, check_same_thread=False)
         con.execute("BEGIN IMMEDIATE")  # the writer's next commit waits (its busy timeout: 200 ms)
         release = threading.Timer(0.15, con.rollback)
         release.start()
+        return con, release
+
+    with idle.client() as c:
+        c.history(1)  # the reads' lane started: its process spawn is no part of the race
+        con, release = writer_held()
         try:
-            started = c.start_cycling(20 * MS, 3)
+            started = c.start_cycling(20 * MS, 0)
             assert c.history(5, started["run_id"]) is not None
             (run,) = c.runs(1)
-            assert run["run_id"] == started["run_id"]
+            assert run["run_id"] == started["run_id"] and run["end_reason"] is None
         finally:
             release.join()
             con.close()
-        c.stop_cycling()
+        con, release = writer_held()
+        try:
+            stopped = c.stop_cycling()
+            (run,) = c.runs(1)
+            assert run["run_id"] == started["run_id"] and run["end_reason"] == "stopped"
+            assert run["last_cycle"] == stopped["run"]["last_cycle"]
+        finally:
+            release.join()
+            con.close()
 
 
 def test_cycling_stats_and_subscription(idle: Daemon) -> None:
