@@ -300,8 +300,9 @@ class Methods:
                 return
             reply = f.result()
             try:
-                if self.store.writer_error is None:  # failing: what was queued is kept, not waited on
-                    # After the loop queued its rows (their future is done): a no-op that commits with them.
+                # After the loop queued its rows (their future is done): a no-op that commits with
+                # them. Not while the file fails (what was queued is kept, not waited on).
+                if self.store.writer_error is None:
                     self.store.write(lambda conn: None).add_done_callback(lambda _: done.set_result(reply))
                     return
             except RecordStoreError:  # closed: the daemon is stopping
