@@ -510,7 +510,7 @@ class Methods:
             self.store.record_event("reset", fault=was)
             return {"fault": was}
 
-        done = self._on_loop(run)
+        done = self._once_committed(self._on_loop(run))  # the fault's records in the file with it
         # A person reset the fault: the queue's next run may start (a fault never starts it).
         done.add_done_callback(lambda fut: fut.exception() is None and self.queue.next())
         return done

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import os
 import random
@@ -106,36 +107,39 @@ def test_a_runs_start_and_end_are_in_the_file_when_their_replies_come(idle: Daem
     """CI at 62730fa: `history(50, run)` just after that run's `start_cycling` answered "no run 9
     (runs are 1..8)": the reply left before the run's row was committed, and history is read from
     the file by a reader process. Here the record writer is held 150 ms by a lock on the file before
-    each reply; `runs` read just after them says what they said."""
+    each reply (a start, a reset after an estop, a stop); `runs` read just after says what it said."""
     db = idle.tmp / "state" / "records.sqlite"
 
-    def writer_held() -> tuple[sqlite3.Connection, threading.Timer]:
+    @contextlib.contextmanager
+    def writer_held() -> Iterator[None]:
         con = sqlite3.connect(db, isolation_level=None, check_same_thread=False)
         con.execute("BEGIN IMMEDIATE")  # the writer's next commit waits (its busy timeout: 200 ms)
         release = threading.Timer(0.15, con.rollback)
         release.start()
-        return con, release
+        try:
+            yield
+        finally:
+            release.join()
+            con.close()
 
     with idle.client() as c:
         c.history(1)  # the reads' lane started: its process spawn is no part of the race
-        con, release = writer_held()
-        try:
+        with writer_held():
             started = c.start_cycling(20 * MS, 0)
             assert c.history(5, started["run_id"]) is not None
             (run,) = c.runs(1)
             assert run["run_id"] == started["run_id"] and run["end_reason"] is None
-        finally:
-            release.join()
-            con.close()
-        con, release = writer_held()
-        try:
+        with writer_held():
+            c.estop()
+            c.reset_fault()
+            (run,) = c.runs(1)
+            assert run["run_id"] == started["run_id"] and run["end_reason"].startswith("fault: estop")
+        started = c.start_cycling(20 * MS, 0)
+        with writer_held():
             stopped = c.stop_cycling()
             (run,) = c.runs(1)
             assert run["run_id"] == started["run_id"] and run["end_reason"] == "stopped"
             assert run["last_cycle"] == stopped["run"]["last_cycle"]
-        finally:
-            release.join()
-            con.close()
 
 
 def test_cycling_stats_and_subscription(idle: Daemon) -> None:
