@@ -81,10 +81,6 @@ class Methods:
         # set_target calls waiting for the loop: folded into one change (bridge and loop threads).
         self._target_lock = threading.Lock()
         self._target_batch: list[tuple[int, str, Future[Any]]] | None = None
-        # switch replies wait for their record's commit (loop and record writer threads).
-        self._commit_lock = threading.Lock()
-        self._committed_cycle = self.store.last_cycle()
-        self._commit_waiters: list[tuple[CycleRecord, Future[Any]]] = []
         # The stats snapshot in virtual time: when it was last built, and whether a stroke since lacks it.
         self._snapshot_ns = 0
         self._snapshot_owed = False
@@ -255,26 +251,11 @@ class Methods:
         """One stroke; answered once its record is in the file (history then holds it)."""
         (which,) = params
 
-        def run() -> CycleRecord:
+        def run() -> dict[str, Any]:
             d = self.loop.next_direction if which == "next" else DIRECTIONS[which][0]
-            return self.loop.switch(d)
+            return self.loop.switch(d).to_dict()  # its record queued for the file before it returns
 
-        done: Future[Any] = Future()
-
-        def stroked(fut: Future[Any]) -> None:
-            exc = fut.exception()
-            if exc is not None:
-                done.set_exception(exc)
-                return
-            rec: CycleRecord = fut.result()
-            with self._commit_lock:
-                if rec.cycle > self._committed_cycle:
-                    self._commit_waiters.append((rec, done))
-                    return
-            done.set_result(rec.to_dict())
-
-        self._on_loop(run).add_done_callback(stroked)
-        return done
+        return self._once_committed(self._on_loop(run))
 
     def start_cycling(self, params: list[Any]) -> Future[Any]:
         """A new run: the target (when given) is set with it, and the run records both.
@@ -288,9 +269,10 @@ class Methods:
         return self._once_committed(self._on_loop(lambda: self.start_run(*params)))
 
     def _once_committed(self, fut: Future[Any]) -> Future[Any]:
-        """`fut`'s reply once what the loop queued for the records file before it is committed: a
-        script's next `history`, `runs` or `stats` of a run is read from the file by a reader
-        process, and answered "no run 9" for a run whose start had been answered (CI, 62730fa)."""
+        """`fut`'s reply once what the loop queued for the records file before it is committed (a
+        stroke's record, a run's row, a fault's): a script's next `history`, `runs` or `stats` is
+        read from the file by a reader process, and answered "no run 9" for a run whose start had
+        been answered (CI, 62730fa)."""
         done: Future[Any] = Future()
 
         def settled(f: Future[Any]) -> None:
@@ -575,12 +557,6 @@ class Methods:
         if server is not None:
             for rec in records:
                 server.publish("stroke", rec.to_dict())
-        with self._commit_lock:
-            top = self._committed_cycle = max(self._committed_cycle, records[-1].cycle)
-            ready = [(r, f) for r, f in self._commit_waiters if r.cycle <= top]
-            self._commit_waiters = [(r, f) for r, f in self._commit_waiters if r.cycle > top]
-        for rec, fut in ready:
-            fut.set_result(rec.to_dict())
 
     # -- from the loop, in its slack ---------------------------------------------------------------
     def on_record(self, rec: CycleRecord) -> None:
