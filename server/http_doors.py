@@ -27,7 +27,7 @@ from typing import Any
 
 from usmswitch.protocol.wire import RpcError
 from usmswitch.runtime.realtime import name_thread
-from usmswitch.server.estop_link import EstopLink, EstopUnreached
+from usmswitch.server.estop_link import KEEP_WARM_S, EstopLink, EstopUnreached
 
 log = logging.getLogger("usmswitch.rpc")
 
@@ -199,6 +199,27 @@ class HttpDoors:
             thread.join(timeout_s)
 
 
+class _KeptWarm:
+    """The panel's estop link, its connection opened soon after the start (the daemon's estop
+    thread may start after this thread) and pinged every KEEP_WARM_S, so that an estop finds it
+    open; `close` at the end."""
+
+    def __init__(self, link: EstopLink, loop: asyncio.AbstractEventLoop) -> None:
+        self.link = link
+        self.task = loop.create_task(self._ping())
+
+    async def _ping(self) -> None:
+        delay = 1.0
+        while True:
+            await asyncio.sleep(delay)
+            self.link.keep_warm()
+            delay = KEEP_WARM_S
+
+    def close(self) -> None:
+        self.task.cancel()
+        self.link.close()
+
+
 async def serve_http(
     listeners: list[tuple[socket.socket, str]],
     panel_conn: Any,
@@ -226,10 +247,13 @@ async def serve_http(
 
                 hosts = frozenset(cfg.get("web_allowed_hosts", ()))
                 estop = cfg.get("estop_socket")
-                backend = CrossBackend(panel_conn, home, here, None if estop is None else EstopLink(estop))
+                link = None if estop is None else EstopLink(estop)
+                backend = CrossBackend(panel_conn, home, here, link)
                 servers.append(
                     await serve_panel(sock, backend, cfg["web_token"], cfg["web_token_file"], hosts)
                 )
+                if link is not None:
+                    servers.append(_KeptWarm(link, here))
         return servers
 
     await doors.start(setup)
