@@ -295,7 +295,8 @@ def estop_by(
         with Client(str(sock), timeout=10, retry=False) as c:
             c.call("estop")
     elif path_name == "TCP":
-        with Client(f"tcp://{tcp}", token=tcp_token, timeout=10, retry=False) as c:
+        # As usmswitchctl estop --tcp makes it: the auth in one write with the estop.
+        with Client(f"tcp://{tcp}", token=tcp_token, timeout=10, retry=False, auth_with_first_call=True) as c:
             c.call("estop")
     else:
         import http.client

@@ -163,7 +163,10 @@ class Client(Api):
 
     `address`: a socket path, "unix:PATH" or "tcp://host:port?token=..."; None finds the local
     daemon's socket as `usmswitchctl` does (`rig` names a rig's instance). `timeout`: seconds a
-    call waits for its reply (None: forever).
+    call waits for its reply (None: forever). `auth_with_first_call` (TCP): `auth` goes out in one
+    write with the first call instead of being answered before the constructor returns, one round
+    trip less for a connection made for one call (`usmswitchctl estop`); a wrong token is then
+    raised by that first call (Unauthorized), and the call itself is not carried out.
     """
 
     def __init__(
@@ -175,6 +178,7 @@ class Client(Api):
         retry: bool = True,
         max_reply_bytes: int = 64 << 20,
         rig: str | None = None,
+        auth_with_first_call: bool = False,
     ) -> None:
         self.timeout = check_timeout("timeout", timeout)
         if address is None:
@@ -198,6 +202,8 @@ class Client(Api):
         self.topics: set[str] = set()
         self._run_holds: dict[str, int] = {}  # topic -> run objects holding it (hold_topics)
         self._pending_out: list[bytes] = []
+        self._auth_with_first_call = auth_with_first_call
+        self._auth_msgid: int | None = None  # an auth sent with the first call, its answer not yet read
         self._abandoned: set[int] = set()  # timed-out calls whose late replies are discarded
         self._sent: dict[int, tuple[str, int]] = {}  # msgid -> (method, monotonic ns sent): for timeouts
         self._packer = msgpack.Packer(use_bin_type=True, autoreset=True)
@@ -225,6 +231,7 @@ class Client(Api):
         self._abandoned.clear()  # replies to a closed connection's calls never come
         self._sent.clear()
         self._pending_out.clear()
+        self._auth_msgid = None
         self.topics = set()
         self._run_holds = {}
         if self.family == "tcp":
@@ -233,7 +240,10 @@ class Client(Api):
                 raise ValueError(
                     "a TCP connection needs a token: Client(..., token=...) or ?token= in the URL"
                 )
-            self.call("auth", self.token, retry=False)
+            if self._auth_with_first_call:
+                self._auth_msgid = self._send("auth", [self.token], flush=False)
+            else:
+                self.call("auth", self.token, retry=False)
 
     def reconnect(self) -> None:
         """Drop the connection and open a new one. Subscriptions are per connection: subscribe again."""
@@ -350,10 +360,12 @@ class Client(Api):
         self._msgid = (self._msgid + 1) & MAX_MSGID
         frame = self._packer.pack([REQUEST, self._msgid, method, params])
         self._sent[self._msgid] = (method, time.monotonic_ns())
-        if flush:
+        if flush and not self._pending_out:
             self._sendall(frame)
-        else:
+        else:  # behind what waits to go (a pipeline's frames, an auth sent with the first call)
             self._pending_out.append(frame)
+            if flush:
+                self._flush()
         return self._msgid
 
     def _flush(self) -> None:
@@ -370,6 +382,15 @@ class Client(Api):
             raise ConnectionClosed(f"connection to {self.address} broke: {exc}") from exc
 
     def _wait(self, msgid: int) -> list[Any]:
+        if self._auth_msgid is not None and msgid != self._auth_msgid:
+            # The server took the frames in order: the auth's answer comes first, and a wrong
+            # token closed the connection before the call was read.
+            auth, self._auth_msgid = self._auth_msgid, None
+            try:
+                result_of(self._wait(auth))
+            except RpcError:
+                self.close()
+                raise
         try:
             while msgid not in self._replies:
                 self._read()
@@ -617,7 +638,8 @@ def estop_by_every_path(
         tries.append(lambda: _estop_on(estop_socket_path(path), timeout, by))
 
     def main_door() -> dict[str, Any]:
-        with Client(address, timeout=timeout, token=token, retry=False) as c:
+        # Over TCP the auth goes in one write with the estop: no round trip waited for first.
+        with Client(address, timeout=timeout, token=token, retry=False, auth_with_first_call=True) as c:
             return _estop_call(c, _source(by, family))
 
     tries.append(main_door)

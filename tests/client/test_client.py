@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import signal
 import tempfile
@@ -13,6 +14,7 @@ from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import pytest
 
 from usmswitch.client import Client, ConnectionClosed
@@ -221,6 +223,30 @@ def test_tcp_with_token_and_refusals(server: RpcServer) -> None:
     finally:
         if env is not None:
             os.environ["USMSWITCH_TOKEN"] = env
+
+
+def test_tcp_auth_with_the_first_call_is_one_write_and_a_wrong_token_carries_out_nothing(
+    server: RpcServer, rec: Recorder
+) -> None:
+    """`usmswitchctl estop --tcp` waited for its auth's answer before it sent the estop: one round
+    trip through the server more than the estop needs. With auth_with_first_call the two frames go
+    in one write; the server takes them in order, so a wrong token is refused before the call is
+    read, and the call raises it."""
+    host, port = server.tcp_address  # type: ignore[misc]
+    with Client(f"tcp://{host}:{port}", token=TOKEN, auth_with_first_call=True) as c:
+        writes: list[bytes] = []
+        send = c._sendall
+        c._sendall = lambda data: (writes.append(data), send(data))[1]  # type: ignore[method-assign]
+        assert c.call("estop", "a script") == {"method": "estop", "params": ["a script"]}
+        assert c.ping() == "pong"  # the connection goes on, authenticated
+    frames = list(msgpack.Unpacker(io.BytesIO(writes[0]), raw=False))
+    assert [f[2] for f in frames] == ["auth", "estop"] and len(writes) == 2
+    with Client(f"tcp://{host}:{port}", token="not-the-token-at-all", auth_with_first_call=True) as c:
+        with pytest.raises(RpcError) as info:
+            c.call("set_target", 12_000_000)
+        assert info.value.code == ErrorCode.UNAUTHORIZED
+        assert not c.connected
+    assert [name for name, _ in rec.calls] == ["estop"]  # the refused connection's call never ran
 
 
 def test_timeout_then_the_connection_still_works(server: RpcServer, rec: Recorder) -> None:
