@@ -18,6 +18,7 @@ from typing import Any
 import faultmcu
 import pytest
 from mcudaemon import (
+    DAEMON_LOG,
     FAULT,
     MISMATCH,
     MS,
@@ -139,7 +140,12 @@ def test_a_clock_jump_mid_stroke_is_named_the_links_not_a_stall(tmp_path: Path) 
     assert st["state"] == "fault" and st["fault"].startswith("wire"), st["fault"]
     hit = got[2]
     assert hit.flags & FAULT and not hit.flags & STALL, hit
-    assert after["state"] == "idle", after["fault"]
+    # Once in make test at stop 50 (not again in 14 runs alone, 8 of them beside two CPU hogs), a
+    # stroke after the reset read "the device reports an arrival whose stamps did not reach the
+    # host": said with the link's counters and the daemon's log, to find out why when it comes again.
+    log = (tmp_path / DAEMON_LOG).read_text(errors="replace")[-3000:]
+    why = (after["fault"], after["driver_counters"], log)
+    assert after["state"] == "idle", why
     assert all(r.clean for r in got[3:]) and len(got) == 7, got
     assert not untrue_clean(got, emu.log)
 
