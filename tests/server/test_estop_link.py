@@ -21,14 +21,33 @@ from usmswitch.server.estop_socket import EstopSocket
 
 
 @contextlib.contextmanager
-def _serve(path: Path, answer: Callable[[socket.socket, list[object]], None]) -> Iterator[threading.Event]:
-    """A one-connection-at-a-time stand-in for the estop socket: `answer(conn, request)`; the
+def _serve(
+    path: Path, answer: Callable[[socket.socket, list[object]], None], keep: bool = False
+) -> Iterator[threading.Event]:
+    """A one-connection-at-a-time stand-in for the estop socket: `answer(conn, request)` for each
+    connection's first request, or with `keep` for every request until its peer closes it; the
     event yielded is set when the test is done with it."""
     listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     listener.bind(str(path))
     listener.listen(4)
     listener.settimeout(0.1)
     done = threading.Event()
+
+    def serve(conn: socket.socket) -> None:
+        conn.settimeout(0.1)
+        unpacker = msgpack.Unpacker(raw=False)
+        while not done.is_set():
+            try:
+                data = conn.recv(512)
+            except TimeoutError:
+                continue
+            if not data:
+                return
+            unpacker.feed(data)
+            for msg in unpacker:
+                answer(conn, msg)
+                if not keep:
+                    return
 
     def run() -> None:
         while not done.is_set():
@@ -37,16 +56,7 @@ def _serve(path: Path, answer: Callable[[socket.socket, list[object]], None]) ->
             except TimeoutError:
                 continue
             with conn:
-                conn.settimeout(5)
-                unpacker = msgpack.Unpacker(raw=False)
-                while (data := conn.recv(512)) and not done.is_set():
-                    unpacker.feed(data)
-                    for msg in unpacker:
-                        answer(conn, msg)
-                        break
-                    else:
-                        continue
-                    break
+                serve(conn)
 
     thread = threading.Thread(target=run, daemon=True)
     thread.start()
@@ -234,7 +244,7 @@ def test_a_kept_connection_that_does_not_answer_is_unreached_within_the_links_ti
         answered += 1
         conn.sendall(msgpack.packb([RESPONSE, msg[1], None, "pong"]))
 
-    with _serve_kept(sock_path, answer):
+    with _serve(sock_path, answer, keep=True):
         link = EstopLink(sock_path, timeout_s=0.3)
         link.keep_warm()
         t0 = time.monotonic()
@@ -246,42 +256,3 @@ def test_a_kept_connection_that_does_not_answer_is_unreached_within_the_links_ti
             ended.set()
             link.close()
     assert took < 0.55, took  # once the link's time (0.3 s), not a fresh try's too
-
-
-@contextlib.contextmanager
-def _serve_kept(path: Path, answer: Callable[[socket.socket, list[object]], None]) -> Iterator[None]:
-    """A stand-in that answers every request on a connection it keeps, one connection at a time."""
-    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    listener.bind(str(path))
-    listener.listen(4)
-    listener.settimeout(0.1)
-    done = threading.Event()
-
-    def run() -> None:
-        while not done.is_set():
-            try:
-                conn, _ = listener.accept()
-            except TimeoutError:
-                continue
-            with conn:
-                conn.settimeout(0.1)
-                unpacker = msgpack.Unpacker(raw=False)
-                while not done.is_set():
-                    try:
-                        data = conn.recv(512)
-                    except TimeoutError:
-                        continue
-                    if not data:
-                        break
-                    unpacker.feed(data)
-                    for msg in unpacker:
-                        answer(conn, msg)
-
-    thread = threading.Thread(target=run, daemon=True)
-    thread.start()
-    try:
-        yield
-    finally:
-        done.set()
-        thread.join(5)
-        listener.close()
