@@ -381,7 +381,7 @@ class Methods:
         self._on_loop(check).add_done_callback(checked)
         return done
 
-    def queue_cancel(self, params: list[Any]) -> dict[str, Any]:
+    def queue_cancel(self, params: list[Any]) -> Future[dict[str, Any]]:
         entry, owner, operator = params
         return self.queue.cancel(entry, owner, operator)
 

@@ -138,6 +138,10 @@ def _load(conn: sqlite3.Connection) -> list[Entry]:
     return out
 
 
+class _Deciding(Exception):
+    """The entry's start is being decided: a change to it waits for that (`_when_decided`)."""
+
+
 class RunQueue:
     """The queue: what waits, whether it is paused, the entry whose run is going."""
 
@@ -164,6 +168,10 @@ class RunQueue:
         self._queued: dict[int, Entry] = {}
         self._starting: int | None = None
         self._again = False  # asked to start the next while a start was deciding: ask again after
+        # Changes to the entry whose start is being decided (a cancel, a new priority), made once
+        # that is decided: each submit looks at the head even while another's run goes, so a
+        # submitter's cancel right after its submit would otherwise meet that look.
+        self._after_look: list[Callable[[], None]] = []
         #: The entry whose run is going (None: none, or a run that is not the queue's).
         self.current: Entry | None = None
         self.paused = False
@@ -222,56 +230,90 @@ class RunQueue:
         self._write(_insert(entry)).add_done_callback(kept)
         return done
 
-    def cancel(self, entry_id: int, owner: str, operator: bool) -> dict[str, Any]:
-        """A queued entry taken out: its submitter's (the same `user@host`), or any with `operator`."""
-        with self._lock:
-            entry = self._queued.get(entry_id)
-            if entry is None:
-                raise RpcError(ErrorCode.INVALID_PARAMS, f"queue_cancel: entry {entry_id} is not queued")
-            if not operator and owner_person(entry.owner) != owner_person(owner):
-                raise RpcError(
-                    ErrorCode.STATE,
-                    f"queue_cancel: entry {entry_id} is {owner_person(entry.owner)}'s: its submitter"
-                    " cancels it, or an operator (operator=True, `usmswitchctl queue cancel N --operator`)",
-                )
-            if self._starting == entry_id:
-                raise RpcError(ErrorCode.STATE, f"queue_cancel: entry {entry_id} is starting now")
-            del self._queued[entry_id]
-        self._leave(entry, CANCELLED, f"cancelled by {owner or 'a client'}")
-        return entry.to_dict()
+    def cancel(self, entry_id: int, owner: str, operator: bool) -> Future[dict[str, Any]]:
+        """A queued entry taken out: its submitter's (the same `user@host`), or any with `operator`.
+        Answered at once, or, while its start is being decided, once that is (it may have started)."""
+
+        def take_out() -> dict[str, Any]:
+            with self._lock:
+                entry = self._waiting(entry_id, "queue_cancel", owner, operator, "cancels it", "cancel N")
+                del self._queued[entry_id]
+            self._leave(entry, CANCELLED, f"cancelled by {owner or 'a client'}")
+            return entry.to_dict()
+
+        return self._when_decided(entry_id, take_out)
 
     def set_priority(
         self, entry_id: int, priority: int, owner: str, operator: bool
     ) -> Future[dict[str, Any]]:
         """A queued entry's priority changed, and with it its place: its submitter's (the same
         `user@host`), or any with `operator`. Answered with the entry and its new place once the
-        change is in the file."""
-        with self._lock:
-            entry = self._queued.get(entry_id)
-            if entry is None:
-                raise RpcError(ErrorCode.INVALID_PARAMS, f"queue_priority: entry {entry_id} is not queued")
-            if not operator and owner_person(entry.owner) != owner_person(owner):
-                raise RpcError(
-                    ErrorCode.STATE,
-                    f"queue_priority: entry {entry_id} is {owner_person(entry.owner)}'s: its submitter"
-                    " reorders it, or an operator (operator=True)",
-                )
-            if self._starting == entry_id:
-                raise RpcError(ErrorCode.STATE, f"queue_priority: entry {entry_id} is starting now")
-            entry.priority = priority
-            view = self._view(entry)
-        log.info("queued run reordered", entry=entry_id, priority=priority, position=view["position"])
-        self._changed("reordered", entry)
+        change is in the file (and, while its start is being decided, once that is)."""
         done: Future[dict[str, Any]] = Future()
 
-        def kept(fut: Future[None]) -> None:
-            exc = fut.exception()
-            if exc is not None:
-                done.set_exception(exc)
-            else:
-                done.set_result(view)
+        def move() -> None:
+            with self._lock:
+                entry = self._waiting(
+                    entry_id, "queue_priority", owner, operator, "reorders it", "priority N P"
+                )
+                entry.priority = priority
+                view = self._view(entry)
+            log.info("queued run reordered", entry=entry_id, priority=priority, position=view["position"])
+            self._changed("reordered", entry)
 
-        self._write(_reorder(entry_id, priority)).add_done_callback(kept)
+            def kept(fut: Future[None]) -> None:
+                exc = fut.exception()
+                if exc is not None:
+                    done.set_exception(exc)
+                else:
+                    done.set_result(view)
+
+            self._write(_reorder(entry_id, priority)).add_done_callback(kept)
+
+        self._when_decided(entry_id, move).add_done_callback(
+            lambda fut: (exc := fut.exception()) is not None and done.set_exception(exc)
+        )
+        return done
+
+    def _waiting(self, entry_id: int, method: str, owner: str, operator: bool, rule: str, ctl: str) -> Entry:
+        """The queued entry `entry_id` for `method` by `owner` (the lock held), or why not: not
+        queued (started: its run named), another's without `operator`, or its start being decided."""
+        entry = self._queued.get(entry_id)
+        if entry is None:
+            going = self.current
+            if going is not None and going.entry == entry_id:
+                raise RpcError(
+                    ErrorCode.STATE,
+                    f"{method}: entry {entry_id} has started as run {going.run_id}: stop_cycling ends it",
+                )
+            raise RpcError(ErrorCode.INVALID_PARAMS, f"{method}: entry {entry_id} is not queued")
+        if not operator and owner_person(entry.owner) != owner_person(owner):
+            raise RpcError(
+                ErrorCode.STATE,
+                f"{method}: entry {entry_id} is {owner_person(entry.owner)}'s: its submitter {rule},"
+                f" or an operator (operator=True, `usmswitchctl queue {ctl} --operator`)",
+            )
+        if self._starting == entry_id:
+            raise _Deciding
+        return entry
+
+    def _when_decided(self, entry_id: int, change: Callable[[], Any]) -> Future[Any]:
+        """`change()` now, or once the start being decided for `entry_id` is decided."""
+        done: Future[Any] = Future()
+
+        def attempt() -> None:
+            try:
+                done.set_result(change())
+            except _Deciding:
+                with self._lock:
+                    if self._starting == entry_id:
+                        self._after_look.append(attempt)
+                        return
+                attempt()  # decided between the two looks: at once
+            except Exception as exc:
+                done.set_exception(exc)
+
+        attempt()
         return done
 
     def set_paused(self, paused: bool, operator: bool) -> dict[str, Any]:
@@ -332,6 +374,7 @@ class RunQueue:
         with self._lock:
             self._starting = None
             again, self._again = self._again, False
+            deferred, self._after_look = self._after_look, []
             waits = result is None and exc is None
             if not waits:
                 self._queued.pop(entry.entry, None)
@@ -339,6 +382,8 @@ class RunQueue:
                 entry.run_id, entry.first_cycle = result["run_id"], result["first_cycle"]
                 entry.state = STARTED
                 self.current = entry
+        for change in deferred:  # before the next look, which may pick this entry again
+            change()
         if waits:  # not now: a FAULT, or another's run going; tried again when that changes
             if again:
                 self.next()  # a run ended (or a reset) while this one looked: look again
