@@ -2,7 +2,8 @@
 
 The driver's clock is the device's timeline mapped onto the host: device stamps (32-bit us,
 unwrapped) become `base_ns + (us - base_us) * 1000`, where the base is fixed at each handshake so
-the timeline starts near `time.monotonic_ns()` and never goes back across reconnects; `now_ns()` is
+the timeline starts near `time.monotonic_ns()` and never goes back across reconnects (a reconnect to
+a device whose clock kept counting, where the timeline puts it, keeps the base); `now_ns()` is
 `time.monotonic_ns() + offset_ns`, the offset re-estimated from each heartbeat round trip (the
 sample with the smallest round trip of the last eight), which tracks the crystals' drift.
 
@@ -138,6 +139,21 @@ class DeviceTimeline:
         return None
 
     # -- sessions -----------------------------------------------------------------------------
+    def resumes(self, raw_us: int, host_mid_ns: int, rtt_ns: int) -> bool:
+        """At a reconnect to the same run of the device: is its clock where this timeline puts it,
+        within the handshake's own round trip? Then the timeline goes on as it was (True): a
+        handshake's midpoint is only as good as its round trip (beside two CPU hogs one took 312 ms,
+        and an anchor on it moved the timeline 156 ms), where the mapping the heartbeats refined
+        holds for a clock that kept counting. The next PONGs re-estimate the offset afresh."""
+        if not self.base_ns:
+            return False  # no session before this one
+        jump = self.dev_ns(raw_us) - (host_mid_ns + self.clock.offset_ns)
+        if abs(jump) > self.err_ns(host_mid_ns) + rtt_ns // 2 + CLOCK_CHECK_NS:
+            return False
+        self._offsets = []
+        self._off_run = []
+        return True
+
     def anchor(self, raw_us: int, host_mid_ns: int, rtt_ns: int, floor_ns: int) -> None:
         """Start a device session's timeline at `host_mid_ns` on the driver clock, never before
         `floor_ns` (the last stamp delivered)."""
@@ -154,18 +170,24 @@ class DeviceTimeline:
         self._rate_ref = (host_mid_ns, self.base_ns, rtt_ns)
         self._last_good = (host_mid_ns, self.base_ns, rtt_ns)
 
-    def restarted(self, msg: HelloAck, t_recv: int, *, booted: bool, fw_before: int | None) -> bool:
+    def restarted(
+        self, msg: HelloAck, t_send: int, t_recv: int, *, booted: bool, fw_before: int | None
+    ) -> bool:
         """At a handshake: is this another run of the device than the last session's (or the first)?
 
         Its BOOT said so (`booted`), its firmware is another, or its clock started again: the count
-        now is below the time since it was last heard and off where the old run's would be. A clock
-        that merely runs at a wrong rate is the same run, whatever its offset has grown to."""
+        now is below the time since it was last heard and off where the old run's would be at some
+        instant of the round trip (its stamp was taken between the HELLO and the answer's arrival,
+        wherever the line or a busy host held either). A clock that merely runs at a wrong rate is
+        the same run, whatever its offset has grown to."""
         heard = self.heard
         if booted or heard is None or (fw_before is not None and fw_before != msg.fw_version):
             return True
         elapsed_ns = t_recv - heard[1]
-        expected = (heard[0] + elapsed_ns // 1000) % U32_MOD
-        off_ns = abs(((msg.t_us - expected + U32_MOD // 2) % U32_MOD - U32_MOD // 2) * 1000)
+        lo = (heard[0] + (t_send - heard[1]) // 1000) % U32_MOD
+        span_us = (t_recv - t_send) // 1000
+        past_lo = (msg.t_us - lo + U32_MOD // 2) % U32_MOD - U32_MOD // 2
+        off_ns = 1000 * (-past_lo if past_lo < 0 else max(0, past_lo - span_us))
         slack_ns = _CLOCK_CONTINUITY_NS + 2 * self.stats.max_rtt_ns + elapsed_ns // 1000
         if off_ns <= slack_ns:
             return False  # the same run of the device (a reconnect)

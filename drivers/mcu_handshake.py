@@ -139,6 +139,7 @@ class HandshakeMixin:
             tl = self.timeline
             restarted = tl.restarted(
                 msg,
+                t_send,
                 t_recv,
                 booted=self._boot_reported,
                 fw_before=None if self.device is None else self.device.fw_version,
@@ -154,7 +155,11 @@ class HandshakeMixin:
             self._keep_seq_totals()
             self._rx_seq = SeqTracker()
             self._rx_seq.reset((seq + 1) % U16_MOD)
-            tl.anchor(msg.t_us, (t_send + t_recv) // 2, t_recv - t_send, self._last_stamp_ns + 1)
+            mid, rtt = (t_send + t_recv) // 2, t_recv - t_send
+            # A reopened link to the same run of the device keeps the timeline; a resync (the clock
+            # jumped, the device left the session) and a restarted device are anchored afresh.
+            if not (reconnect and not restarted and tl.resumes(msg.t_us, mid, rtt)):
+                tl.anchor(msg.t_us, mid, rtt, self._last_stamp_ns + 1)
             self._last_rx_ns = t_recv
             self._next_ping_ns = t_recv
             self._dev_errors_base = (self.stats.device_rx_errors, self.stats.device_rx_lost)

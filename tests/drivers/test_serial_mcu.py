@@ -250,6 +250,31 @@ def test_long_silence_drops_the_link_and_reconnects(rig) -> None:
     assert seen.events[-1].detail == "arrived"
 
 
+def test_a_reconnect_with_a_slow_handshake_keeps_the_timeline(rig) -> None:
+    """The device's clock kept counting through the silence: the timeline the heartbeats refined
+    goes on, and a HELLO_ACK held back 60 ms does not move it by half of that (an anchor on the
+    handshake's midpoint did: beside two CPU hogs a 312 ms handshake moved records 156 ms)."""
+    emu, _, daq = rig
+
+    def offset_ns() -> int:
+        """Where the driver's clock puts a stroke's start, less where the device drove the pin."""
+        seen = run_stroke(daq, Direction.ON if len(emu.log) % 2 == 0 else Direction.OFF)
+        assert seen.events[-1].detail == "arrived"
+        return seen.start.t_ns - emu.log[-1].t_start_ns
+
+    before = [offset_ns() for _ in range(3)]
+    emu.inject_silence(250_000_000)
+    emu.inject_delay(60_000_000)  # the first frame after the silence: the reconnect's HELLO_ACK
+    assert wait_for(lambda: daq.link_stats()["reconnects"] == 1 and daq.connected)
+    assert emu.injected.delayed == 1 and emu.boots == 1
+    lost = [ev for ev in iter(lambda: daq.recv(50_000_000), None) if ev.kind is EventKind.FAULT]
+    assert [ev.fault for ev in lost] == [FaultCode.DISCONNECT]  # the silence's, before the strokes
+    after = [offset_ns() for _ in range(3)]
+    # Within the emulator thread's own scheduling noise (a stroke's start is its pin, read by
+    # time.monotonic_ns in a thread of this process), far inside the 30 ms an anchor moved it.
+    assert abs(sorted(after)[1] - sorted(before)[1]) <= 3_000_000, (before, after)
+
+
 def test_unplug_mid_stroke_then_replug(rig) -> None:
     emu, link, daq = rig
     first = run_stroke(daq, Direction.ON)
