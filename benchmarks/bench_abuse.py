@@ -11,6 +11,11 @@ runs through the whole benchmark. Each load runs in processes of its own while
 RSS of the daemon and of its socket-server process is sampled at the end of each window (memory
 bounded under unread pipelined reads).
 
+The loads run with the machine's CPUs kept from halting, as a real-time host's are (`idle=poll`'s
+equivalent from user space, benchmarks/cpu_idle.py; BENCH_ABUSE_IDLE=halt for the machine as it
+comes): on this VM a halted vCPU's wake-up alone put a trivial echo's p99 at 3.3 ms. The floor is
+measured both ways first, and printed.
+
 The daemon serves its Prometheus page all along (`--metrics`): one load hammers it with scrapers.
 It serves the browser panel too (`--web`): one load is 10 open panels, each reading the live feed.
 One load keeps a queue of 100 runs edited (issue 38): its clients submit, re-prioritise, cancel
@@ -57,6 +62,7 @@ from benchmarks.abuse_loads import (
     load_unread_history,
 )
 from benchmarks.bench_loop import PRIORITY, fifo_allowed, percentiles
+from benchmarks.cpu_idle import MODES, Polling, describe
 from benchmarks.table import print_table
 from usmswitch.client import Client, ConnectionClosed, RpcError
 from usmswitch.protocol.sockets import tcp_token_path, web_token_path
@@ -74,6 +80,8 @@ ESTOPS = int(os.environ.get("BENCH_ABUSE_ESTOPS", "20"))
 PATH_ESTOPS = int(os.environ.get("BENCH_ABUSE_PATH_ESTOPS", "100"))
 # A comma-separated list of words: only the loads whose names contain one of them (and idle).
 ONLY = [w for w in os.environ.get("BENCH_ABUSE_ONLY", "").split(",") if w]
+# The CPUs kept from halting while the loads run, as a real-time host's are (benchmarks/cpu_idle.py).
+IDLE = os.environ.get("BENCH_ABUSE_IDLE", "poll")
 
 
 # -- the daemon and the measurements ---------------------------------------------------------------
@@ -449,7 +457,31 @@ def shipper_catches_up(control: Client, pg: Any) -> tuple[str, Callable[[], int]
     return "shipper catching up a backlog", lambda: control.status()["records"]["postgres"]["shipped"]
 
 
+def floor_halting_and_polling(floor: Floor, ctx: Any, rng: random.Random) -> Polling:
+    """The machine's floor (a fresh Unix echo) with its CPUs halting, then polling, printed; the
+    polling is left on (the caller closes it)."""
+    raised = _raise_observer()
+    figures = []
+    polling = None
+    for mode in ("halt", "poll"):
+        if mode == "poll":
+            polling = Polling(ctx)
+            time.sleep(0.5)
+        took = []
+        for _ in range(PATH_ESTOPS * 2):
+            time.sleep(rng.uniform(0.005, 0.035))
+            took.append(floor.exchange())
+        figures.append("{} p50 / p99 / max {:.2f} / {:.2f} / {:.2f} ms".format(mode, *path_figures(took)))
+    if raised:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    print(f"the machine's floor (a fresh Unix echo, {PATH_ESTOPS * 2} each), its CPUs {'; '.join(figures)}")
+    assert polling is not None
+    return polling
+
+
 def main() -> int:
+    if IDLE not in MODES:
+        raise SystemExit(f"BENCH_ABUSE_IDLE must be one of {', '.join(MODES)}, got {IDLE!r}")
     fifo = fifo_allowed()
     tmp = Path(tempfile.mkdtemp(prefix="usm-abuse-"))
     sock = tmp / "d.sock"
@@ -475,6 +507,7 @@ def main() -> int:
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log_file)
     ctx = multiprocessing.get_context("spawn")
     floor = Floor(ctx, tmp, PRIORITY - 1 if fifo else 0)
+    polling: Polling | None = None
     feed: PanelFeed | None = None
     rng = random.Random(1)
     rows = []
@@ -498,6 +531,10 @@ def main() -> int:
         time.sleep(1.0)
         policy = "SCHED_FIFO" if fifo else "SCHED_OTHER"
         print(f"policy {policy}; window {WINDOW_S:g} s; {ESTOPS} estops per load")
+        print(describe(IDLE))
+        polling = floor_halting_and_polling(floor, ctx, rng)
+        if IDLE == "halt":
+            polling.close()
         status = control.status()
         url, web_url = status["metrics_url"], status["web_url"]
         where = {"url": url, "web_url": web_url, "tcp": tcp, "edits": ctx.Value("q", 0)}
@@ -582,6 +619,8 @@ def main() -> int:
         term_loaded = sigterm_under_load(proc, str(sock), ctx)
     finally:
         floor.close()
+        if polling is not None:
+            polling.close()
         if feed is not None:
             feed.close()
         if proc.poll() is None:

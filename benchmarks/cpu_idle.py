@@ -1,0 +1,72 @@
+"""The machine's idle while the abuse bench measures: its CPUs halting (as it comes) or polling.
+
+An idle CPU halts, and wakes for the next interrupt through its C-state's exit or, in a virtual
+machine, through the hypervisor. On the Firecracker VM these benchmarks run on (no cpuidle driver:
+every idle vCPU executes HLT and leaves to the host) a fresh Unix request to a Python thread blocked
+at SCHED_FIFO read p50 0.62 / p99 3.3 ms with the CPUs halting and p50 0.42 / p99 0.59 ms with
+none ever idle; the panel's POST estop to a cycling daemon p99 8.97 -> 4.14 ms, the estop socket's
+5.54 -> 2.23 (stop 51, 150-300 each). Real-time hosts are tuned against exactly this: `idle=poll`
+or `processor.max_cstate=1` on the kernel's command line, or a /dev/cpu_dma_latency of 0 held open
+where a cpuidle driver honours it (cyclictest holds one; docs/service.md).
+
+`Polling` is `idle=poll` done from user space for the time of a measurement: one spinner per CPU at
+SCHED_IDLE, which runs only where nothing else would; any other task that wakes preempts it at once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from pathlib import Path
+from typing import Any
+
+#: "poll" (the default: the CPUs kept from halting, as a tuned real-time host's are) or "halt".
+MODES = ("poll", "halt")
+
+
+def cpuidle_driver() -> str:
+    """The kernel's cpuidle driver ("none": idle CPUs halt whatever /dev/cpu_dma_latency says)."""
+    try:
+        return Path("/sys/devices/system/cpu/cpuidle/current_driver").read_text().strip()
+    except OSError:
+        return "unknown"
+
+
+def _spin(cpu: int) -> None:
+    """The body of one spinner: on `cpu` alone, at SCHED_IDLE, forever."""
+    with contextlib.suppress(OSError):
+        os.sched_setaffinity(0, {cpu})
+    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    while True:
+        pass
+
+
+class Polling:
+    """A SCHED_IDLE spinner on each CPU this process may use, until `close()`."""
+
+    def __init__(self, ctx: Any) -> None:
+        self.cpus = sorted(os.sched_getaffinity(0))
+        self.procs = [ctx.Process(target=_spin, args=(cpu,), daemon=True) for cpu in self.cpus]
+        for p in self.procs:
+            p.start()
+
+    def close(self) -> None:
+        for p in self.procs:
+            p.kill()
+        for p in self.procs:
+            p.join(5)
+        self.procs = []
+
+
+def describe(mode: str) -> str:
+    """The line the bench prints about the machine's idle."""
+    driver = cpuidle_driver()
+    if mode == "poll":
+        return (
+            f"the machine's idle: polling (a SCHED_IDLE spinner per CPU, idle=poll's equivalent; cpuidle"
+            f" driver {driver}); BENCH_ABUSE_IDLE=halt measures with the CPUs halting as they come"
+        )
+    return (
+        f"the machine's idle: halting as it comes (cpuidle driver {driver});"
+        " BENCH_ABUSE_IDLE=poll keeps the CPUs awake"
+    )
