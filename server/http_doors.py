@@ -1,12 +1,15 @@
-"""The HTTP doors of the server process (the browser panel, /metrics) on an event loop of their own.
+"""The HTTP doors of the server process (the browser panel, /metrics), each on an event loop of its own.
 
 The Unix and TCP doors' event loop (server/rpc_process.py) must never have HTTP work queued ahead of
 an estop: a burst of 200 live-feed handshakes to the panel put some 200 requests' parsing, routing
 and WebSocket set-up in that loop's one queue, and a main-socket estop waited behind them (45 ms at
-p99, `make bench BENCH=abuse`). Here the HTTP doors run on a thread of their own, one SCHED_FIFO step
+p99, `make bench BENCH=abuse`). Here the panel runs on a thread of its own, one SCHED_FIFO step
 below that loop's thread when it is real-time (the daemon raises that thread from outside, so this
-one follows it, looked at every FOLLOW_S), SCHED_OTHER when it is not. The two threads share the GIL:
-the event loop's takes it from this one within the switch interval (0.5 ms in the server process).
+one follows it, looked at every FOLLOW_S), SCHED_OTHER when it is not; /metrics on another, a step
+below the panel's: the panel's estop (its live feed's, its POST) never waits behind a scrape's
+rendering (4 scrapers hammering /metrics put the panel POST's p99 at 7.0-7.2 ms beside 3.3 idle,
+`make bench BENCH=abuse` with the CPUs polling, stop 51). The threads share the GIL: a higher one
+takes it from a lower one within the switch interval (0.5 ms in the server process).
 
 The panel reaches the server's state through `CrossBackend`: each call is handed to the event
 loop's thread and its reply handed back, each notification likewise, so every socket method the
@@ -33,8 +36,10 @@ log = logging.getLogger("usmswitch.rpc")
 
 #: How often this thread looks at the event loop's thread's scheduling, to follow it.
 FOLLOW_S = 0.5
-#: Its name in `ps -L` and /proc (prctl PR_SET_NAME, 15 bytes at most).
+#: The panel's thread's name in `ps -L` and /proc (prctl PR_SET_NAME, 15 bytes at most).
 THREAD_NAME = "rpc-http"
+#: The metrics page's.
+METRICS_THREAD_NAME = "rpc-metrics"
 
 
 class CrossBackend:
@@ -112,10 +117,18 @@ class CrossBackend:
 
 
 class HttpDoors:
-    """The panel and /metrics served by a thread of their own (`start`, then `close`)."""
+    """HTTP listeners served by a thread of their own (`start`, then `close`), `below` SCHED_FIFO
+    steps under the event loop's thread when that is real-time."""
 
-    def __init__(self, loop_factory: Callable[[], asyncio.AbstractEventLoop] | None) -> None:
+    def __init__(
+        self,
+        loop_factory: Callable[[], asyncio.AbstractEventLoop] | None,
+        name: str = THREAD_NAME,
+        below: int = 1,
+    ) -> None:
         self.loop_factory = loop_factory or asyncio.new_event_loop
+        self.name = name
+        self.below = below
         self.loop: asyncio.AbstractEventLoop | None = None
         self.thread: threading.Thread | None = None
         self.servers: list[Any] = []
@@ -126,7 +139,7 @@ class HttpDoors:
         """Start the thread and, on its loop, `setup(loop)` (it returns the servers to close at the
         end); returns once they listen, or raises what setting them up raised."""
         ready: concurrent.futures.Future[None] = concurrent.futures.Future()
-        self.thread = threading.Thread(target=self._run, args=(setup, ready), name=THREAD_NAME, daemon=True)
+        self.thread = threading.Thread(target=self._run, args=(setup, ready), name=self.name, daemon=True)
         self.thread.start()
         await asyncio.wrap_future(ready)
 
@@ -135,7 +148,7 @@ class HttpDoors:
         setup: Callable[[asyncio.AbstractEventLoop], Awaitable[list[Any]]],
         ready: concurrent.futures.Future[None],
     ) -> None:
-        name_thread(THREAD_NAME)
+        name_thread(self.name)
         self.follow()
         loop = self.loop = self.loop_factory()
         asyncio.set_event_loop(loop)
@@ -165,24 +178,22 @@ class HttpDoors:
         await asyncio.gather(*tasks, return_exceptions=True)
 
     def follow(self) -> None:
-        """One SCHED_FIFO step below the event loop's thread when it is real-time (yet above the
-        worker threads' FIFO 1), SCHED_OTHER when it is not."""
+        """`below` SCHED_FIFO steps under the event loop's thread when it is real-time (yet above
+        the worker threads' FIFO 1), SCHED_OTHER when it is not."""
         try:
             policy = os.sched_getscheduler(self.leader_tid)
             leader = os.sched_getparam(self.leader_tid).sched_priority if policy == os.SCHED_FIFO else 0
             now = os.sched_getparam(0).sched_priority if os.sched_getscheduler(0) == os.SCHED_FIFO else 0
         except OSError:  # the leader gone: the process is ending
             return
-        want = max(leader - 1, min(leader, 2))
+        want = max(leader - self.below, min(leader, 2))
         if want == now:
             return
         try:
             os.sched_setscheduler(0, os.SCHED_FIFO if want else os.SCHED_OTHER, os.sched_param(want))
         except OSError as exc:
             if not self.refused:
-                log.warning(
-                    "rpc: the HTTP doors' thread stays as it is (SCHED_FIFO %d refused: %s)", want, exc
-                )
+                log.warning("rpc: thread %s stays as it is (SCHED_FIFO %d refused: %s)", self.name, want, exc)
             self.refused = True
 
     async def _follow_forever(self) -> None:
@@ -227,34 +238,43 @@ async def serve_http(
     cfg: dict[str, Any],
     loop_factory: Callable[[], asyncio.AbstractEventLoop] | None,
     executor: Callable[[], concurrent.futures.Executor],
-) -> HttpDoors:
-    """Serve the HTTP listeners (kind "metrics" or "web") on their own thread; `panel_conn` is the
-    panel's dispatcher on the calling (event) loop, `snapshot()` what the metrics page is made of,
-    `executor()` the HTTP loop's default executor (its threads below it)."""
+) -> list[HttpDoors]:
+    """Serve the HTTP listeners (kind "metrics" or "web"): the panel on a thread of its own, /metrics
+    on another a step below it; `panel_conn` is the panel's dispatcher on the calling (event)
+    loop, `snapshot()` what the metrics page is made of, `executor()` an HTTP loop's default
+    executor (its threads below it)."""
     home = asyncio.get_running_loop()
-    doors = HttpDoors(loop_factory)
+    panel = [sock for sock, kind in listeners if kind != "metrics"]
+    metrics = [sock for sock, kind in listeners if kind == "metrics"]
 
-    async def setup(here: asyncio.AbstractEventLoop) -> list[Any]:
+    async def serve_panels(here: asyncio.AbstractEventLoop) -> list[Any]:
+        from usmswitch.web.panel import serve_panel  # aiohttp: only here
+
         here.set_default_executor(executor())
         servers: list[Any] = []
-        for sock, kind in listeners:
-            if kind == "metrics":
-                from usmswitch.web.metrics_page import serve_metrics  # aiohttp, prometheus_client: only here
-
-                servers.append(await serve_metrics(sock, snapshot))
-            else:
-                from usmswitch.web.panel import serve_panel  # aiohttp: only here
-
-                hosts = frozenset(cfg.get("web_allowed_hosts", ()))
-                estop = cfg.get("estop_socket")
-                link = None if estop is None else EstopLink(estop)
-                backend = CrossBackend(panel_conn, home, here, link)
-                servers.append(
-                    await serve_panel(sock, backend, cfg["web_token"], cfg["web_token_file"], hosts)
-                )
-                if link is not None:
-                    servers.append(_KeptWarm(link, here))
+        for sock in panel:
+            hosts = frozenset(cfg.get("web_allowed_hosts", ()))
+            estop = cfg.get("estop_socket")
+            link = None if estop is None else EstopLink(estop)
+            backend = CrossBackend(panel_conn, home, here, link)
+            servers.append(await serve_panel(sock, backend, cfg["web_token"], cfg["web_token_file"], hosts))
+            if link is not None:
+                servers.append(_KeptWarm(link, here))
         return servers
 
-    await doors.start(setup)
-    return doors
+    async def serve_pages(here: asyncio.AbstractEventLoop) -> list[Any]:
+        from usmswitch.web.metrics_page import serve_metrics  # aiohttp, prometheus_client: only here
+
+        here.set_default_executor(executor())
+        return [await serve_metrics(sock, snapshot) for sock in metrics]
+
+    started = []
+    for socks, name, below, setup in (
+        (panel, THREAD_NAME, 1, serve_panels),
+        (metrics, METRICS_THREAD_NAME, 2, serve_pages),
+    ):
+        if socks:
+            doors = HttpDoors(loop_factory, name, below)
+            await doors.start(setup)
+            started.append(doors)
+    return started

@@ -189,7 +189,7 @@ async def _serve(
     servers = [  # create_server, not create_unix_server: that unlinks the path on close (3.13+)
         await loop.create_server(lambda k=k: Conn(hub, k), sock=s) for s, k in listeners if k in KINDS
     ]
-    http, doors = [(sock, kind) for sock, kind in listeners if kind not in KINDS], None
+    http, doors = [(sock, kind) for sock, kind in listeners if kind not in KINDS], []
     if http:  # the panel and /metrics: never ahead of an estop on this loop (server/http_doors.py)
         from usmswitch.server.http_doors import serve_http
 
@@ -215,8 +215,8 @@ async def _serve(
         task.cancel()
         for server in servers:
             server.close()
-        if doors is not None:
-            doors.close()
+        for door in doors:
+            door.close()
         for conn in list(hub.conns):
             if conn.transport is not None:
                 conn.transport.abort()

@@ -1,9 +1,10 @@
 """The socket's server process beside a real-time loop (issue 35: an estop through the main socket,
 TCP or the panel waited 15-600 ms for the CPU behind the machine's ordinary processes): its event
-loop runs SCHED_FIFO two below the loop, the HTTP doors' thread (server/http_doors.py) one below
-that, its worker threads SCHED_FIFO 1 at most, a restarted server is put back there; the records
-reads' processes (server/records_reads.py) at SCHED_OTHER, holding no GIL of the event loop's; with
-the loop at SCHED_OTHER the server stays at SCHED_OTHER. A real daemon (subprocess)."""
+loop runs SCHED_FIFO two below the loop, the panel's thread (server/http_doors.py) one below that,
+the metrics page's one below the panel's, its worker threads SCHED_FIFO 1 at most, a restarted
+server is put back there; the records reads' processes (server/records_reads.py) at SCHED_OTHER,
+holding no GIL of the event loop's; with the loop at SCHED_OTHER the server stays at SCHED_OTHER. A
+real daemon (subprocess)."""
 
 from __future__ import annotations
 
@@ -48,9 +49,9 @@ def _named(pid: int, *names: str) -> list[int]:
     return found
 
 
-def _http_thread(pid: int) -> int | None:
-    """The thread serving the panel and /metrics (named rpc-http), if there is one."""
-    return next(iter(_named(pid, "rpc-http")), None)
+def _http_thread(pid: int, name: str = "rpc-http") -> int | None:
+    """The thread serving the panel (named rpc-http; /metrics: rpc-metrics), if there is one."""
+    return next(iter(_named(pid, name)), None)
 
 
 def _estop_threads_above_the_helpers(daemon: int) -> bool:
@@ -114,10 +115,17 @@ def test_the_server_event_loop_runs_real_time_below_the_loop_and_its_workers_at_
                 f"the {round_} server's HTTP doors at SCHED_FIFO 47",
                 lambda server=server, http=http: _policies(server).get(http) == (os.SCHED_FIFO, 47),
             )
+            # /metrics a step below the panel: a scrape's rendering never ahead of the panel's estop.
+            metrics = _http_thread(server, "rpc-metrics")
+            assert metrics is not None, "no rpc-metrics thread: /metrics shares the panel's loop"
+            _until(
+                f"the {round_} server's metrics page at SCHED_FIFO 46",
+                lambda server=server, t=metrics: _policies(server).get(t) == (os.SCHED_FIFO, 46),
+            )
             with Client(str(sock), timeout=30) as c:  # a read of each lane starts its process
                 c.history(5)
                 c.history(2000)
-            workers = {tid: p for tid, p in _policies(server).items() if tid not in (server, http)}
+            workers = {tid: p for tid, p in _policies(server).items() if tid not in (server, http, metrics)}
             # None of them above FIFO 1: a worker's bulk never outranks the event loop's estop.
             assert all(p in ((os.SCHED_FIFO, 1), (os.SCHED_OTHER, 0)) for p in workers.values()), workers
             readers = _readers(server)
