@@ -69,6 +69,14 @@ class Floor:
                 got += data
         return (time.perf_counter_ns() - t0) / 1e6
 
+    def sample(self, n: int, rng: Any) -> list[float]:
+        """`n` exchanges, each after a random 5-35 ms (as the paths' estops are spaced), in ms."""
+        took = []
+        for _ in range(n):
+            time.sleep(rng.uniform(0.005, 0.035))
+            took.append(self.exchange())
+        return took
+
     def close(self) -> None:
         self.proc.kill()
         self.proc.join(5)

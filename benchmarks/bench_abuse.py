@@ -461,21 +461,17 @@ def floor_halting_and_polling(floor: Floor, ctx: Any, rng: random.Random) -> Pol
     """The machine's floor (a fresh Unix echo) with its CPUs halting, then polling, printed; the
     polling is left on (the caller closes it)."""
     raised = _raise_observer()
-    figures = []
-    polling = None
-    for mode in ("halt", "poll"):
-        if mode == "poll":
-            polling = Polling(ctx)
-            time.sleep(0.5)
-        took = []
-        for _ in range(PATH_ESTOPS * 2):
-            time.sleep(rng.uniform(0.005, 0.035))
-            took.append(floor.exchange())
-        figures.append("{} p50 / p99 / max {:.2f} / {:.2f} / {:.2f} ms".format(mode, *path_figures(took)))
+    halting = floor.sample(2 * PATH_ESTOPS, rng)
+    polling = Polling(ctx)
+    time.sleep(0.5)
+    polled = floor.sample(2 * PATH_ESTOPS, rng)
     if raised:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    print(f"the machine's floor (a fresh Unix echo, {PATH_ESTOPS * 2} each), its CPUs {'; '.join(figures)}")
-    assert polling is not None
+    figures = "; ".join(
+        "{} p50 / p99 / max {:.2f} / {:.2f} / {:.2f} ms".format(mode, *path_figures(took))
+        for mode, took in (("halt", halting), ("poll", polled))
+    )
+    print(f"the machine's floor (a fresh Unix echo, {2 * PATH_ESTOPS} each), its CPUs {figures}")
     return polling
 
 
@@ -595,10 +591,7 @@ def main() -> int:
                         took.append(float("inf"))
                     estopper.resume()
                 by_path[path_name] = took
-            by_path[FLOOR] = []
-            for _ in range(PATH_ESTOPS):
-                time.sleep(rng.uniform(0.005, 0.035))
-                by_path[FLOOR].append(floor.exchange())
+            by_path[FLOOR] = floor.sample(PATH_ESTOPS, rng)
             path_rows.append((name, by_path))
             if raised:
                 os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))

@@ -45,8 +45,7 @@ class Polling:
     """A SCHED_IDLE spinner on each CPU this process may use, until `close()`."""
 
     def __init__(self, ctx: Any) -> None:
-        self.cpus = sorted(os.sched_getaffinity(0))
-        self.procs = [ctx.Process(target=_spin, args=(cpu,), daemon=True) for cpu in self.cpus]
+        self.procs = [ctx.Process(target=_spin, args=(cpu,), daemon=True) for cpu in os.sched_getaffinity(0)]
         for p in self.procs:
             p.start()
 

@@ -270,9 +270,12 @@ class RunQueue:
 
             self._write(_reorder(entry_id, priority)).add_done_callback(kept)
 
-        self._when_decided(entry_id, move).add_done_callback(
-            lambda fut: (exc := fut.exception()) is not None and done.set_exception(exc)
-        )
+        def refused(fut: Future[None]) -> None:  # `move`'s own outcome is `done`'s, once written
+            exc = fut.exception()
+            if exc is not None:
+                done.set_exception(exc)
+
+        self._when_decided(entry_id, move).add_done_callback(refused)
         return done
 
     def _waiting(self, entry_id: int, method: str, owner: str, operator: bool, rule: str, ctl: str) -> Entry:
