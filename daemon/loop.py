@@ -179,12 +179,20 @@ class ControlLoop:
         The driver is halted (drive off, nothing armed, a waiting start abandoned) until
         `reset_fault`; the loop latches FAULT and stops cycling at its next step.
         """
+        self.stop_now(reason)
+        self.latch_stop(reason)
+
+    def stop_now(self, reason: str) -> None:
+        """`estop`'s part that its answer waits for: the drive off, no start after it, FAULT shown
+        (a status right after the estop's reply says FAULT); `latch_stop` must follow."""
         self._estop.set()
         self._halt(reason)
-        # Shown at once (a status right after the estop's reply says FAULT); the loop thread
-        # latches it fully (cycling stopped, the run ended) at its next step.
         self.fault_reason = reason
         self.state = State.FAULT
+
+    def latch_stop(self, reason: str) -> None:
+        """`estop`'s rest: the loop thread latches the fault fully (cycling stopped, the run ended)
+        at its next step; queued here so that an idle loop does it too."""
         self.call(lambda: self._latch_fault(reason))
 
     def shutdown(self) -> None:

@@ -24,6 +24,7 @@ from usmswitch.protocol.record import CycleRecord, RunRecord
 from usmswitch.protocol.sockets import tcp_token_path, web_token_path
 from usmswitch.protocol.version import PACKAGE_VERSION
 from usmswitch.protocol.wire import PROTOCOL_VERSION, ErrorCode, Limits, RpcError, estop_socket_path
+from usmswitch.server.after_reply import AfterReply
 from usmswitch.server.estop_socket import EstopSocket
 from usmswitch.server.rpc import RpcServer
 
@@ -497,23 +498,28 @@ class Methods:
         done.add_done_callback(lambda fut: fut.exception() is None and self.queue.next())
         return done
 
-    def estop(self, params: list[Any]) -> dict[str, Any]:
+    def estop(self, params: list[Any]) -> AfterReply:
         """An estop by the urgent channel: its source as its caller names it (`panel`,
         `usmswitchctl, TCP`), else ESTOP_UNNAMED."""
         return self._estop(params[0] if params and params[0] else ESTOP_UNNAMED)
 
-    def estop_on_estop_socket(self, params: list[Any]) -> dict[str, Any]:
+    def estop_on_estop_socket(self, params: list[Any]) -> AfterReply:
         """An estop by the estop socket: who its caller says it is, and that socket."""
         who = params[0] if params and params[0] else ""
         return self._estop(f"{who}, estop socket" if who else "estop socket")
 
-    def _estop(self, source: str) -> dict[str, Any]:
+    def _estop(self, source: str) -> AfterReply:
         # Not queued behind anything: on the urgent thread, the drive goes off and the driver is
-        # halted before this returns, so the reply means "drive off, nothing scheduled".
+        # halted before this returns, so the reply means "drive off, nothing scheduled". The
+        # latch and the event row wake the loop and the writer: after the reply (after_reply.py).
         reason = f"estop ({source})"
-        self.loop.estop(reason)
-        self.store.record_event("estop", source=source)
-        return {"state": str(State.FAULT), "fault": reason}
+        self.loop.stop_now(reason)
+
+        def then() -> None:
+            self.loop.latch_stop(reason)
+            self.store.record_event("estop", source=source)
+
+        return AfterReply({"state": str(State.FAULT), "fault": reason}, then)
 
     def set_drive(self, params: list[Any]) -> Future[Any]:
         (settings,) = params

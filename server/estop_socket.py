@@ -26,6 +26,7 @@ import msgpack
 from usmswitch.protocol.rpc_params import check_params
 from usmswitch.protocol.wire import MAX_MSGID, NOTIFICATION, REQUEST, RESPONSE, ErrorCode, Limits, RpcError
 from usmswitch.runtime.realtime import name_thread
+from usmswitch.server.after_reply import run_afters, split
 
 log = logging.getLogger("usmswitch.rpc")
 
@@ -163,12 +164,21 @@ class EstopSocket:
             self._close(sel, peer, ErrorCode.TOO_LARGE, f"frame larger than {MAX_FRAME_BYTES} bytes")
             return
         peer.fed += len(data)
-        out = []
+        out: list[bytes] = []
+        afters: list[Callable[[], None]] = []
+        try:
+            self._answer_all(sel, peer, out, afters)
+        finally:
+            run_afters(afters)
+
+    def _answer_all(
+        self, sel: selectors.BaseSelector, peer: _Peer, out: list[bytes], afters: list[Callable[[], None]]
+    ) -> None:
         try:
             for msg in peer.unpacker:
                 peer.frames += 1
                 peer.frames_end = peer.unpacker.tell()
-                out.append(self._answer(msg))
+                out.append(self._answer(msg, afters))
         except Exception as exc:  # undecodable: the stream cannot be resynchronised
             self._close(sel, peer, ErrorCode.PARSE_ERROR, f"undecodable msgpack: {type(exc).__name__}")
             return
@@ -184,7 +194,7 @@ class EstopSocket:
             except OSError:
                 self._drop(sel, peer)
 
-    def _answer(self, msg: object) -> bytes:
+    def _answer(self, msg: object, afters: list[Callable[[], None]]) -> bytes:
         if type(msg) is not list or len(msg) != 4 or msg[0] != REQUEST:
             return _note(ErrorCode.INVALID_REQUEST, "expected [0, msgid, method, params]")
         _, msgid, method, params = msg
@@ -201,7 +211,9 @@ class EstopSocket:
                     f"the estop socket takes only {', '.join(sorted(self.handlers))} and ping,"
                     f" got {method!r:.40}",
                 )
-            return _reply(msgid, None, self.handlers[method](check_params(method, params)))
+            result, then = split(self.handlers[method](check_params(method, params)))
+            afters.extend(then)
+            return _reply(msgid, None, result)
         except RpcError as exc:
             return _reply(msgid, exc.to_wire(), None)
         except Exception as exc:

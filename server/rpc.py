@@ -46,6 +46,7 @@ from usmswitch.protocol.wire import (
 )
 from usmswitch.runtime.children import end_child
 from usmswitch.runtime.realtime import name_thread, renice_child, server_fifo
+from usmswitch.server.after_reply import run_afters, split
 from usmswitch.server.busy_poll import DEFAULT_WINDOW_NS
 from usmswitch.server.estop_socket import THREAD_NAME as ESTOP_THREAD
 
@@ -649,11 +650,14 @@ class RpcServer:
                 if msg[0] != "call":
                     continue
                 _, fid, method, params = msg
-                result, error = _run_handler(self.urgent[method], method, params, urgent=True)
+                answer, error = _run_handler(self.urgent[method], method, params, urgent=True)
+                result, afters = split(answer)
                 try:
                     link.urgent.sendall(packer.pack(["resp", fid, error, packer.pack(result)]))
                 except OSError:
                     return
+                finally:
+                    run_afters(afters)
 
     def _call(self, gen: int, fid: int, method: str, params: list[Any]) -> None:
         result, error = _run_handler(self.handlers[method], method, params)
