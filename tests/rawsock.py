@@ -11,9 +11,9 @@ import msgpack
 class Raw:
     """A bare msgpack socket, to send exactly the bytes a test wants."""
 
-    def __init__(self, address: Any, family: int = socket.AF_UNIX) -> None:
+    def __init__(self, address: Any, family: int = socket.AF_UNIX, timeout: float = 5.0) -> None:
         self.sock = socket.socket(family, socket.SOCK_STREAM)
-        self.sock.settimeout(5)
+        self.sock.settimeout(timeout)
         self.sock.connect(address)
         self.unpacker = msgpack.Unpacker(raw=False)
         self.msgs: list[Any] = []

@@ -135,7 +135,9 @@ def test_a_reader_process_that_dies_is_replaced(rig: tuple[Path, int]) -> None:
         assert readers, "no records reader process: the reads share the event loop's GIL"
         for pid in readers:
             os.kill(pid, signal.SIGKILL)
-        raw = Raw(str(sock))
+        # A process started and 10,000 records read: 1.9 s with the history above on a quiet
+        # machine, past Raw's 5 s beside `make run` and two CPU hogs (loaded run 53): the client's 60.
+        raw = Raw(str(sock), timeout=60)
         raw.send([0, 1, "history", [10_000]])
         (reply,) = raw.read(1)  # a new reader is started for it
         raw.close()
