@@ -164,16 +164,14 @@ class EstopSocket:
             self._close(sel, peer, ErrorCode.TOO_LARGE, f"frame larger than {MAX_FRAME_BYTES} bytes")
             return
         peer.fed += len(data)
-        out: list[bytes] = []
         afters: list[Callable[[], None]] = []
         try:
-            self._answer_all(sel, peer, out, afters)
+            self._answer_all(sel, peer, afters)
         finally:
-            run_afters(afters)
+            run_afters(afters)  # the estops' work after their replies, also when none got out
 
-    def _answer_all(
-        self, sel: selectors.BaseSelector, peer: _Peer, out: list[bytes], afters: list[Callable[[], None]]
-    ) -> None:
+    def _answer_all(self, sel: selectors.BaseSelector, peer: _Peer, afters: list[Callable[[], None]]) -> None:
+        out = []
         try:
             for msg in peer.unpacker:
                 peer.frames += 1
