@@ -13,9 +13,9 @@ from typing import Any
 
 import pytest
 from rawsock import Raw
+from urgent_server import urgent_server
 
 from usmswitch.server.after_reply import AfterReply
-from usmswitch.server.estop_socket import EstopSocket
 from usmswitch.server.rpc import RpcServer
 
 #: How long the work after the reply waits to see the reply arrive; far past any run's need.
@@ -49,24 +49,12 @@ def urgent() -> Urgent:
 
 
 @pytest.fixture
-def server(tmp_path: Path, urgent: Urgent) -> Iterator[RpcServer]:
-    srv = RpcServer(
-        {"status": lambda params: {"state": "idle"}},
-        unix_path=tmp_path / "d.sock",
-        urgent={"estop": urgent.estop},
-        urgent_path=tmp_path / "d.estop.sock",
-        busy_poll_ns=0,
-    )
-    srv.start()
-    assert srv.urgent_listener is not None
-    companion = EstopSocket(srv.urgent_listener, {"estop": urgent.estop}, srv.limits)
-    companion.start()
-    try:
-        yield srv
-    finally:
-        urgent.replied.set()  # never leave a handler thread waiting
-        companion.stop()
-        srv.stop()
+def server(sockdir: Path, urgent: Urgent) -> Iterator[RpcServer]:
+    with urgent_server(sockdir, urgent.estop) as srv:
+        try:
+            yield srv
+        finally:
+            urgent.replied.set()  # never leave a handler thread waiting
 
 
 def _path(srv: RpcServer, door: str) -> str:

@@ -17,6 +17,7 @@ from typing import Any
 import msgpack
 import pytest
 from rawsock import Raw
+from urgent_server import urgent_server
 
 from usmswitch.client import Client
 from usmswitch.protocol.wire import ErrorCode, Limits, RpcError, packb
@@ -46,25 +47,8 @@ def estops() -> Estops:
 
 
 def _server(sockdir: Path, estops: Estops, limits: Limits) -> Iterator[RpcServer]:
-    srv = RpcServer(
-        {"status": lambda params: {"state": "idle"}},
-        unix_path=sockdir / "d.sock",
-        urgent={"estop": estops.estop},
-        urgent_path=sockdir / "d.estop.sock",
-        tcp=("127.0.0.1", 0),
-        tcp_token=TOKEN,
-        limits=limits,
-        busy_poll_ns=0,
-    )
-    srv.start()
-    assert srv.urgent_listener is not None
-    companion = EstopSocket(srv.urgent_listener, {"estop": estops.estop}, srv.limits)
-    companion.start()
-    try:
+    with urgent_server(sockdir, estops.estop, tcp=("127.0.0.1", 0), tcp_token=TOKEN, limits=limits) as srv:
         yield srv
-    finally:
-        companion.stop()
-        srv.stop()
 
 
 @pytest.fixture
