@@ -25,6 +25,8 @@ from aiohttp import web
 log = logging.getLogger("usmswitch.web")
 
 _LOG_EVERY_NS = 10_000_000_000
+
+Express = Callable[[bytes], "bytes | asyncio.Future[bytes] | None"]
 _SWEEP_S = 0.25
 
 
@@ -46,8 +48,19 @@ class _Entry:
 class Door:
     """Connections and time-to-request budgets for one aiohttp server."""
 
-    def __init__(self, name: str, max_connections: int, head_s: float, idle_s: float) -> None:
+    def __init__(
+        self,
+        name: str,
+        max_connections: int,
+        head_s: float,
+        idle_s: float,
+        express: Express | None = None,
+    ) -> None:
         self.name = name
+        #: A connection's first read -> its whole answer (bytes, or a future of them), or None:
+        #: aiohttp's to handle (web/express.py).
+        self.express = express
+        self.expressed = 0  # requests the express lane answered
         self.max_connections = max_connections
         self.head_s = head_s
         self.idle_s = idle_s
@@ -87,14 +100,7 @@ class Door:
 
     async def handling(self, request: web.BaseRequest, handler: Callable[[Any], Awaitable[Any]]) -> Any:
         """Run `handler(request)` with its connection counted as busy (not shed, not timed out)."""
-        entry = self.conns.get(request.transport) if request.transport is not None else None
-        if entry is not None:
-            entry.active += 1
-            entry.head_since = None
-            entry.ready = False
-            entry.tail = b""
-            self._heads.pop(entry, None)
-            self._idle.pop(entry, None)
+        entry = self._busy(request.transport) if request.transport is not None else None
         try:
             return await handler(request)
         finally:
@@ -103,6 +109,37 @@ class Door:
                 entry.idle_since = time.monotonic()
                 if not entry.active and entry.transport in self.conns:
                     self._idle[entry] = None
+
+    def _busy(self, transport: asyncio.BaseTransport) -> _Entry | None:
+        entry = self.conns.get(transport)
+        if entry is not None:
+            entry.active += 1
+            entry.head_since = None
+            entry.ready = False
+            entry.tail = b""
+            self._heads.pop(entry, None)
+            self._idle.pop(entry, None)
+        return entry
+
+    def take(self, transport: asyncio.BaseTransport, data: bytes) -> bool:
+        """Whether the express lane answers `data`, a connection's first read: then the connection
+        is busy until its answer is written, and closed after it."""
+        if self.express is None:
+            return False
+        try:
+            answer = self.express(data)
+        except Exception as exc:  # a bug of the lane: aiohttp judges the request as it would any other
+            self._say(f"the express lane failed ({exc!r}): the request went to aiohttp")
+            return False
+        if answer is None:
+            return False
+        self.expressed += 1
+        self._busy(transport)
+        if isinstance(answer, bytes):
+            _send_close(transport, answer)
+        else:
+            answer.add_done_callback(lambda done: _send_close(transport, done.result()))
+        return True
 
     def close(self) -> None:
         """Stop the sweeper (the server is closing)."""
@@ -212,6 +249,7 @@ class _Tracked(asyncio.Protocol):
         self.inner: asyncio.Protocol | None = None
         self.transport: asyncio.BaseTransport | None = None
         self.admitted = False
+        self.expressed = False
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport
@@ -223,12 +261,15 @@ class _Tracked(asyncio.Protocol):
         self.admitted = True
 
     def data_received(self, data: bytes) -> None:
-        if not self.admitted:
+        if not self.admitted or self.expressed:
             return
         assert self.transport is not None
         self.door.data(self.transport, data)
         inner = self.inner
         if inner is None:
+            if self.door.take(self.transport, data):
+                self.expressed = True  # answered at the door; anything after it is not read
+                return
             inner = self.inner = cast(asyncio.Protocol, self.make())
             inner.connection_made(self.transport)
         inner.data_received(data)
@@ -252,14 +293,20 @@ class _Tracked(asyncio.Protocol):
 
 
 def _write_close(transport: asyncio.BaseTransport, status: int, reason: str, body: str) -> None:
-    """A short answer and a close. uvloop's transports are not asyncio.Transport subclasses: duck-typed."""
+    """A short text answer and a close."""
     data = body.encode()
-    writer = cast(asyncio.WriteTransport, transport)
+    _send_close(
+        transport,
+        b"HTTP/1.1 %d %s\r\nContent-Type: text/plain; charset=utf-8\r\nContent-Length: %d\r\n"
+        b"Connection: close\r\n\r\n%s" % (status, reason.encode(), len(data), data),
+    )
+
+
+def _send_close(transport: asyncio.BaseTransport, answer: bytes) -> None:
+    """A whole answer, then a close (after the bytes are out). uvloop's transports are not
+    asyncio.Transport subclasses: duck-typed."""
     with contextlib.suppress(RuntimeError, OSError):
-        writer.write(
-            b"HTTP/1.1 %d %s\r\nContent-Type: text/plain; charset=utf-8\r\nContent-Length: %d\r\n"
-            b"Connection: close\r\n\r\n%s" % (status, reason.encode(), len(data), data)
-        )
+        cast(asyncio.WriteTransport, transport).write(answer)
     transport.close()
 
 

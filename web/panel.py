@@ -29,7 +29,7 @@ import logging
 import socket
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping
 from importlib import resources
 from typing import Any, Protocol
 
@@ -38,6 +38,7 @@ from aiohttp import WSMsgType, web
 from usmswitch.protocol.wire import ErrorCode, RpcError
 from usmswitch.web.budgets import PANEL_CONNECTIONS, PANEL_HEAD_S, PANEL_IDLE_S
 from usmswitch.web.door import Door, QuietLog
+from usmswitch.web.express import json_answer, parse
 from usmswitch.web.panel_controls import CONTROLS, OWNER, control_params
 
 log = logging.getLogger("usmswitch.web")
@@ -89,6 +90,20 @@ _HTTP_OF_CODE = {
     ErrorCode.TIMEOUT: 504,
 }
 _STATIC_TYPES = {".js": "text/javascript", ".css": "text/css", ".html": "text/html", ".txt": "text/plain"}
+
+
+class Asked(Protocol):
+    """What the checks read of a request: aiohttp's, or the express lane's (web/express.py)."""
+
+    @property
+    def headers(self) -> Mapping[str, str]: ...
+
+    @property
+    def cookies(self) -> Mapping[str, str]: ...
+
+
+class BadBody(ValueError):
+    """A control's body that is not a flat JSON object's text (400, no error code)."""
 
 
 class Backend(Protocol):
@@ -348,7 +363,7 @@ class Panel:
                 viewer.sending = asyncio.create_task(_send(viewer, text))
 
     # -- controls ------------------------------------------------------------------------------------
-    def authorized(self, request: web.BaseRequest) -> bool:
+    def authorized(self, request: Asked) -> bool:
         """Whether the request carries the daemon's token, in its header or the cookie the URL's
         token was traded for (constant-time comparison)."""
         return any(
@@ -364,7 +379,7 @@ class Panel:
             and hmac.compare_digest(given.encode(), self.token.encode())
         )
 
-    def host_allowed(self, request: web.BaseRequest) -> bool:
+    def host_allowed(self, request: Asked) -> bool:
         """Whether the request's Host names this panel (loopback, or `[web] allowed_hosts`)."""
         return host_name(request.headers.get("Host", "")) in self.allowed_hosts
 
@@ -392,6 +407,59 @@ class Panel:
             answer.update(error=exc.message, code=exc.code)
         self.status_stale = True
         return json.dumps({"estop": answer})
+
+    def feed_refusal(self, operator: bool) -> str | None:
+        """Why a live feed asked for now is refused (503), or None: it opens (an operator's in the
+        place of the oldest read-only one when the feeds are full)."""
+        readonly = sum(1 for v in self.viewers if not v.operator)
+        if not operator and readonly >= MAX_READONLY_PANELS:
+            return f"too many read-only panels (max {MAX_READONLY_PANELS}); close one"
+        if self.feeds >= MAX_PANELS and (not operator or not readonly):
+            return f"too many open panels (max {MAX_PANELS}); close one"
+        return None
+
+    def control_answer(self, call: asyncio.Future[Any]) -> tuple[int, dict[str, Any]]:
+        """A control's call, done -> (HTTP status, JSON body): its result, or the daemon's refusal."""
+        try:
+            result = call.result()
+        except RpcError as exc:
+            return _HTTP_OF_CODE.get(exc.code, 500), {"error": exc.message, "code": exc.code}
+        self.status_stale = True
+        return 200, {"ok": True, "result": result}
+
+    # -- the express lane ----------------------------------------------------------------------------
+    def express(self, data: bytes) -> bytes | asyncio.Future[bytes] | None:
+        """The door's express lane (web/express.py): a fresh connection's first read answered here
+        when it is an estop POST with the token, or a live feed the feeds' cap refuses, by the
+        checks and with the bodies of the routes below; None: aiohttp's, as any other request."""
+        request = parse(data, MAX_BODY_BYTES)
+        if request is None or not self.host_allowed(request) or not same_origin(request):
+            return None
+        if request.method == "POST" and request.path == "/api/control/estop" and self.authorized(request):
+            try:
+                method, params = control_call("estop", request.body)
+            except (BadBody, RpcError):
+                return None  # aiohttp's route says what is wrong with it
+            call = asyncio.ensure_future(self.backend.call(method, params))
+            if call.done():  # the estop socket answered at once: no step of the loop in between
+                return self._json_answer(call)
+            answer: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
+            call.add_done_callback(lambda done: answer.set_result(self._json_answer(done)))
+            return answer
+        if request.method == "GET" and request.path == "/api/live":
+            operator = self.authorized(request)
+            if not operator and TOKEN_COOKIE in request.headers.get("Cookie", ""):
+                return None  # a token cookie that is not the token, or one of two: aiohttp's to read
+            refusal = self.feed_refusal(operator)
+            return None if refusal is None else json_answer(503, {"error": refusal, "code": None})
+        return None
+
+    def _json_answer(self, call: asyncio.Future[Any]) -> bytes:
+        try:
+            return json_answer(*self.control_answer(call))
+        except Exception as exc:  # not the daemon's refusal: a 500, as aiohttp's route gives
+            log.error("panel: estop failed: %r", exc)
+            return json_answer(500, {"error": f"estop: {exc}", "code": None})
 
     def refusal(self) -> str:
         where = f" (it is in {self.token_file}, readable by the socket's group)" if self.token_file else ""
@@ -422,7 +490,19 @@ def _error(status: int, message: str, code: int | None = None) -> web.Response:
     return web.json_response({"error": message, "code": code}, status=status)
 
 
-def same_origin(request: web.BaseRequest) -> bool:
+def control_call(name: str, raw: bytes) -> tuple[str, list[Any]]:
+    """A control's body as read -> (socket method, params): BadBody when it is not a flat JSON
+    object's text, RpcError(INVALID_PARAMS) when its fields are not the control's."""
+    if not json_depth_ok(raw):
+        raise BadBody(f"{name}: the body nests deeper than {MAX_JSON_DEPTH} (a control is a flat object)")
+    try:
+        body = json.loads(raw) if raw.strip() else {}
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
+        raise BadBody(f"{name}: the body is not JSON: {exc}") from None
+    return control_params(name, body)
+
+
+def same_origin(request: Asked) -> bool:
     """No Origin (a script, curl) or the page's own: a page of another site open in the same browser
     may not read the feed over WebSocket (which browsers let cross origins open) or post controls.
     The page's own is http (or https behind a TLS proxy) and the Host it was asked as."""
@@ -467,7 +547,7 @@ def json_depth_ok(raw: bytes, most: int = MAX_JSON_DEPTH) -> bool:
     return True
 
 
-async def _no_icon() -> web.Response:
+async def _no_icon(request: web.Request) -> web.Response:
     return web.Response(status=204)
 
 
@@ -517,14 +597,11 @@ def make_app(panel: Panel, door: Door | None = None) -> web.Application:
         if not same_origin(request):
             return _error(403, "the live feed is for the panel's own page (another site's Origin)")
         operator = panel.authorized(request)
-        readonly = sum(1 for v in panel.viewers if not v.operator)
-        if not operator and readonly >= MAX_READONLY_PANELS:
-            return _error(503, f"too many read-only panels (max {MAX_READONLY_PANELS}); close one")
-        if panel.feeds >= MAX_PANELS:
-            # Full: an operator's feed takes the oldest read-only one's place; else refused.
-            oldest = min((v for v in panel.viewers if not v.operator), key=lambda v: v.opened, default=None)
-            if not operator or oldest is None:
-                return _error(503, f"too many open panels (max {MAX_PANELS}); close one")
+        refusal = panel.feed_refusal(operator)
+        if refusal is not None:
+            return _error(503, refusal)
+        if panel.feeds >= MAX_PANELS:  # full: this operator's feed takes the oldest read-only one's place
+            oldest = min((v for v in panel.viewers if not v.operator), key=lambda v: v.opened)
             panel.viewers.discard(oldest)
             closing = asyncio.create_task(
                 oldest.ws.close(code=1013, message=b"replaced: the feeds are full and an operator opened one")
@@ -616,22 +693,16 @@ def make_app(panel: Panel, door: Door | None = None) -> web.Application:
             return _error(403, panel.refusal())
         if name not in CONTROLS:
             return _error(400, f"unknown control {name[:40]!r}; known: {', '.join(CONTROLS)}")
-        raw = await request.read()
-        if not json_depth_ok(raw):
-            return _error(
-                400, f"{name}: the body nests deeper than {MAX_JSON_DEPTH} (a control is a flat object)"
-            )
         try:
-            body = json.loads(raw) if raw.strip() else {}
-        except (ValueError, UnicodeDecodeError, RecursionError) as exc:
-            return _error(400, f"{name}: the body is not JSON: {exc}")
-        try:
-            method, params = control_params(name, body)
-            result = await panel.backend.call(method, params)
+            method, params = control_call(name, await request.read())
+        except BadBody as exc:
+            return _error(400, str(exc))
         except RpcError as exc:
             return _error(_HTTP_OF_CODE.get(exc.code, 500), exc.message, exc.code)
-        panel.status_stale = True
-        return web.json_response({"ok": True, "result": result})
+        call = asyncio.ensure_future(panel.backend.call(method, params))
+        await asyncio.wait((call,))
+        status, body = panel.control_answer(call)
+        return web.json_response(body, status=status)
 
     async def too_large(request: web.Request, handler: Any) -> web.StreamResponse:
         try:
@@ -654,7 +725,7 @@ def make_app(panel: Panel, door: Door | None = None) -> web.Application:
     app.middlewares.append(web.middleware(known_host))
     app.middlewares.append(web.middleware(too_large))
     app.router.add_get("/", index)
-    app.router.add_get("/favicon.ico", lambda request: _no_icon())
+    app.router.add_get("/favicon.ico", _no_icon)
     app.router.add_get("/static/{name}", asset)
     app.router.add_get("/api/session", session)
     app.router.add_get("/api/live", live)
@@ -699,7 +770,7 @@ async def serve_panel(
     """Serve the panel on a listening TCP socket the daemon bound (the server process's event loop),
     behind its door's budget (web/door.py)."""
     panel = Panel(backend, token, token_file, allowed_hosts)
-    door = Door("panel", MAX_CONNECTIONS, HEAD_TIMEOUT_S, IDLE_TIMEOUT_S)
+    door = Door("panel", MAX_CONNECTIONS, HEAD_TIMEOUT_S, IDLE_TIMEOUT_S, express=panel.express)
     runner = web.AppRunner(
         make_app(panel, door),
         access_log=None,
