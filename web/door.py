@@ -25,9 +25,10 @@ from aiohttp import web
 log = logging.getLogger("usmswitch.web")
 
 _LOG_EVERY_NS = 10_000_000_000
-
-Express = Callable[[bytes], "bytes | asyncio.Future[bytes] | None"]
 _SWEEP_S = 0.25
+
+#: A connection's first read -> its whole answer (bytes, or a future of them), or None: aiohttp's.
+Express = Callable[[bytes], "bytes | asyncio.Future[bytes] | None"]
 
 
 class _Entry:

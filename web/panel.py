@@ -24,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
+import itertools
 import json
 import logging
 import socket
@@ -283,7 +284,10 @@ class Panel:
         first = self.strokes[0][0]
         if seq < first - 1:
             return [row for _, row in self.strokes], seq > 0
-        return [row for s, row in self.strokes if s > seq], False
+        # Numbered one by one: the new ones are the last `last - seq`, skipped to in C (a scan of
+        # the 1,000 for each feed each tick was a tenth of the HTTP thread's time under a burst).
+        new = self.strokes[-1][0] - seq
+        return [row for _, row in itertools.islice(self.strokes, len(self.strokes) - new, None)], False
 
     def hello_text(self) -> tuple[str, int, Any, Any, Any]:
         """`hello()` as the JSON a feed is sent, with the stroke, statistics and state it is as of
@@ -338,15 +342,16 @@ class Panel:
             for viewer in list(self.viewers):
                 if viewer.busy():
                     continue
-                rows, gap = self.strokes_after(viewer.seq)
+                fresh = bool(self.strokes) and self.strokes[-1][0] > viewer.seq
                 send_stats = viewer.stats_sent is not self.stats
                 send_status = viewer.status_sent is not self.status or send_stats
                 send_queue = viewer.queue_sent is not self.queue
-                if not rows and not send_stats and not send_status and not send_queue:
+                if not fresh and not send_stats and not send_status and not send_queue:
                     continue
                 key = (viewer.seq, send_stats, send_status, send_queue, self.runs_version)
                 text = encoded.get(key)
-                if text is None:
+                if text is None:  # the feeds opened together share one cursor: one encoding
+                    rows, gap = self.strokes_after(viewer.seq)
                     msg: dict[str, Any] = {"type": "tick", "strokes": rows, "gap": gap}
                     msg["runs_version"] = self.runs_version
                     if send_stats:
@@ -457,7 +462,7 @@ class Panel:
     def _json_answer(self, call: asyncio.Future[Any]) -> bytes:
         try:
             return json_answer(*self.control_answer(call))
-        except Exception as exc:  # not the daemon's refusal: a 500, as aiohttp's route gives
+        except (Exception, asyncio.CancelledError) as exc:  # not the daemon's refusal: a 500, as aiohttp's
             log.error("panel: estop failed: %r", exc)
             return json_answer(500, {"error": f"estop: {exc}", "code": None})
 

@@ -28,10 +28,11 @@ class Backend:
     """The daemon as the panel sees it: every call recorded; the estop answers at once, after
     `delay_s`, or is refused with `refuse`."""
 
-    def __init__(self, delay_s: float = 0.0, refuse: RpcError | None = None) -> None:
+    def __init__(self, delay_s: float = 0.0, refuse: RpcError | None = None, cancel: bool = False) -> None:
         self.calls: list[tuple[str, list[Any]]] = []
         self.delay_s = delay_s
         self.refuse = refuse
+        self.cancel = cancel  # the call's future cancelled (the server process closing)
 
     def call(self, method: str, params: list[Any]) -> asyncio.Future[Any]:
         self.calls.append((method, params))
@@ -40,7 +41,9 @@ class Backend:
         result = {"state": "fault", "fault": "estop (panel)"} if method == "estop" else {}
 
         def settle() -> None:
-            if self.refuse is not None:
+            if self.cancel and method == "estop":
+                fut.cancel()
+            elif self.refuse is not None:
                 fut.set_exception(self.refuse)
             else:
                 fut.set_result([] if method == "history" else result)
@@ -173,6 +176,12 @@ def test_the_daemons_refusal_and_a_late_answer_read_as_aiohttps() -> None:
     answer, took_s, taken = panel_at(late, timed)
     assert answer == (200, {"ok": True, "result": {"state": "fault", "fault": "estop (panel)"}})
     assert took_s >= 0.2 and taken == 1
+
+    async def cancelled(served: Any, port: int) -> tuple[Any, int]:
+        return await _exchange(port, _estop(port, f"X-Usmswitch-Token: {TOKEN}")), served.door.expressed
+
+    (status, body), taken = panel_at(Backend(delay_s=0.1, cancel=True), cancelled)
+    assert (status, taken) == (500, 1) and body["error"].startswith("estop: ")  # answered, not left open
 
 
 def test_what_the_lane_does_not_take_is_aiohttps_and_judged_as_before() -> None:
