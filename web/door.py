@@ -27,8 +27,8 @@ log = logging.getLogger("usmswitch.web")
 _LOG_EVERY_NS = 10_000_000_000
 _SWEEP_S = 0.25
 
-#: A connection's first read -> its whole answer (bytes, or a future of them), or None: aiohttp's.
-Express = Callable[[bytes], "bytes | asyncio.Future[bytes] | None"]
+#: (A connection, its first read) -> its whole answer (bytes, or a future of them), or None: aiohttp's.
+Express = Callable[[asyncio.BaseTransport, bytes], "bytes | asyncio.Future[bytes] | None"]
 
 
 class _Entry:
@@ -58,9 +58,7 @@ class Door:
         express: Express | None = None,
     ) -> None:
         self.name = name
-        #: A connection's first read -> its whole answer (bytes, or a future of them), or None:
-        #: aiohttp's to handle (web/express.py).
-        self.express = express
+        self.express = express  # web/express.py
         self.expressed = 0  # requests the express lane answered
         self.max_connections = max_connections
         self.head_s = head_s
@@ -128,7 +126,7 @@ class Door:
         if self.express is None:
             return False
         try:
-            answer = self.express(data)
+            answer = self.express(transport, data)
         except Exception as exc:  # a bug of the lane: aiohttp judges the request as it would any other
             self._say(f"the express lane failed ({exc!r}): the request went to aiohttp")
             return False

@@ -176,6 +176,11 @@ class Panel:
         self.token_file = token_file
         self.allowed_hosts = LOOPBACK_HOSTS | {h.lower() for h in allowed_hosts}
         self.feeds = 0  # live feeds open or opening: counted before any await (the cap is atomic)
+        self.readonly_feeds = 0  # of them, opened without the token
+        #: Live feeds the express lane let through to aiohttp, their handler not begun (-> whether
+        #: with the token): counted against the caps from the door on, so that of a burst's 200,
+        #: those past the caps are the lane's short answers, not 176 aiohttp requests.
+        self.feeds_asked: dict[asyncio.BaseTransport, bool] = {}
         self.closing: set[asyncio.Task[Any]] = set()  # feeds being closed for an operator's
         self.strokes: deque[tuple[int, list[Any]]] = deque(maxlen=HISTORY_STROKES)
         self.seq = 0
@@ -416,10 +421,13 @@ class Panel:
     def feed_refusal(self, operator: bool) -> str | None:
         """Why a live feed asked for now is refused (503), or None: it opens (an operator's in the
         place of the oldest read-only one when the feeds are full)."""
-        readonly = sum(1 for v in self.viewers if not v.operator)
-        if not operator and readonly >= MAX_READONLY_PANELS:
+        for transport in [t for t in self.feeds_asked if t.is_closing()]:  # gone before their handler
+            del self.feeds_asked[transport]
+        asked_readonly = sum(1 for with_token in self.feeds_asked.values() if not with_token)
+        if not operator and self.readonly_feeds + asked_readonly >= MAX_READONLY_PANELS:
             return f"too many read-only panels (max {MAX_READONLY_PANELS}); close one"
-        if self.feeds >= MAX_PANELS and (not operator or not readonly):
+        full = self.feeds + len(self.feeds_asked) >= MAX_PANELS
+        if full and (not operator or not any(not v.operator for v in self.viewers)):
             return f"too many open panels (max {MAX_PANELS}); close one"
         return None
 
@@ -433,7 +441,7 @@ class Panel:
         return 200, {"ok": True, "result": result}
 
     # -- the express lane ----------------------------------------------------------------------------
-    def express(self, data: bytes) -> bytes | asyncio.Future[bytes] | None:
+    def express(self, transport: asyncio.BaseTransport, data: bytes) -> bytes | asyncio.Future[bytes] | None:
         """The door's express lane (web/express.py): a fresh connection's first read answered here
         when it is an estop POST with the token, or a live feed the feeds' cap refuses, by the
         checks and with the bodies of the routes below; None: aiohttp's, as any other request."""
@@ -456,7 +464,10 @@ class Panel:
             if not operator and TOKEN_COOKIE in request.headers.get("Cookie", ""):
                 return None  # a token cookie that is not the token, or one of two: aiohttp's to read
             refusal = self.feed_refusal(operator)
-            return None if refusal is None else json_answer(503, {"error": refusal, "code": None})
+            if refusal is None:
+                self.feeds_asked[transport] = operator
+                return None
+            return json_answer(503, {"error": refusal, "code": None})
         return None
 
     def _json_answer(self, call: asyncio.Future[Any]) -> bytes:
@@ -602,6 +613,8 @@ def make_app(panel: Panel, door: Door | None = None) -> web.Application:
         if not same_origin(request):
             return _error(403, "the live feed is for the panel's own page (another site's Origin)")
         operator = panel.authorized(request)
+        if request.transport is not None:
+            panel.feeds_asked.pop(request.transport, None)  # counted below from now on
         refusal = panel.feed_refusal(operator)
         if refusal is not None:
             return _error(503, refusal)
@@ -615,6 +628,7 @@ def make_app(panel: Panel, door: Door | None = None) -> web.Application:
             closing.add_done_callback(panel.closing.discard)
         # Counted before the first await: a burst cannot pass the cap between the check and the count.
         panel.feeds += 1
+        panel.readonly_feeds += not operator
         try:
             ws = web.WebSocketResponse(heartbeat=30.0, max_msg_size=4096)
             await ws.prepare(request)
@@ -639,6 +653,7 @@ def make_app(panel: Panel, door: Door | None = None) -> web.Application:
             return ws
         finally:
             panel.feeds -= 1
+            panel.readonly_feeds -= not operator
 
     async def runs(request: web.Request) -> web.StreamResponse:
         try:

@@ -276,6 +276,33 @@ def test_read_only_feeds_past_their_cap_are_refused_at_the_door_and_the_operator
     assert operator_taken == 0 and operator_in
 
 
+def test_a_burst_of_feeds_is_refused_past_the_caps_at_the_door() -> None:
+    """200 read-only feeds asked for at once: each is asked before any handler has counted one, so
+    the lane counts those it lets through; the caps hold and every refusal is the lane's."""
+
+    async def body(served: Any, port: int) -> tuple[int, int, int, int]:
+        url = f"ws://127.0.0.1:{port}/api/live"
+        async with aiohttp.ClientSession(connector=aiohttp.TCPConnector(limit=0)) as http:
+
+            async def one() -> Any:
+                try:
+                    return await http.ws_connect(url, heartbeat=None)
+                except aiohttp.WSServerHandshakeError as exc:
+                    assert exc.status == 503, exc
+                    return None
+
+            feeds = await asyncio.gather(*(one() for _ in range(200)))
+            opened = sum(ws is not None for ws in feeds)
+            counted = served.panel.feeds
+            for ws in feeds:
+                if ws is not None:
+                    await ws.close()
+            return opened, served.door.expressed, counted, len(served.panel.feeds_asked)
+
+    opened, taken, counted, asked = panel_at(Backend(), body)
+    assert (opened, taken, counted, asked) == (MAX_READONLY_PANELS, 200 - MAX_READONLY_PANELS, opened, 0)
+
+
 def test_only_one_whole_plain_request_is_parsed() -> None:
     whole = b"POST /api/control/estop HTTP/1.1\r\nHost: h\r\nContent-Length: 2\r\n\r\n{}"
     request = parse(whole, 4096)
