@@ -1,10 +1,11 @@
 """The panel's express lane: a fresh connection's first read, when it is one whole simple request,
 parsed at the door (web/door.py) so that a few answers need nothing of aiohttp.
 
-A fresh request through aiohttp costs ~0.5 ms on this VM before any handler of ours runs (its
-protocol, request and response objects, a task per connection; `make bench BENCH=abuse`, stop 53):
-the panel POST's estop paid it on every press, and a burst of 200 live feeds paid it 168 times for
-the 503s past the cap, with the estop's connection queued behind them. The lane is a filter, never a
+A fresh request through aiohttp costs ~0.5 ms on the bench's VM before any handler of ours runs
+(its protocol, request and response objects, a task per connection: aiohttp's hello world against a
+bare asyncio protocol, fresh connections, 200 each): the panel POST's estop paid it on every press,
+and a burst of 200 read-only live feeds paid it 176 times for the 503s past the cap, with the
+estop's connection queued behind them. The lane is a filter, never a
 second server: `parse` takes only the plain case (HTTP/1.1, one complete request that ends the read,
 a Content-Length body or none, no header the checks read given twice) and anything else is None,
 left to aiohttp, which judges it as it always has. The panel (web/panel.py, `Panel.express`) answers

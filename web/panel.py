@@ -610,11 +610,11 @@ def make_app(panel: Panel, door: Door | None = None) -> web.Application:
         return web.json_response({"control": ok, "message": None if ok else panel.refusal()})
 
     async def live(request: web.Request) -> web.StreamResponse:
+        if request.transport is not None:
+            panel.feeds_asked.pop(request.transport, None)  # its handler counts it from here on
         if not same_origin(request):
             return _error(403, "the live feed is for the panel's own page (another site's Origin)")
         operator = panel.authorized(request)
-        if request.transport is not None:
-            panel.feeds_asked.pop(request.transport, None)  # counted below from now on
         refusal = panel.feed_refusal(operator)
         if refusal is not None:
             return _error(503, refusal)
