@@ -455,9 +455,9 @@ class Panel:
                 return None  # aiohttp's route says what is wrong with it
             call = asyncio.ensure_future(self.backend.call(method, params))
             if call.done():  # the estop socket answered at once: no step of the loop in between
-                return self._json_answer(call)
+                return self._estop_answer(call)
             answer: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
-            call.add_done_callback(lambda done: answer.set_result(self._json_answer(done)))
+            call.add_done_callback(lambda done: answer.set_result(self._estop_answer(done)))
             return answer
         if request.method == "GET" and request.path == "/api/live":
             operator = self.authorized(request)
@@ -470,7 +470,8 @@ class Panel:
             return json_answer(503, {"error": refusal, "code": None})
         return None
 
-    def _json_answer(self, call: asyncio.Future[Any]) -> bytes:
+    def _estop_answer(self, call: asyncio.Future[Any]) -> bytes:
+        """The lane's whole HTTP answer to its estop call, done."""
         try:
             return json_answer(*self.control_answer(call))
         except (Exception, asyncio.CancelledError) as exc:  # not the daemon's refusal: a 500, as aiohttp's
