@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import socket
 from collections import deque
 from collections.abc import AsyncIterator, Iterable
 from typing import Any
@@ -38,12 +39,31 @@ from .connection import (
     ConnectionClosed,
     check_timeout,
     closed_error,
+    connect_unix,
     parse_address,
     result_of,
     sort_message,
 )
 from .run import QueueWatch, RunHandle
 from .types import CycleRecord, Notification, RunInfo, Stats
+
+
+async def _connect_unix_async(path: str, timeout: float | None) -> socket.socket:
+    """A connected Unix socket, as the blocking Client's (connection.connect_unix) without
+    blocking the loop: at once while the backlog has room; past it (a connection flood) a
+    non-blocking connect is refused, never queued, so the connect waits its turn in the
+    kernel's queue on a worker thread, for up to `timeout`."""
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.setblocking(False)
+    try:
+        sock.connect(path)
+    except BlockingIOError:
+        sock.close()
+        return await asyncio.get_running_loop().run_in_executor(None, connect_unix, path, timeout)
+    except OSError:
+        sock.close()
+        raise
+    return sock
 
 
 class AsyncClient(Api):
@@ -87,7 +107,8 @@ class AsyncClient(Api):
             reader, writer = await asyncio.wait_for(asyncio.open_connection(host, port), self.timeout)
         else:
             owner = check_socket_owner(self.address)
-            reader, writer = await asyncio.wait_for(asyncio.open_unix_connection(self.address), self.timeout)
+            sock = await _connect_unix_async(self.address, self.timeout)
+            reader, writer = await asyncio.wait_for(asyncio.open_unix_connection(sock=sock), self.timeout)
             try:
                 check_peer(writer.get_extra_info("socket"), owner)
             except OSError:

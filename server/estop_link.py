@@ -88,7 +88,7 @@ class EstopLink:
                 self.close()
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
-            sock.settimeout(self.timeout_s)  # the connect too: a full backlog waits to be taken
+            sock.settimeout(self.timeout_s)  # a full backlog (1024) refuses at once: the old way then
             sock.connect(str(self.path))
         except OSError:
             sock.close()

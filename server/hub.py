@@ -49,6 +49,11 @@ KINDS = ("unix", "tcp")
 METRICS = "metrics"
 #: The HTTP listener of the browser panel (web/panel.py), also bound by the daemon.
 WEB = "web"
+# The TCP listener's backlog (the Unix socket's is Limits.unix_backlog): past it the kernel drops a
+# SYN and the client tries again a second later, so deep. The estop socket's thread takes every
+# pending connection at once and reads it (server/estop_socket.py): deep too.
+TCP_BACKLOG = 128
+URGENT_BACKLOG = 1024
 # A refused or timed-out connection is half-closed and kept this long (at most this many at once)
 # so that the client reads the reason instead of a reset.
 _LINGER_S = 0.5

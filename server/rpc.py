@@ -49,6 +49,7 @@ from usmswitch.runtime.realtime import name_thread, renice_child, server_fifo
 from usmswitch.server.after_reply import run_afters, split
 from usmswitch.server.busy_poll import DEFAULT_WINDOW_NS
 from usmswitch.server.estop_socket import THREAD_NAME as ESTOP_THREAD
+from usmswitch.server.hub import TCP_BACKLOG, URGENT_BACKLOG
 
 from .rpc_process import serve
 
@@ -249,13 +250,13 @@ class RpcServer:
             raise RuntimeError("RpcServer already started")
         self._started = True
         try:
-            self._listeners.append((self._bind_unix(self.unix_path), "unix"))
+            self._listeners.append((self._bind_unix(self.unix_path, self.limits.unix_backlog), "unix"))
             if self.urgent_path is not None:
                 # Bound here (mode, group, stale-socket checks as the main one); served in this
                 # process by server/estop_socket.py, which the daemon starts on it.
-                self.urgent_listener = self._bind_unix(self.urgent_path)
+                self.urgent_listener = self._bind_unix(self.urgent_path, URGENT_BACKLOG)
             if self.tcp is not None:
-                tsock = socket.create_server(self.tcp, backlog=128)
+                tsock = socket.create_server(self.tcp, backlog=TCP_BACKLOG)
                 self.tcp_address = tsock.getsockname()[:2]
                 self._listeners.append((tsock, "tcp"))
             if self.metrics is not None:
@@ -371,7 +372,7 @@ class RpcServer:
         self.stop()
 
     # -- sockets ---------------------------------------------------------------------------------
-    def _bind_unix(self, path: Path) -> socket.socket:
+    def _bind_unix(self, path: Path, backlog: int) -> socket.socket:
         if path.is_symlink() or path.exists():
             if not stat.S_ISSOCK(os.lstat(path).st_mode):
                 raise RuntimeError(f"{path} exists and is not a socket; refusing to replace it")
@@ -408,9 +409,7 @@ class RpcServer:
             os.chmod(path, self.mode)
             if self.gid is not None:
                 os.chown(path, -1, self.gid)
-            # A deep backlog: a flood of connections waits there, to be shed or refused at the
-            # accept, instead of making a client's connect fail at once (EAGAIN on a full backlog).
-            sock.listen(1024)
+            sock.listen(backlog)
         except OSError as exc:
             sock.close()
             path.unlink(missing_ok=True)

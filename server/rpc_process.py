@@ -37,7 +37,7 @@ from usmswitch.protocol.wire import (
 from usmswitch.runtime.logsetup import configure_logging
 from usmswitch.runtime.process_exit import exit_now
 from usmswitch.runtime.realtime import drop_realtime, renice, server_fifo
-from usmswitch.server.hub import KINDS, MAX_LINGERING, METRICS, WEB, Channel, Conn, Hub
+from usmswitch.server.hub import KINDS, MAX_LINGERING, METRICS, TCP_BACKLOG, WEB, Channel, Conn, Hub
 
 log = logging.getLogger("usmswitch.rpc")
 
@@ -186,8 +186,13 @@ async def _serve(
     for urgent, sock in ((False, chan), (True, urgent_chan)):
         transport, proto = await loop.connect_accepted_socket(lambda u=urgent: Channel(hub, u), sock=sock)
         proto.connection_made(transport)
-    servers = [  # create_server, not create_unix_server: that unlinks the path on close (3.13+)
-        await loop.create_server(lambda k=k: Conn(hub, k), sock=s) for s, k in listeners if k in KINDS
+    # create_server, not create_unix_server: that unlinks the path on close (3.13+). Its backlog
+    # is the listener's again (it listens anew: its default of 100 undid the daemon's own).
+    backlogs = {"unix": hub.limits.unix_backlog, "tcp": TCP_BACKLOG}
+    servers = [
+        await loop.create_server(lambda k=k: Conn(hub, k), sock=s, backlog=backlogs[k])
+        for s, k in listeners
+        if k in KINDS
     ]
     http, doors = [(sock, kind) for sock, kind in listeners if kind not in KINDS], []
     if http:  # the panel and /metrics: never ahead of an estop on this loop (server/http_doors.py)

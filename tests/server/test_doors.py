@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import os
 import resource
+import signal
 import socket
 import threading
 import time
@@ -201,6 +203,42 @@ def _made(hub: Hub) -> tuple[Conn, _Transport]:
     conn, transport = Conn(hub, "unix"), _Transport()
     conn.connection_made(transport)  # type: ignore[arg-type]
     return conn, transport
+
+
+def test_the_main_socket_queues_at_most_its_backlog_not_the_event_loops_default(
+    sockdir: Path, estops: Estops
+) -> None:
+    """The daemon listened with a backlog of 1,024 and the server process's event loop listened
+    again with its own default of 100: an estop by the main socket behind a renewed flood waited
+    for up to 100 accepts of it (p99 9-11 ms in the abuse bench). The backlog is the Limits' now:
+    with the server stopped, that many connections and one more are queued, the next refused."""
+    limits = Limits(unix_backlog=4)
+    servers = _server(sockdir, estops, limits)
+    srv = next(servers)
+    queued: list[socket.socket] = []
+    try:
+        assert srv.server_pid is not None
+        first = Raw(str(srv.unix_path))
+        first.call("ping")  # the server is up and accepting
+        first.close()
+        os.kill(srv.server_pid, signal.SIGSTOP)  # nothing more is accepted
+        try:
+            while len(queued) < 200:
+                s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+                s.setblocking(False)
+                try:
+                    s.connect(str(srv.unix_path))
+                except BlockingIOError:
+                    s.close()
+                    break
+                queued.append(s)
+        finally:
+            os.kill(srv.server_pid, signal.SIGCONT)
+        assert len(queued) == limits.unix_backlog + 1  # Linux queues one past the backlog
+    finally:
+        for s in queued:
+            s.close()
+        next(servers, None)
 
 
 def test_a_newcomer_is_not_shed_before_the_server_has_read_it() -> None:
