@@ -146,6 +146,8 @@ def connect_unix(path: str, timeout: float | None) -> socket.socket:
             sec, usec = divmod(max(1, round(timeout * 1e6)), 1_000_000)  # 0 s 0 us: no bound at all
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, struct.pack("@ll", sec, usec))
         sock.connect(path)
+        if timeout is not None:  # the bound was the connect's; sends keep the socket's own timeout
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, struct.pack("@ll", 0, 0))
         sock.settimeout(timeout)
     except OSError:
         sock.close()

@@ -50,6 +50,7 @@ from usmswitch.server.after_reply import run_afters, split
 from usmswitch.server.busy_poll import DEFAULT_WINDOW_NS
 from usmswitch.server.estop_socket import THREAD_NAME as ESTOP_THREAD
 from usmswitch.server.hub import TCP_BACKLOG, URGENT_BACKLOG
+from usmswitch.web.budgets import HTTP_BACKLOG
 
 from .rpc_process import serve
 
@@ -702,7 +703,7 @@ def _bind_tcp(address: tuple[str, int], what: str) -> socket.socket:
     """A listening TCP socket on (host, port), IPv6 for a host with a colon; errors name `what`."""
     family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
     try:
-        return socket.create_server(address, family=family, backlog=128)
+        return socket.create_server(address, family=family, backlog=HTTP_BACKLOG)
     except OSError as exc:
         host, port = address
         where = f"[{host}]:{port}" if family == socket.AF_INET6 else f"{host}:{port}"

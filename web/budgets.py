@@ -12,3 +12,8 @@ PANEL_IDLE_S = 60.0
 METRICS_CONNECTIONS = 16
 METRICS_HEAD_S = 5.0
 METRICS_IDLE_S = 120.0
+#: Both HTTP doors' listen backlog, bound so by the daemon (server/rpc.py) and given again to the
+#: event loop's create_server, which listens anew (with its default of 100 otherwise). Deep: past
+#: it the kernel drops a SYN and the client tries again a second later; the door takes every
+#: connection at once and sheds or refuses it there.
+HTTP_BACKLOG = 128

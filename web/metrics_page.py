@@ -30,7 +30,7 @@ from prometheus_client.core import (
 from prometheus_client.exposition import choose_encoder
 
 from usmswitch.fleet.metrics import DIRECTION_NAMES, FEEDS, HISTOGRAMS, OUTCOMES, STATE_FEED, STROKES_FEED
-from usmswitch.web.budgets import METRICS_CONNECTIONS, METRICS_HEAD_S, METRICS_IDLE_S
+from usmswitch.web.budgets import HTTP_BACKLOG, METRICS_CONNECTIONS, METRICS_HEAD_S, METRICS_IDLE_S
 from usmswitch.web.door import Door, QuietLog
 
 log = logging.getLogger("usmswitch.rpc")
@@ -265,4 +265,6 @@ async def serve_metrics(sock: socket.socket, source: Source) -> asyncio.Server:
         access_log=None,
         logger=QuietLog("metrics page"),
     )
-    return await asyncio.get_running_loop().create_server(door.protocol_factory(server), sock=sock)
+    return await asyncio.get_running_loop().create_server(
+        door.protocol_factory(server), sock=sock, backlog=HTTP_BACKLOG
+    )

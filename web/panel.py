@@ -37,7 +37,7 @@ from typing import Any, Protocol
 from aiohttp import WSMsgType, web
 
 from usmswitch.protocol.wire import ErrorCode, RpcError
-from usmswitch.web.budgets import PANEL_CONNECTIONS, PANEL_HEAD_S, PANEL_IDLE_S
+from usmswitch.web.budgets import HTTP_BACKLOG, PANEL_CONNECTIONS, PANEL_HEAD_S, PANEL_IDLE_S
 from usmswitch.web.door import Door, QuietLog
 from usmswitch.web.express import json_answer, parse
 from usmswitch.web.panel_controls import CONTROLS, OWNER, control_params
@@ -801,6 +801,8 @@ async def serve_panel(
     )
     await runner.setup()
     assert runner.server is not None
-    server = await asyncio.get_running_loop().create_server(door.protocol_factory(runner.server), sock=sock)
+    server = await asyncio.get_running_loop().create_server(
+        door.protocol_factory(runner.server), sock=sock, backlog=HTTP_BACKLOG
+    )
     panel.seeding = asyncio.create_task(panel.seed())
     return PanelServer(runner, asyncio.create_task(panel.ticker()), panel, server, door)
