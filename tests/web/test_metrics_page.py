@@ -4,6 +4,8 @@ scrapers together, the connection limit, idle connections closed."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import selectors
 import socket
 import time
 from typing import Any
@@ -72,3 +74,41 @@ def test_connections_beyond_the_limit_shed_an_idle_holder_and_idle_ones_close(
     answered, shed, idle = asyncio.run(_with_page(body))
     assert answered == 1
     assert shed == b"" and idle == b""
+
+
+def test_the_page_keeps_its_listen_backlog_while_its_loop_is_busy():
+    """create_server(sock=...) listens anew, with the event loop's default backlog of 100 unless
+    given one: the daemon's 128 was undone so (as the main socket's 1,024 was, behind which an estop
+    waited for a flood's accepts). While the page's loop does not accept, the kernel completes
+    HTTP_BACKLOG + 1 connections; the next SYN is dropped."""
+    from usmswitch.web.budgets import HTTP_BACKLOG
+
+    async def body(port: int) -> int:
+        return _connects_completed(port, HTTP_BACKLOG + 50)  # the loop blocked meanwhile
+
+    assert asyncio.run(_with_page(body)) == HTTP_BACKLOG + 1
+
+
+def _connects_completed(port: int, n: int) -> int:
+    """Of `n` connects to `port` begun at once, how many complete within 0.3 s."""
+    socks = []
+    try:
+        with selectors.DefaultSelector() as sel:
+            for _ in range(n):
+                s = socket.socket()
+                s.setblocking(False)
+                socks.append(s)
+                with contextlib.suppress(BlockingIOError):  # in progress, as a non-blocking connect is
+                    s.connect(("127.0.0.1", port))
+                sel.register(s, selectors.EVENT_WRITE)
+            done: set[socket.socket] = set()
+            end = time.monotonic() + 0.3
+            while (left := end - time.monotonic()) > 0:
+                for key, _ in sel.select(left):
+                    sel.unregister(key.fileobj)
+                    if key.fileobj.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR) == 0:  # type: ignore[union-attr]
+                        done.add(key.fileobj)  # type: ignore[arg-type]
+            return len(done)
+    finally:
+        for s in socks:
+            s.close()
