@@ -21,19 +21,8 @@ from usmswitch.client import AsyncClient, Client
 
 def test_a_full_backlog_is_waited_out_not_an_error(tmp_path: Path) -> None:
     path = str(tmp_path / "full.sock")
-    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    listener.bind(path)
-    listener.listen(1)
-    flood: list[socket.socket] = []
-    while True:  # fill the backlog: the next connect fails at once
-        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        s.setblocking(False)
-        try:
-            s.connect(path)
-        except BlockingIOError:
-            s.close()
-            break
-        flood.append(s)
+    listener = _listener(path)
+    flood = _fill(path)
     got: list[object] = []
     accepted: list[socket.socket] = []
     asker = threading.Thread(target=lambda: got.append(_connect(path)))
@@ -61,9 +50,7 @@ def test_a_client_waits_its_turn_among_a_floods_waiting_connects(tmp_path: Path)
     loader makes them) took every place a polling Client looked for: it got in only when the
     flood paused. Queued in the kernel with the flood's connects, it is in within a few accepts."""
     path = str(tmp_path / "flooded.sock")
-    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    listener.bind(path)
-    listener.listen(1)
+    listener = _listener(path)
     stop = threading.Event()
     flood: list[socket.socket] = []
 
@@ -107,21 +94,10 @@ def test_the_async_client_waits_out_a_full_backlog(tmp_path: Path) -> None:
     """asyncio's own connect met a full backlog's EAGAIN as a connect in progress, and its first
     write failed; the AsyncClient waits for a place as the Client does."""
     path = str(tmp_path / "full.sock")
-    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    listener.bind(path)
-    listener.listen(1)
-    flood: list[socket.socket] = []
-    while True:
-        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        s.setblocking(False)
-        try:
-            s.connect(path)
-        except BlockingIOError:
-            s.close()
-            break
-        flood.append(s)
+    listener = _listener(path)
+    flood = _fill(path)
 
-    async def main() -> bytes:
+    async def main() -> str:
         client = AsyncClient(path, timeout=30)
         connecting = asyncio.ensure_future(client.connect())
         await asyncio.sleep(0.2)
@@ -142,6 +118,28 @@ def test_the_async_client_waits_out_a_full_backlog(tmp_path: Path) -> None:
         for s in flood:
             s.close()
         listener.close()
+
+
+def _listener(path: str) -> socket.socket:
+    """A Unix listener with a backlog of 1 that nobody accepts from until the test does."""
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(path)
+    listener.listen(1)
+    return listener
+
+
+def _fill(path: str) -> list[socket.socket]:
+    """Connections that fill `path`'s backlog: the next non-blocking connect fails at once."""
+    flood = []
+    while True:
+        s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        s.setblocking(False)
+        try:
+            s.connect(path)
+        except BlockingIOError:
+            s.close()
+            return flood
+        flood.append(s)
 
 
 def _answer_one_ping(listener: socket.socket) -> None:
