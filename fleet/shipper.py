@@ -288,9 +288,11 @@ class PostgresShipper:
                     conn.close()
                     conn = None
                 self.connected = False
-                if self._stop.is_set():
-                    break  # not reachable now: the rest ships at the next start
-                self._stop.wait(backoff / 1e9)
+                if self._stop.wait(backoff / 1e9):
+                    # Not reachable now: the rest ships at the next start. Told to stop before
+                    # (or while) waiting to try again, not a try in the drain: a database that does
+                    # not answer a connect held it for the connect timeout, past any exit budget.
+                    break
                 backoff = min(2 * backoff, self._retry_ns[1])
         if conn is not None:
             conn.close()

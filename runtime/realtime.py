@@ -125,6 +125,18 @@ def renice_child(pid: int, nice: int, process: str, cost: str) -> bool:
     return True
 
 
+def lift_child(pid: int, priority: int) -> bool:
+    """SCHED_FIFO `priority` for every thread of child `pid`; False when refused (no CAP_SYS_NICE
+    and an RLIMIT_RTPRIO below `priority`: a daemon without real-time) or when it has ended."""
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            with contextlib.suppress(ProcessLookupError):  # a thread that just ended
+                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+    except OSError:
+        return False
+    return True
+
+
 def _nice_refused(process: str, nice: int, exc: OSError, cost: str) -> bool:
     log.warning(
         "nice refused, carrying on at the inherited priority",

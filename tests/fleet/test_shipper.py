@@ -7,8 +7,10 @@ import contextlib
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -20,9 +22,11 @@ import pytest
 
 from usmswitch.client import Client
 from usmswitch.daemon.records import RecordStore
+from usmswitch.daemon.shipper_process import DRAIN_PRIORITY, ShipperProcess
 from usmswitch.fleet.pg_schema import CYCLE_COLUMNS, CYCLES_TABLE, RUN_COLUMNS, RUNS_TABLE
 from usmswitch.fleet.shipper import PostgresShipper
 from usmswitch.protocol.record import RUN_FIELDS, CycleRecord, RunRecord
+from usmswitch.runtime.realtime import fifo_refusal
 
 FAST = {"retry_ns": (20_000_000, 200_000_000), "poll_ns": 50_000_000, "connect_timeout_s": 2}
 
@@ -379,3 +383,57 @@ def test_label_and_notes_reach_postgresql_an_edit_after_the_run_too(pg, ship, tm
         assert [(r["run_id"], r["label"]) for r in copy.runs(label="pg-test")] == [(1, "pg-test")]
         assert copy.runs(label="nothing") == []
         assert len(list(copy.records(label="pg-test"))) == 50
+
+
+def test_a_stop_while_the_database_does_not_answer_ends_at_once_without_another_connect(tmp_path: Path):
+    """A database that takes a connect and never answers (a listener nobody accepts from) holds
+    each try for the connect timeout. A stop that comes while the shipper waits to try again ends
+    it there: before, the drain tried once more and the stop lasted that timeout (2 s here)."""
+    path = tmp_path / "records.sqlite"
+    write(path, pgserver.synthetic_records(1, 10))
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)
+        url = f"postgresql://usmswitch@127.0.0.1:{silent.getsockname()[1]}/x"
+        retry = (30_000_000_000, 30_000_000_000)  # no second try before the stop
+        shipper = PostgresShipper(path, url, "rigA", retry_ns=retry, connect_timeout_s=2)
+        shipper.start()
+        wait_for(lambda: shipper.error_count == 1, what="the first try timed out")
+        began = time.monotonic()
+        assert not shipper.stop(drain_timeout_ns=10_000_000_000)
+        took = time.monotonic() - began
+    assert shipper.error_count == 1, shipper.error  # no try in the drain
+    assert "timeout" in shipper.error
+    assert took < 1.5, f"the stop took {took:.2f} s"  # the connect timeout is 2 s
+
+
+def test_the_shipper_process_drains_at_real_time_priority_when_the_daemon_may(tmp_path: Path):
+    """The drain is the exit's last work: the child leaves nice 10 for SCHED_FIFO 1 at the stop
+    (a loaded machine starved it for its whole budget), when the daemon is allowed real-time."""
+    path = tmp_path / "records.sqlite"
+    write(path, pgserver.synthetic_records(1, 10))
+    handle = ShipperProcess(path, "postgresql://usmswitch@127.0.0.1:9/x", "rigA")
+    handle.start()
+    proc = handle._proc
+    assert proc is not None
+    wait_for(lambda: handle.status()["error"] is not None, what="the first refusal")
+    os.kill(proc.pid, signal.SIGSTOP)  # it cannot end: its policy can be read while stop() waits
+    seen: list[set[tuple[int, int]]] = []
+
+    def read_policies() -> None:
+        time.sleep(0.05)
+        seen.append(
+            {
+                (os.sched_getscheduler(int(tid)), os.sched_getparam(int(tid)).sched_priority)
+                for tid in os.listdir(f"/proc/{proc.pid}/task")
+            }
+        )
+
+    reader = threading.Thread(target=read_policies)
+    reader.start()
+    assert not handle.stop(drain_timeout_ns=300_000_000)  # killed after its drain and grace
+    reader.join()
+    before = {(os.SCHED_OTHER, 0)}
+    expected = {(os.SCHED_FIFO, DRAIN_PRIORITY)} if fifo_refusal(DRAIN_PRIORITY) is None else before
+    assert seen == [expected]
+    assert proc.poll() is not None
