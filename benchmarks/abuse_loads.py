@@ -62,7 +62,7 @@ def load_exports(path: str, stop: Any) -> None:
         while not stop.is_set():
             try:
                 c.history(10_000)
-            except (ConnectionClosed, FileNotFoundError):
+            except (ConnectionClosed, FileNotFoundError, ConnectionRefusedError):
                 return  # the daemon went (the SIGTERM row ends it under this load; its socket too)
             except (OSError, RpcError):
                 if stop.is_set():
