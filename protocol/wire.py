@@ -220,7 +220,12 @@ _RESPONSE_HEAD = b"\x94\x01"  # fixarray(4), RESPONSE
 
 def ok_frame(msgid: int, result_bytes: bytes) -> bytes:
     """A success response spliced around an already packed result: no re-encoding per request."""
-    return _RESPONSE_HEAD + packb(msgid) + _NIL + result_bytes
+    return ok_head(msgid) + result_bytes
+
+
+def ok_head(msgid: int) -> bytes:
+    """A success response's bytes before its packed result (the result then follows as it is)."""
+    return _RESPONSE_HEAD + packb(msgid) + _NIL
 
 
 def error_frame(msgid: int, code: int, message: str) -> bytes:

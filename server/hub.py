@@ -26,6 +26,7 @@ from usmswitch.protocol.wire import (
     error_frame,
     note_frame,
     ok_frame,
+    ok_head,
     packb,
     unpacker,
 )
@@ -264,14 +265,14 @@ class Hub:
         fut = self.readers.read(method, params, lambda: conn.closed)
         conn.reads.add(fut)
 
-        def done(fut: asyncio.Future[bytes]) -> None:
+        def done(fut: asyncio.Future[list[bytes]]) -> None:
             conn.outstanding -= 1
             conn.reads.discard(fut)
             if fut.cancelled() or conn.closed:
                 return
             exc = fut.exception()
             if exc is None:
-                conn.write(ok_frame(msgid, fut.result()))
+                conn.write_parts([ok_head(msgid), *fut.result()])
             elif isinstance(exc, RpcError):
                 if exc.code == ErrorCode.INTERNAL:
                     log.error("rpc: %s read failed: %s", method, exc.message)
@@ -649,6 +650,18 @@ class Conn(asyncio.Protocol):
         if self.closed or self.transport is None:
             return
         self.transport.write(data)
+        self._cut_off_past_the_limit()
+
+    def write_parts(self, parts: list[bytes]) -> None:
+        """Queue one frame given in pieces (a records read's reply as its reader sent it), as
+        `write`: the transport takes them as they are, no copy joins them."""
+        if self.closed or self.transport is None:
+            return
+        self.transport.writelines(parts)
+        self._cut_off_past_the_limit()
+
+    def _cut_off_past_the_limit(self) -> None:
+        assert self.transport is not None
         if self.transport.get_write_buffer_size() > self.hub.limits.max_write_buffer_bytes:
             self.closed = True
             self.transport.abort()

@@ -26,6 +26,7 @@ import os
 import pkgutil
 import select
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -40,6 +41,13 @@ from usmswitch.protocol.wire import ErrorCode, RpcError, packb
 log = logging.getLogger("usmswitch.rpc")
 
 HISTORY_CHUNK = 200
+#: A reply's head, from a reader process: its job's number, 0 or the RpcError's code (its body is
+#: then the packed [code, message]), the body's length; the body follows as it is. The server hands
+#: a reply's body on in the pieces it arrived in, never unpacked or joined: a history [10000]
+#: (3.5 MB) taken from a msgpack stream and spliced into the client's frame cost the event loop
+#: 6-13 ms in one step (the unpacker's copies and the splice's), and an accept, a TCP estop's among
+#: them, waited behind it (the loop ran 5-10 ms at a stretch under 10 export clients, perf sched).
+REPLY_HEAD = struct.Struct(">QqQ")
 SMALL_READ = 1000  # history reads up to this many records take the small reads' lane
 #: Methods answered from the records file, by a reader process.
 READS = frozenset({"history", "runs", "stats", "export"})
@@ -152,11 +160,19 @@ def worker(sock: socket.socket, records_path: str, open_records: Callable[[str],
                 try:
                     store = open_records(records_path)
                 except OSError as exc:
-                    sock.sendall(packb([job, [ErrorCode.UNAVAILABLE, f"{method}: {exc}"], b""]))
+                    _send_reply(sock, job, [ErrorCode.UNAVAILABLE, f"{method}: {exc}"], b"")
                     continue
-            reply = packb([job, *answer(store, method, params)])
+            error, body = answer(store, method, params)
             store.release()  # idle, no file open: the daemon's last close removes -wal and -shm
-            sock.sendall(reply)
+            _send_reply(sock, job, error, body)
+
+
+def _send_reply(sock: socket.socket, job: int, error: list[Any] | None, body: bytes) -> None:
+    """One reply, framed by REPLY_HEAD."""
+    if error is not None:
+        body = packb(error)
+    sock.sendall(REPLY_HEAD.pack(job, 0 if error is None else int(error[0]), len(body)))
+    sock.sendall(body)
 
 
 def _die_with_the_server(fd: int) -> None:
@@ -193,7 +209,7 @@ class _Job:
     __slots__ = ("future", "gone", "method", "params", "tries")
 
     def __init__(
-        self, method: str, params: list[Any], future: asyncio.Future[bytes], gone: Callable[[], bool]
+        self, method: str, params: list[Any], future: asyncio.Future[list[bytes]], gone: Callable[[], bool]
     ) -> None:
         self.method = method
         self.params = params
@@ -235,10 +251,13 @@ class _Worker(asyncio.Protocol):
     def __init__(self, lane: _Lane, proc: subprocess.Popen[bytes]) -> None:
         self.lane = lane
         self.proc = proc
-        self.unpacker = msgpack.Unpacker(raw=False, max_buffer_size=1 << 30)
         self.transport: asyncio.Transport | None = None
         self.job: _Job | None = None
         self.jobs = 0
+        self.head = b""  # a reply's head (REPLY_HEAD), as far as it has come
+        self.code = 0
+        self.need = 0  # the body's bytes still to come
+        self.body: list[bytes] | None = None  # its pieces so far, once its head is whole
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport  # type: ignore[assignment]
@@ -251,15 +270,35 @@ class _Worker(asyncio.Protocol):
         self.transport.write(packb([self.jobs, job.method, job.params]))
 
     def data_received(self, data: bytes) -> None:
-        self.unpacker.feed(data)
-        for _job, error, payload in self.unpacker:
-            job, self.job = self.job, None
-            if job is not None and not job.future.done():
-                if error is None:
-                    job.future.set_result(payload)
-                else:
-                    job.future.set_exception(RpcError(error[0], error[1]))
-            self.lane.next(self)
+        while data:
+            if self.body is None:
+                short = REPLY_HEAD.size - len(self.head)
+                self.head += data[:short]
+                data = data[short:]
+                if len(self.head) < REPLY_HEAD.size:
+                    return
+                _job, self.code, self.need = REPLY_HEAD.unpack(self.head)
+                self.head, self.body = b"", []
+            if len(data) > self.need:
+                piece, data = data[: self.need], data[self.need :]
+            else:
+                piece, data = data, b""
+            if piece:
+                self.body.append(piece)
+                self.need -= len(piece)
+            if not self.need:
+                self._answered(self.body)
+
+    def _answered(self, body: list[bytes]) -> None:
+        self.body = None
+        job, self.job = self.job, None
+        if job is not None and not job.future.done():
+            if not self.code:
+                job.future.set_result(body)
+            else:
+                code, message = msgpack.unpackb(b"".join(body), raw=False)
+                job.future.set_exception(RpcError(code, message))
+        self.lane.next(self)
 
     def connection_lost(self, exc: Exception | None) -> None:
         self.lane.lost(self)
@@ -361,10 +400,11 @@ class RecordsReaders:
 
     def read(
         self, method: str, params: list[Any], gone: Callable[[], bool] = lambda: False
-    ) -> asyncio.Future[bytes]:
-        """Queue one read on its lane (called on the event loop's thread)."""
+    ) -> asyncio.Future[list[bytes]]:
+        """Queue one read on its lane (called on the event loop's thread); its future's result is
+        the packed reply in the pieces it arrived in (REPLY_HEAD)."""
         small = method == "runs" or (method == "history" and params[0] <= SMALL_READ)
-        future: asyncio.Future[bytes] = self.loop.create_future()
+        future: asyncio.Future[list[bytes]] = self.loop.create_future()
         (self.small if small else self.big).submit(_Job(method, params, future, gone))
         return future
 

@@ -103,15 +103,15 @@ class PanelConn(Conn):
             raise RpcError(ErrorCode.UNAVAILABLE, "export: this server has no records file")
         readers = hub.readers
 
-        def read(method: str, params: list[Any]) -> asyncio.Future[bytes]:
-            async def on_hub() -> bytes:  # on the hub's loop, where the readers live
+        def read(method: str, params: list[Any]) -> asyncio.Future[list[bytes]]:
+            async def on_hub() -> list[bytes]:  # on the hub's loop, where the readers live
                 return await readers.read(method, params)
 
             return asyncio.wrap_future(asyncio.run_coroutine_threadsafe(on_hub(), hub.loop))
 
         plan = ExportPlan()
-        asked: collections.deque[asyncio.Future[bytes]] = collections.deque()
-        about: asyncio.Future[bytes] | None = read("stats", [run_id, None, None, None])  # label, notes
+        asked: collections.deque[asyncio.Future[list[bytes]]] = collections.deque()
+        about: asyncio.Future[list[bytes]] | None = read("stats", [run_id, None, None, None])  # label, notes
         n = 0
 
         def ask() -> None:
@@ -120,10 +120,11 @@ class PanelConn(Conn):
 
         try:  # on the HTTP doors' loop (server/http_doors.py)
             ask()
+            # Replies come in the pieces they arrived in (server/records_reads.py): joined here.
             while asked:
-                part = msgpack.unpackb(await asked.popleft(), raw=False)
+                part = msgpack.unpackb(b"".join(await asked.popleft()), raw=False)
                 if about is not None:  # the run is known (its first read said so): the header
-                    run = msgpack.unpackb(await about, raw=False)["run"]
+                    run = msgpack.unpackb(b"".join(await about), raw=False)["run"]
                     about = None
                     await write(csv_header_line([run]).encode())
                 handed = plan.answered(part["strokes"], part["last_cycle"])
@@ -146,6 +147,9 @@ class PanelConn(Conn):
             fut.set_exception(RpcError(error[0], error[1]))
         else:
             fut.set_result(result)
+
+    def write_parts(self, parts: list[bytes]) -> None:
+        self.write(b"".join(parts))
 
     def notify(self, frame: bytes) -> None:
         _, topic, (payload,) = msgpack.unpackb(frame, raw=False)
