@@ -199,15 +199,16 @@ def test_estop_from_another_thread_stops_a_stroke_in_motion() -> None:
     worker = threading.Thread(target=lambda: out.append(loop.switch(Direction.ON)))
     worker.start()
     time.sleep(0.004)  # the mover is under way (dead time < 1 ms, stroke ~10 ms)
-    t_estop = daq.now_ns()
     loop.estop("operator")
     worker.join(2)
     rec = out[0]
     assert rec.t_arrive_ns is None and rec.flags & Flag.ESTOP and rec.flags & Flag.FAULT
-    assert daq.now_ns() - t_estop < 10 * MS  # the loop saw it within its polling slice
     loop._serve_requests()
     assert loop.state is State.FAULT
-    assert 0 < daq.position_mm() < daq.model.params.stroke_mm  # stopped mid-way, drive off
+    # Stopped mid-way, drive off: the loop saw the estop before the mover arrived, ~6 ms of stroke
+    # left, on the rig's own clock. Not this thread's clock after join(): beside make run and two
+    # CPU hogs that read 11.8 ms, its own wake-up.
+    assert 0 < daq.position_mm() < daq.model.params.stroke_mm
     daq.close()
 
 
