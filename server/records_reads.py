@@ -42,7 +42,7 @@ log = logging.getLogger("usmswitch.rpc")
 
 HISTORY_CHUNK = 200
 #: A reply's head, from a reader process: its job's number, 0 or the RpcError's code (its body is
-#: then the packed [code, message]), the body's length; the body follows as it is. The server hands
+#: then the error's message, UTF-8), the body's length; the body follows as it is. The server hands
 #: a reply's body on in the pieces it arrived in, never unpacked or joined: a history [10000]
 #: (3.5 MB) taken from a msgpack stream and spliced into the client's frame cost the event loop
 #: 6-13 ms in one step (the unpacker's copies and the splice's), and an accept, a TCP estop's among
@@ -170,7 +170,7 @@ def worker(sock: socket.socket, records_path: str, open_records: Callable[[str],
 def _send_reply(sock: socket.socket, job: int, error: list[Any] | None, body: bytes) -> None:
     """One reply, framed by REPLY_HEAD."""
     if error is not None:
-        body = packb(error)
+        body = str(error[1]).encode()
     sock.sendall(REPLY_HEAD.pack(job, 0 if error is None else int(error[0]), len(body)))
     sock.sendall(body)
 
@@ -296,8 +296,7 @@ class _Worker(asyncio.Protocol):
             if not self.code:
                 job.future.set_result(body)
             else:
-                code, message = msgpack.unpackb(b"".join(body), raw=False)
-                job.future.set_exception(RpcError(code, message))
+                job.future.set_exception(RpcError(self.code, b"".join(body).decode()))
         self.lane.next(self)
 
     def connection_lost(self, exc: Exception | None) -> None:
