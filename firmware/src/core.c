@@ -257,10 +257,10 @@ uint32_t core_poll(void)
     struct stroke *st = &S.cur;
     /* The stall check runs whenever the drive may be on, whatever the core's state: a running
      * stroke from its start, a scheduled one whose drive is on before its START came through
-     * from its due instant. */
+     * from the instant on_command expects it on (t_start_us until then). */
     uint8_t on = hal_drive_is_on();
     uint8_t timed = S.have_cur && (st->state == SS_RUNNING || (st->state == SS_SCHEDULED && on));
-    uint32_t from = st->state == SS_RUNNING ? st->t_start_us : st->t_due_us;
+    uint32_t from = st->t_start_us;
     if (timed && (int32_t)(now - from) >= 0 && now - from >= st->timeout_us) {
         uint32_t ms = st->timeout_us / 1000;
         hal_drive_off(); /* first: building a frame takes tens of microseconds */
@@ -421,6 +421,11 @@ static void on_command(uint16_t seq, const uint8_t *b, uint32_t now)
     st->t_due_us = t_cmd + st->delay_us;
     send_ack(MT_COMMAND, seq, ST_OK, id, t_cmd);
     hal_drive_schedule(st->t_due_us, st->direction, st->direction == 0 ? 1 : 0);
+    /* Until its START, the stroke's stall limit runs from the instant the drive goes on: the due
+     * one, or, for a COMMAND that came after it (a held-up host), now, when it went on at once.
+     * From the due instant, a start later than the limit was cut as a stall a frame after it. */
+    uint32_t after = hal_now_us();
+    st->t_start_us = (int32_t)(after - st->t_due_us) > 0 ? after : st->t_due_us;
 }
 
 static void on_stop(uint16_t seq, uint32_t now)

@@ -192,6 +192,23 @@ def test_retransmitted_command_and_late_start(device: Device) -> None:
     assert stroke.flags & mp.StrokeFlags.LATE and stroke.flags & mp.StrokeFlags.ARRIVED
 
 
+def test_a_start_later_than_its_stall_limit_still_runs_its_stroke(device: Device) -> None:
+    """A COMMAND that comes more than the stall limit after its due instant (a host held up): the
+    drive goes on at once, flagged late, and the limit runs from there. Counted from the due
+    instant, the firmware cut such a stroke as a stall a frame's time after it went on."""
+    hello = _hello(device, watchdog_ms=5000)
+    device.send(mp.Arm(4, 0, 1000, 30_000), 1)  # a stall limit of 30 ms
+    t_cmd = (hello.t_us - 60_000) % U32  # due 59 ms ago: late by twice the limit
+    device.send(mp.Command(4, t_cmd, 1), 2)
+    got = _msgs(device.run(40_000))
+    (start,) = [m for m in got if isinstance(m, mp.Start)]
+    assert start.late_us > 30_000, start
+    assert not [m for m in got if isinstance(m, mp.Fault)], got
+    (stroke,) = [m for m in got if isinstance(m, mp.Stroke)]
+    assert stroke.flags & mp.StrokeFlags.ARRIVED and stroke.flags & mp.StrokeFlags.LATE, stroke
+    assert not stroke.flags & mp.StrokeFlags.STALL, stroke
+
+
 def test_requests_during_a_stroke_are_busy(device: Device) -> None:
     _hello(device, watchdog_ms=5000)
     device.send(mp.Arm(1, 0, 1000, 100_000), 1)
