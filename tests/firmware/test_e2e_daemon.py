@@ -28,6 +28,32 @@ U32 = 1 << 32
 pytestmark = pytest.mark.realtime
 
 
+def _stopped_early(c: Client, truth_csv: Path) -> str:
+    """Why the run stopped short (a fault latched): the daemon's fault, its last strokes' stamps from
+    their start and the emulator's truth of the last strokes, so that a failure says whether the
+    pins (the harness) or the stamps (the firmware, the host) went wrong."""
+    fault = c.status().get("fault")
+    since = ("t_depart_ns", "t_arrive_ns")
+    ours = [
+        (r["cycle"], r["flags"], *((r[k] - r["t_start_ns"]) // 1000 if r[k] else None for k in since))
+        for r in c.history(3)
+    ]
+    with truth_csv.open() as f:
+        rows = list(csv.DictReader(f))[-3:]
+    truth = [
+        (r["stroke"], *(us_since(r[k], r["start_us"]) if r[k] else None for k in ("depart_us", "arrive_us")))
+        for r in rows
+    ]
+    return (
+        f"the run stopped short: {fault}; recorded (cycle, flags, depart, arrive us): {ours};"
+        f" truth (stroke, depart, arrive us): {truth}"
+    )
+
+
+def us_since(t: str, t0: str) -> int:
+    return (int(t) - int(t0)) % U32
+
+
 def test_closed_loop_on_the_firmware_in_simavr(avrsim: Path, firmware_elf: Path, tmp_path: Path) -> None:
     link = tmp_path / "usmswitch"
     truth_csv = tmp_path / "truth.csv"
@@ -53,9 +79,12 @@ def test_closed_loop_on_the_firmware_in_simavr(avrsim: Path, firmware_elf: Path,
             assert c.status()["state"] == "idle"
             c.start_cycling(24 * MS, STROKES)
             with c.subscribe("stroke", timeout=5) as sub:
-                for rec in (note.payload for note in sub):
-                    if rec["cycle"] >= STROKES:
-                        break
+                try:
+                    for rec in (note.payload for note in sub):
+                        if rec["cycle"] >= STROKES:
+                            break
+                except TimeoutError:
+                    pytest.fail(_stopped_early(c, truth_csv))
             stats = c.stats()
             counters = c.status()["driver_counters"]
     finally:
@@ -87,9 +116,6 @@ def test_closed_loop_on_the_firmware_in_simavr(avrsim: Path, firmware_elf: Path,
                                   "recovered_strokes", "unrecovered_strokes", "disconnects")}  # fmt: skip
     assert not any(lost.values()), lost
 
-    def us_diff(a: str, b: str) -> int:
-        return (int(a) - int(b)) % U32
-
     worst = 0
     for (_, t_start, t_depart, t_arrive, _, _), tr in zip(rows, truth, strict=True):
         assert t_arrive is not None and t_depart is not None and tr["arrive_us"], (
@@ -98,8 +124,8 @@ def test_closed_loop_on_the_firmware_in_simavr(avrsim: Path, firmware_elf: Path,
             t_arrive,
             tr,
         )
-        op_truth = us_diff(tr["arrive_us"], tr["start_us"]) * 1000
-        dep_truth = us_diff(tr["depart_us"], tr["start_us"]) * 1000
+        op_truth = us_since(tr["arrive_us"], tr["start_us"]) * 1000
+        dep_truth = us_since(tr["depart_us"], tr["start_us"]) * 1000
         worst = max(worst, abs((t_arrive - t_start) - op_truth), abs((t_depart - t_start) - dep_truth))
     assert worst <= 1000, f"a recorded stamp is {worst} ns from the emulator's truth"
     cut = [int(tr["cut_ns"]) for tr in truth]
