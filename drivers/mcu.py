@@ -721,25 +721,33 @@ class McuDaq(HandshakeMixin, Daq):
     def _host_stamp(self) -> int:
         return max(self.clock.now_ns(), self._last_stamp_ns)
 
-    def _drop_oldest(self, events: deque[Event]) -> None:
+    def _drop_oldest(self, events: deque[Event]) -> Event:
         """Drop the oldest edge (what floods are made of), else the oldest event: a fault, a start
-        or a stop near the head outlives the chatter behind it."""
+        or a stop near the head outlives the chatter behind it. Returns the one dropped."""
         self.stats.events_dropped += 1
         for i in range(min(len(events), 64)):
             if events[i].kind is EventKind.EDGE:
+                ev = events[i]
                 del events[i]
-                return
-        events.popleft()
+                return ev
+        return events.popleft()
 
     def _deliver(self, ev: Event) -> None:
         self._last_stamp_ns = max(self._last_stamp_ns, ev.t_ns)
         events = self._events
         if len(events) >= self.max_queued_events:
             # Nobody reads as fast as the device talks: the oldest go, counted. A stroke in progress
-            # has lost its events: a SEQUENCE fault (at the queue's end) ends it, once per spell.
-            self._drop_oldest(events)
+            # that lost one of its own has lost its account: a SEQUENCE fault (at the queue's end)
+            # ends it, once per spell. One stamped before the stroke's due start is not its own:
+            # a flood between two strokes, still decoded as the next is commanded, faulted that one.
+            lost = self._drop_oldest(events)
             ctx = self.strokes.ctx
-            if ctx is not None and not ctx.stopped and not self._overflow_said:
+            if (
+                ctx is not None
+                and not ctx.stopped
+                and not self._overflow_said
+                and (ctx.due_ns is None or lost.t_ns >= ctx.due_ns)
+            ):
                 self._overflow_said = True
                 self._drop_oldest(events)
                 events.append(

@@ -98,6 +98,34 @@ def test_the_event_queue_is_bounded_and_an_overflow_in_a_stroke_is_a_fault(tmp_p
         )
 
 
+def test_a_flood_still_queued_from_between_strokes_does_not_fault_the_next(tmp_path: Path) -> None:
+    """The queue full of a flood that came between two strokes (nothing reads the driver then) as
+    the next is commanded and runs: each of its own events pushes out a stale edge, stamped before
+    its due start, which the stroke never had. No SEQUENCE fault: there was one, and a busy host
+    that was still decoding a flood as the next stroke went faulted it (test_daemon_hw_checks'
+    flood, stroke 6, in make test)."""
+    with faultmcu.plugged(tmp_path, seed=3) as (emu, port), _open(port, max_queued_events=64) as daq:
+        end = time.monotonic() + 5.0
+        while daq.link_stats()["events_dropped"] == 0 and time.monotonic() < end:
+            emu.flood(0.1, channel=1)  # sensor B (not the mover's) says "released", no stroke going
+        assert wait_for(lambda: daq.link_stats()["events_dropped"] > 0, 2.0)
+        time.sleep(0.1)  # the flood's last frames decoded: what the stroke drops is its own doing
+        dropped = daq.link_stats()["events_dropped"]
+        direction = Direction.OFF if emu.rig.sensors()[1] else Direction.ON
+        daq.arm(direction, 1 * MS)
+        daq.command(daq.now_ns() + 2 * MS)
+        # The stroke runs while nothing reads: its START, edges and STOP each push a stale edge out.
+        assert wait_for(lambda: daq.link_stats()["events_dropped"] >= dropped + 3, 5.0)
+        seen = []
+        while (ev := daq.recv(1000 * MS)) is not None:
+            seen.append(ev)
+            if ev.kind is EventKind.STOP:
+                break
+        not_edges = [e for e in seen if e.kind is not EventKind.EDGE]
+        assert not [e for e in seen if e.kind is EventKind.FAULT], not_edges
+        assert not_edges[-1].kind is EventKind.STOP and not_edges[-1].detail == "arrived", not_edges
+
+
 # -- the fuzz ---------------------------------------------------------------------------------------
 
 # Offsets from the device clock (us): inside the band, just outside, far out, across the wrap.
