@@ -106,10 +106,17 @@ def test_strokes_across_the_clock_wrap(tmp_path: Path) -> None:
         assert stats["wraps"] == 1, "the device clock wrapped during the run"
         assert stats["lost_frames"] == 0 and stats["crc_errors"] == 0 and stats["reconnects"] == 0
         assert stats["start_mismatches"] == 0, "a START's stamp is not where the device said it started"
-        # now_ns() is the device clock mapped to the host: within a fraction of a millisecond.
+        # now_ns() is the device clock mapped to the host: within a millisecond of the device's own
+        # reading, which two of the driver's bracket (a preemption between them widens the bracket;
+        # one after a single reading read 2.5 ms off beside make run and two CPU hogs).
+        before = daq.timeline.to_raw_us(daq.now_ns())
         dev_now = emu.device_us()
-        drv_now_us = daq.timeline.to_raw_us(daq.now_ns())
-        assert min((dev_now - drv_now_us) % U32_MOD, (drv_now_us - dev_now) % U32_MOD) < 1_000
+        after = daq.timeline.to_raw_us(daq.now_ns())
+        assert (dev_now - before + 1_000) % U32_MOD <= (after - before) % U32_MOD + 2_000, (
+            before,
+            dev_now,
+            after,
+        )
 
 
 def test_port_is_exclusive_and_spec_is_checked(rig, tmp_path) -> None:
