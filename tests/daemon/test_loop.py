@@ -16,7 +16,7 @@ from usmswitch.daemon.records import RecordStore
 from usmswitch.drivers import Direction
 from usmswitch.predictor import ARPredictor
 from usmswitch.protocol.record import CycleRecord, Flag
-from usmswitch.sim import SimDaq
+from usmswitch.sim import RigParams, SimDaq, UsmSwitchModel
 
 MS = 1_000_000
 NOMINAL = 10_500_000
@@ -190,23 +190,26 @@ def test_estop_is_refused_work_until_reset() -> None:
 
 @pytest.mark.realtime
 def test_estop_from_another_thread_stops_a_stroke_in_motion() -> None:
-    daq = SimDaq(seed=2, realtime=True)
+    # A slow rig (a stroke of ~200 ms, not ~8): beside make run and two CPU hogs this thread's
+    # 4 ms sleep overslept a whole 8 ms stroke, and the estop came after the arrival (loaded run 60).
+    slow = UsmSwitchModel(RigParams(nominal_operating_ns=200 * MS), seed=2)
+    daq = SimDaq(slow, seed=2, realtime=True)
     daq.open()
     preds = [ARPredictor(order=1, window=100, nominal_ns=NOMINAL) for _ in range(2)]
-    loop = ControlLoop(daq, preds, target_ns=12 * MS, stroke_timeout_ns=40 * MS)
+    loop = ControlLoop(daq, preds, target_ns=12 * MS, stroke_timeout_ns=1000 * MS)
     loop.set_mode("open", open_delay_ns=0)
     out: list[CycleRecord] = []
     worker = threading.Thread(target=lambda: out.append(loop.switch(Direction.ON)))
     worker.start()
-    time.sleep(0.004)  # the mover is under way (dead time < 1 ms, stroke ~10 ms)
+    time.sleep(0.02)  # the mover is under way, far from the other end
     loop.estop("operator")
     worker.join(2)
     rec = out[0]
     assert rec.t_arrive_ns is None and rec.flags & Flag.ESTOP and rec.flags & Flag.FAULT
     loop._serve_requests()
     assert loop.state is State.FAULT
-    # Stopped mid-way, drive off: the loop saw the estop before the mover arrived, ~6 ms of stroke
-    # left, on the rig's own clock. Not this thread's clock after join(): beside make run and two
+    # Stopped mid-way, drive off: the loop saw the estop before the mover arrived, on the rig's
+    # own clock. Not this thread's clock after join(): beside make run and two
     # CPU hogs that read 11.8 ms, its own wake-up.
     assert 0 < daq.position_mm() < daq.model.params.stroke_mm
     daq.close()
