@@ -492,6 +492,12 @@ _STATUS_KEYS = (
 )  # fmt: skip
 
 
+def estop_post(first_read: bytes) -> bool:
+    """Whether a connection's first read begins the estop's POST: the door handles it as it comes,
+    before the first reads waiting their turn (web/door.py)."""
+    return first_read.startswith(b"POST /api/control/estop ")
+
+
 def _small_id(value: object) -> bool:
     return (isinstance(value, int) and not isinstance(value, bool) and abs(value) < 2**53) or (
         isinstance(value, str) and len(value) <= 64
@@ -791,7 +797,9 @@ async def serve_panel(
     """Serve the panel on a listening TCP socket the daemon bound (the server process's event loop),
     behind its door's budget (web/door.py)."""
     panel = Panel(backend, token, token_file, allowed_hosts)
-    door = Door("panel", MAX_CONNECTIONS, HEAD_TIMEOUT_S, IDLE_TIMEOUT_S, express=panel.express)
+    door = Door(
+        "panel", MAX_CONNECTIONS, HEAD_TIMEOUT_S, IDLE_TIMEOUT_S, express=panel.express, urgent=estop_post
+    )
     runner = web.AppRunner(
         make_app(panel, door),
         access_log=None,

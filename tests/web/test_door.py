@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import asyncio
 import socket
+import time
+from collections.abc import Callable
 
 import pytest
 from aiohttp import web
 
-from usmswitch.web.door import Door
+from usmswitch.web.door import DRAIN_S, Door
 
 uvloop = pytest.importorskip("uvloop")
 
@@ -32,9 +34,11 @@ async def _read_all(s: socket.socket) -> bytes:
     return out
 
 
-async def _serve(door: Door) -> tuple[asyncio.AbstractServer, int, list[int]]:
+async def _serve(
+    door: Door, on_make: Callable[[], None] | None = None
+) -> tuple[asyncio.AbstractServer, int, list[int]]:
     """aiohttp behind `door` on a free loopback port, answering "answered" to every request; the
-    list's one number counts the aiohttp handlers made."""
+    list's one number counts the aiohttp handlers made (`on_make()` called at each)."""
 
     async def handler(request: web.BaseRequest) -> web.StreamResponse:
         return await door.handling(request, lambda r: _ok())
@@ -47,6 +51,8 @@ async def _serve(door: Door) -> tuple[asyncio.AbstractServer, int, list[int]]:
 
     def make() -> asyncio.BaseProtocol:
         made[0] += 1
+        if on_make is not None:
+            on_make()
         return aiohttp_server()
 
     listener = socket.create_server(("127.0.0.1", 0))
@@ -118,6 +124,82 @@ def test_a_silent_connection_costs_the_door_no_aiohttp_handler_until_it_speaks()
     assert made_silent == 0
     assert answer.startswith(b"HTTP/1.1 200") and answer.endswith(b"answered\n"), answer[:200]
     assert made == 1
+
+
+_ASK = b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
+_URGENT = b"URGENT / HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n"
+_URGENT_ANSWER = b"HTTP/1.1 200 OK\r\nContent-Length: 7\r\nConnection: close\r\n\r\nurgent\n"
+
+
+def _urgent_door(order: list[str]) -> Door:
+    """A door whose express lane answers the urgent requests (and notes each in `order`)."""
+
+    def express(transport: asyncio.BaseTransport, data: bytes) -> bytes | None:
+        if not data.startswith(b"URGENT"):
+            return None
+        order.append("urgent")
+        return _URGENT_ANSWER
+
+    return Door("test door", 64, 10.0, 60.0, express=express, urgent=lambda data: data.startswith(b"URGENT"))
+
+
+async def _first_reads_in_one_step(n: int, busy_s: float) -> tuple[list[str], list[bytes]]:
+    """`n` requests read in one step of the loop, then an urgent one: sent in the same step
+    (`busy_s` 0), or by the first aiohttp handler the door makes (each made `busy_s` long).
+    Returns the order the door handled them in, and the answers."""
+    order: list[str] = []
+    door = _urgent_door(order)
+    askers: list[socket.socket] = []
+    urgent: socket.socket | None = None
+
+    def on_make() -> None:
+        order.append("queued")
+        if busy_s and len(order) == 1:
+            assert urgent is not None
+            urgent.sendall(_URGENT)  # in the kernel before this step of the loop ends
+        end = time.perf_counter() + busy_s
+        while time.perf_counter() < end:
+            pass
+
+    server, port, _ = await _serve(door, on_make)
+    try:
+        askers = [_connect(port) for _ in range(n)]
+        urgent = _connect(port)
+        while len(door.conns) < n + 1:
+            await asyncio.sleep(0.01)
+        # This coroutine holds the loop: every request is in the kernel before it reads one.
+        for s in askers:
+            s.sendall(_ASK)
+        if not busy_s:
+            urgent.sendall(_URGENT)
+        answers = [await _read_all(s) for s in (urgent, *askers)]
+        return order, answers
+    finally:
+        for s in (*askers, *([urgent] if urgent else [])):
+            s.close()
+        server.close()
+        door.close()
+
+
+def test_an_urgent_first_read_is_handled_before_those_of_its_step_waiting_their_turn() -> None:
+    """Issue 35: a burst of 200 live feeds had each first read handled in the step it came (the
+    express lane's 503, aiohttp's handler made), and the panel's estop POST among them waited for
+    all (p99 5.5-18 ms, `make bench BENCH=abuse`). The estop's first read is handled as it comes."""
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        order, answers = runner.run(_first_reads_in_one_step(40, 0.0))
+    assert order == ["urgent"] + ["queued"] * 40
+    assert answers[0] == _URGENT_ANSWER
+    assert all(a.startswith(b"HTTP/1.1 200") and a.endswith(b"answered\n") for a in answers[1:])
+
+
+def test_first_reads_waiting_their_turn_take_at_most_a_budget_of_each_step() -> None:
+    """Each step of the loop gives the waiting first reads DRAIN_S, then reads its sockets: an urgent
+    request that comes while 20 slow ones wait is handled after the one being handled, not the 20."""
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        order, answers = runner.run(_first_reads_in_one_step(20, 2 * DRAIN_S))
+    assert order == ["queued", "urgent"] + ["queued"] * 19
+    assert answers[0] == _URGENT_ANSWER
+    assert all(a.endswith(b"answered\n") for a in answers[1:])
 
 
 class _Held:
