@@ -87,9 +87,9 @@ def test_the_event_queue_is_bounded_and_an_overflow_in_a_stroke_is_a_fault(tmp_p
         _open(port, max_queued_events=64, stroke_timeout_ns=5000 * MS) as daq,
     ):
         daq.arm(Direction.ON, 1 * MS)
-        start = daq.now_ns() + 5 * MS + 1 * MS
-        daq.command(start - 1 * MS)
-        while daq.now_ns() <= start:  # what the flood pushes out is the stroke's own
+        commanded = daq.now_ns() + 5 * MS
+        daq.command(commanded)
+        while daq.now_ns() <= commanded + 1 * MS:  # past its start: the flood's drops are its own
             time.sleep(0.001)
         # Sensor B (not the mover's) says "released", again and again, until the queue overflows
         # (a busy host sends fewer a second).
