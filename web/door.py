@@ -86,8 +86,8 @@ class Door:
         self.refused = self.shed = self.timed_out = 0
         self._logged_ns = 0
         self._sweeper: asyncio.Task[None] | None = None
-        self._turns: deque[_Tracked] = deque()  # connections whose first read waits its turn
-        self._draining = False
+        # Connections whose first read waits its turn; a `_drain` is due while it is not empty.
+        self._turns: deque[_Tracked] = deque()
 
     # -- wiring ------------------------------------------------------------------------------------
     def protocol_factory(
@@ -157,8 +157,7 @@ class Door:
     def wait_turn(self, tracked: _Tracked) -> None:
         """`tracked`'s first read is handled in its turn, after those before it (`_drain`)."""
         self._turns.append(tracked)
-        if not self._draining:
-            self._draining = True
+        if len(self._turns) == 1:
             asyncio.get_running_loop().call_soon(self._drain)
 
     def _drain(self) -> None:
@@ -170,8 +169,6 @@ class Door:
                 break
         if self._turns:
             asyncio.get_running_loop().call_soon(self._drain)
-        else:
-            self._draining = False
 
     def close(self) -> None:
         """Stop the sweeper (the server is closing)."""
@@ -303,17 +300,20 @@ class _Tracked(asyncio.Protocol):
         elif self.waiting is not None:  # more of it before its turn came
             self.waiting += data
         elif self.door.urgent is not None and self.door.urgent(data):
-            self.waiting = data
-            self.begin()
+            self._hand_on(data)
         else:
             self.waiting = data
             self.door.wait_turn(self)
 
     def begin(self) -> None:
-        """Its turn: the first read to the express lane, else to aiohttp's handler, made now."""
+        """Its turn: its first read handed on, unless the connection went meanwhile."""
         data, self.waiting = self.waiting, None
-        if data is None or self.transport is None or self.transport.is_closing():
-            return  # gone (or shed) while it waited
+        if data is not None and self.transport is not None and not self.transport.is_closing():
+            self._hand_on(data)  # else gone (or shed) while it waited
+
+    def _hand_on(self, data: bytes) -> None:
+        """The first read to the express lane, else to aiohttp's handler, made now."""
+        assert self.transport is not None
         if self.door.take(self.transport, data):
             self.expressed = True  # answered at the door; anything after it is not read
             return

@@ -448,7 +448,7 @@ class Panel:
         request = parse(data, MAX_BODY_BYTES)
         if request is None or not self.host_allowed(request) or not same_origin(request):
             return None
-        if request.method == "POST" and request.path == "/api/control/estop" and self.authorized(request):
+        if request.method == "POST" and request.path == ESTOP_PATH and self.authorized(request):
             try:
                 method, params = control_call("estop", request.body)
             except (BadBody, RpcError):
@@ -486,6 +486,10 @@ class Panel:
         )
 
 
+#: The estop's control: the express lane answers it, and the door lets its first read go first.
+ESTOP_PATH = "/api/control/estop"
+_ESTOP_HEAD = f"POST {ESTOP_PATH} ".encode()
+
 _STATUS_KEYS = (
     "rig", "driver", "driver_ok", "state", "mode", "fault", "model", "order", "cycle",
     "target_on_ns", "target_off_ns", "open_delay_ns", "version", "uptime_ns", "scheduling",
@@ -495,7 +499,7 @@ _STATUS_KEYS = (
 def estop_post(first_read: bytes) -> bool:
     """Whether a connection's first read begins the estop's POST: the door handles it as it comes,
     before the first reads waiting their turn (web/door.py)."""
-    return first_read.startswith(b"POST /api/control/estop ")
+    return first_read.startswith(_ESTOP_HEAD)
 
 
 def _small_id(value: object) -> bool:

@@ -209,8 +209,8 @@ def test_estop_from_another_thread_stops_a_stroke_in_motion() -> None:
     loop._serve_requests()
     assert loop.state is State.FAULT
     # Stopped mid-way, drive off: the loop saw the estop before the mover arrived, on the rig's
-    # own clock. Not this thread's clock after join(): beside make run and two
-    # CPU hogs that read 11.8 ms, its own wake-up.
+    # own clock. Not this thread's clock after join(): beside make run and two CPU hogs that read
+    # 11.8 ms, its own wake-up.
     assert 0 < daq.position_mm() < daq.model.params.stroke_mm
     daq.close()
 
