@@ -9,7 +9,7 @@ one follows it, looked at every FOLLOW_S), SCHED_OTHER when it is not; /metrics 
 below the panel's: the panel's estop (its live feed's, its POST) never waits behind a scrape's
 rendering (4 scrapers hammering /metrics put the panel POST's p99 at 7.0-7.2 ms beside 3.3 idle,
 `make bench BENCH=abuse` with the CPUs polling, stop 51). The threads share the GIL: a higher one
-takes it from a lower one within the switch interval (0.5 ms in the server process).
+takes it from a lower one within the switch interval (0.2 ms in the server process).
 
 The panel reaches the server's state through `CrossBackend`: each call is handed to the event
 loop's thread and its reply handed back, each notification likewise, so every socket method the
