@@ -61,8 +61,8 @@ def steal_ms() -> float:
     """Time the hypervisor held this machine's vCPUs from running since boot, summed over them, ms
     (/proc/stat's steal; 0.0 where there is none to read). A stall of a vCPU stops whatever runs
     on it, at any priority: on the Firecracker VM these benchmarks run on, a SCHED_FIFO thread
-    spinning on an idle machine saw gaps of 1-4.6 ms a few times in 20 s, each gap's time counted
-    as steal (stop 58)."""
+    spinning on an idle machine saw gaps of 1-4.6 ms a few times in 20 s, and the steal rose about
+    as much (stop 58). Counted in ticks (10 ms): a window's share, not which request a gap hit."""
     try:
         fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
     except OSError:
