@@ -65,7 +65,7 @@ from benchmarks.abuse_loads import (
     load_unread_history,
 )
 from benchmarks.bench_loop import PRIORITY, fifo_allowed, percentiles
-from benchmarks.cpu_idle import MODES, Polling, describe, steal_ms
+from benchmarks.cpu_idle import MODES, Polling, describe, steal_ms, vcpu_holds
 from benchmarks.table import print_table
 from usmswitch.client import Client, ConnectionClosed, RpcError
 from usmswitch.protocol.sockets import tcp_token_path, web_token_path
@@ -82,6 +82,8 @@ WINDOW_S = float(os.environ.get("BENCH_ABUSE_WINDOW_S", "20"))
 # the paths; the kept estop's 20 until stop 58); with 100 it is the 2nd.
 ESTOPS = int(os.environ.get("BENCH_ABUSE_ESTOPS", "100"))
 PATH_ESTOPS = int(os.environ.get("BENCH_ABUSE_PATH_ESTOPS", "100"))
+# The machine's holds are looked for this long on each CPU at the start (benchmarks/cpu_idle.py).
+HOLDS_S = float(os.environ.get("BENCH_ABUSE_HOLDS_S", "10"))
 # A comma-separated list of words: only the loads whose names contain one of them (and idle).
 ONLY = [w for w in os.environ.get("BENCH_ABUSE_ONLY", "").split(",") if w]
 # The CPUs kept from halting while the loads run, as a real-time host's are (benchmarks/cpu_idle.py).
@@ -558,6 +560,8 @@ def main() -> int:
     if IDLE not in MODES:
         raise SystemExit(f"BENCH_ABUSE_IDLE must be one of {', '.join(MODES)}, got {IDLE!r}")
     fifo = fifo_allowed()
+    # Before the daemon starts: a spinner above its loop would hold the loop from its CPU.
+    holds = vcpu_holds(multiprocessing.get_context("spawn"), HOLDS_S, PRIORITY + 1 if fifo else 0)
     tmp = Path(tempfile.mkdtemp(prefix="usm-abuse-"))
     sock = tmp / "d.sock"
     (tmp / "state").mkdir(mode=0o700)
@@ -607,6 +611,7 @@ def main() -> int:
         policy = "SCHED_FIFO" if fifo else "SCHED_OTHER"
         print(f"policy {policy}; window {WINDOW_S:g} s; {ESTOPS} estops per load")
         print(describe(IDLE))
+        print(holds)
         polling = floor_halting_and_polling(floor, ctx, rng)
         if IDLE == "halt":
             polling.close()

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import time
 from pathlib import Path
 from typing import Any
 
@@ -61,14 +62,64 @@ def steal_ms() -> float:
     """Time the hypervisor held this machine's vCPUs from running since boot, summed over them, ms
     (/proc/stat's steal; 0.0 where there is none to read). A stall of a vCPU stops whatever runs
     on it, at any priority: on the Firecracker VM these benchmarks run on, a SCHED_FIFO thread
-    spinning on an idle machine saw gaps of 1-4.6 ms a few times in 20 s, and the steal rose about
-    as much (stop 58). Counted in ticks (10 ms): a window's share, not which request a gap hit."""
+    spinning on an idle machine saw gaps of 1-4.6 ms a few times in 20 s while the steal rose
+    (`vcpu_holds`, stop 58). Counted in ticks (10 ms): a window's share, not which request a gap hit."""
     try:
         fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
     except OSError:
         return 0.0
     ticks = int(fields[8]) if len(fields) > 8 and fields[0] == "cpu" else 0
     return ticks * 1000.0 / os.sysconf("SC_CLK_TCK")
+
+
+#: A holds probe's gaps shorter than this are the kernel's own (a tick, an interrupt), not a hold.
+HOLD_NS = 1_000_000
+
+
+def _spin_for_gaps(cpu: int, seconds: float, priority: int, conn: Any) -> None:
+    """On `cpu`, read the clock in a bare loop for `seconds` and send back every gap over HOLD_NS.
+    In bursts of 0.4 s with 0.1 s asleep between, so that the kernel's RT throttling (a real-time
+    task is held for the rest of each second past 0.95 s of it) never makes a gap of its own."""
+    with contextlib.suppress(OSError):
+        os.sched_setaffinity(0, {cpu})
+    if priority:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    now = time.monotonic_ns
+    gaps = []
+    end = now() + int(seconds * 1e9)
+    while now() < end:
+        last = now()
+        burst_end = min(end, last + 400_000_000)
+        while last < burst_end:
+            t = now()
+            if t - last > HOLD_NS:
+                gaps.append(t - last)
+            last = t
+        time.sleep(0.1)
+    conn.send(gaps)
+
+
+def vcpu_holds(ctx: Any, seconds: float, priority: int) -> str:
+    """The machine held from under a spinning SCHED_FIFO `priority` thread (0: SCHED_OTHER, whose
+    gaps include other tasks'), `seconds` on each CPU in turn: a line of the gaps over 1 ms and
+    the steal counted meanwhile. Nothing in the guest runs above a real-time spinner for that long:
+    such a gap is the hypervisor's (or an interrupt's) and stops whatever runs there."""
+    counts, longest = [], 0.0
+    stolen = steal_ms()
+    for cpu in sorted(os.sched_getaffinity(0)):
+        ours, theirs = ctx.Pipe(duplex=False)
+        proc = ctx.Process(target=_spin_for_gaps, args=(cpu, seconds, priority, theirs), daemon=True)
+        proc.start()
+        gaps = ours.recv()
+        proc.join(5)
+        counts.append(len(gaps))
+        longest = max([longest, *(g / 1e6 for g in gaps)])
+    per_cpu = " / ".join(str(n) for n in counts)
+    return (
+        f"the machine's holds (a SCHED_{'FIFO' if priority else 'OTHER'} spinner, {seconds:g} s on each"
+        f" CPU): gaps over 1 ms {per_cpu}, the longest {longest:.2f} ms; steal {steal_ms() - stolen:.0f} ms"
+    )
 
 
 def describe(mode: str) -> str:
