@@ -134,3 +134,18 @@ def describe(mode: str) -> str:
         f"the machine's idle: halting as it comes (cpuidle driver {driver});"
         " BENCH_ABUSE_IDLE=poll keeps the CPUs awake"
     )
+
+
+if __name__ == "__main__":  # python -m benchmarks.cpu_idle [seconds a CPU]: the holds alone
+    import multiprocessing
+    import sys
+
+    from benchmarks.bench_loop import PRIORITY, fifo_allowed
+
+    print(
+        vcpu_holds(
+            multiprocessing.get_context("spawn"),
+            float(sys.argv[1]) if len(sys.argv) > 1 else 10.0,
+            PRIORITY + 1 if fifo_allowed() else 0,
+        )
+    )
