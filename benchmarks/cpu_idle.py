@@ -33,11 +33,16 @@ def cpuidle_driver() -> str:
         return "unknown"
 
 
-def _spin(cpu: int) -> None:
-    """The body of one spinner: on `cpu` alone, at SCHED_IDLE, forever."""
+def _on_cpu(cpu: int, policy: int, priority: int = 0) -> None:
+    """This process on `cpu` alone (where allowed), at `policy` and `priority`."""
     with contextlib.suppress(OSError):
         os.sched_setaffinity(0, {cpu})
-    os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    os.sched_setscheduler(0, policy, os.sched_param(priority))
+
+
+def _spin(cpu: int) -> None:
+    """The body of one spinner: on `cpu` alone, at SCHED_IDLE, forever."""
+    _on_cpu(cpu, os.SCHED_IDLE)
     while True:
         pass
 
@@ -81,10 +86,7 @@ def _spin_for_gaps(cpu: int, seconds: float, priority: int, conn: Any) -> None:
     In bursts of 0.4 s with 0.1 s asleep between, so that the kernel's RT throttling (a real-time
     task is held for the rest of each second past 0.95 s of it) never makes a gap of its own."""
     with contextlib.suppress(OSError):
-        os.sched_setaffinity(0, {cpu})
-    if priority:
-        with contextlib.suppress(OSError):
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        _on_cpu(cpu, os.SCHED_FIFO if priority else os.SCHED_OTHER, priority)
     now = time.monotonic_ns
     gaps = []
     end = now() + int(seconds * 1e9)
@@ -105,17 +107,16 @@ def vcpu_holds(ctx: Any, seconds: float, priority: int) -> str:
     gaps include other tasks'), `seconds` on each CPU in turn: a line of the gaps over 1 ms and
     the steal counted meanwhile. Nothing in the guest runs above a real-time spinner for that long:
     such a gap is the hypervisor's (or an interrupt's) and stops whatever runs there."""
-    counts, longest = [], 0.0
+    held = []  # each CPU's gaps, ns
     stolen = steal_ms()
     for cpu in sorted(os.sched_getaffinity(0)):
         ours, theirs = ctx.Pipe(duplex=False)
         proc = ctx.Process(target=_spin_for_gaps, args=(cpu, seconds, priority, theirs), daemon=True)
         proc.start()
-        gaps = ours.recv()
+        held.append(ours.recv())
         proc.join(5)
-        counts.append(len(gaps))
-        longest = max([longest, *(g / 1e6 for g in gaps)])
-    per_cpu = " / ".join(str(n) for n in counts)
+    per_cpu = " / ".join(str(len(gaps)) for gaps in held)
+    longest = max((g for gaps in held for g in gaps), default=0) / 1e6
     return (
         f"the machine's holds (a SCHED_{'FIFO' if priority else 'OTHER'} spinner, {seconds:g} s on each"
         f" CPU): gaps over 1 ms {per_cpu}, the longest {longest:.2f} ms; steal {steal_ms() - stolen:.0f} ms"
